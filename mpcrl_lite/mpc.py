@@ -243,6 +243,15 @@ class MPC:
         )
 
     # -- numeric helpers ------------------------------------------------------------------
+    def shift(self, x: np.ndarray) -> np.ndarray:
+        """Warm start for the next hour: drop stage 0, repeat the last stage.
+
+        ``x`` has shape ``(..., nx)``; the result has the same shape.
+        """
+        x = np.asarray(x, dtype=float)
+        block = 5 * self.n
+        return np.concatenate([x[..., block:], x[..., -block:]], axis=-1)
+
     def qp_data(self, p: np.ndarray) -> QPData:
         """The QP at one parameter vector ``p`` of shape ``(np,)``."""
         H, q, c, A, e, C, d = self.qp_function(np.asarray(p, float))

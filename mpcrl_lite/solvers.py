@@ -187,6 +187,7 @@ class IpoptSolver:
         self._nlp = ca.nlpsol("mpc_ipopt", "ipopt", {"x": x, "p": p, "f": f, "g": g_all},
                               _ipopt_options(self.config))
         self._kkt = mpc.kkt
+        self._sensitivity = None
 
     # -- single problem -------------------------------------------------------------------
     def solve(
@@ -276,6 +277,14 @@ class IpoptSolver:
         x0[m.index("sigma_hi")] = 0.1
         x0[m.index("sigma_lo")] = 0.1
         return x0
+
+    def sensitivity(self, solution: "MPCSolution | BatchSolution"):
+        """grad_theta pi at ``solution`` (see :class:`mpcrl_lite.sensitivity.PolicySensitivity`)."""
+        if self._sensitivity is None:
+            from .sensitivity import PolicySensitivity
+
+            self._sensitivity = PolicySensitivity(self.mpc, self.config)
+        return self._sensitivity(solution)
 
     # -- batches --------------------------------------------------------------------------
     def solve_batch(

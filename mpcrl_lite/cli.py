@@ -1,0 +1,297 @@
+"""Command line: ``python -m mpcrl_lite COMMAND ...``.
+
+Commands
+--------
+simulate   closed loop of the nominal MPC (theta0) over some days; summary + figure
+learn      the learning experiment (months x days, LSTD + DPG); History + summary + figures
+report     execute every notebook into a report directory (papermill)
+baselines  clairvoyant / nominal / rule-based policies on the same draws as a History
+sweep      a grid of learning runs on Dask
+
+Bad arguments end with one line on stderr (``mpcrl_lite <command>: error: ...``) and exit
+status 2, never with a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["main", "build_parser"]
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+class UsageError(Exception):
+    """A bad value found after parsing (reported in one line, exit 2)."""
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value} must be >= 1")
+    return value
+
+
+def _nonneg_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{value} must be >= 0")
+    return value
+
+
+def _float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not np.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return value
+
+
+def _add_system_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--seed", type=_nonneg_int, default=0, help="random seed (default 0)")
+    p.add_argument("--p-bar", type=_float, default=None, help="grid peak bound P_bar (default 1.5)")
+    p.add_argument("--noise-var", type=_float, default=None,
+                   help="variance of the production-demand noise (default 0.5)")
+    p.add_argument("--n", type=_positive_int, default=None, help="number of batteries (default 3)")
+    p.add_argument("--tau", type=_float, default=None, help="MPC barrier parameter (default 1e-4)")
+    p.add_argument("--backend", choices=("auto", "ipopt", "batch"), default=None,
+                   help="MPC solver back-end (default auto)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``python -m mpcrl_lite``."""
+    parser = _Parser(prog="mpcrl_lite", description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+
+    p = sub.add_parser("simulate", help="closed loop of the nominal MPC")
+    p.add_argument("--days", type=_positive_int, required=True, help="number of days (batch)")
+    p.add_argument("--out", type=Path, required=True, help="output directory")
+    _add_system_args(p)
+
+    p = sub.add_parser("learn", help="the learning experiment")
+    p.add_argument("--months", type=_positive_int, required=True, help="learning steps (months)")
+    p.add_argument("--out", type=Path, required=True, help="output directory (checkpoints too)")
+    p.add_argument("--days", type=_positive_int, default=None, help="days per month (default 30)")
+    p.add_argument("--resume", action="store_true", help="continue the run found in --out")
+    p.add_argument("--step-size", type=_float, default=None, help="DPG step size")
+    p.add_argument("--optimizer", choices=("sgd", "adam"), default=None)
+    p.add_argument("--exploration-std", type=_float, default=None)
+    p.add_argument("--decentralized", action="store_true",
+                   help="one local MPC and learner per battery, grid limit by dual decomposition")
+    p.add_argument("--no-figures", action="store_true", help="skip writing the figures")
+    _add_system_args(p)
+
+    p = sub.add_parser("report", help="execute every notebook into a report directory")
+    p.add_argument("--out", type=Path, default=Path("reports"), help="report directory")
+    p.add_argument("--profile", choices=("full", "ci"), default="full",
+                   help="parameters: the notebooks' defaults (full) or the small CI profile")
+    p.add_argument("--notebooks", nargs="*", default=None, help="only these notebooks")
+
+    p = sub.add_parser("baselines", help="baseline policies on the same draws")
+    p.add_argument("--out", type=Path, required=True, help="output directory")
+    p.add_argument("--history", type=Path, default=None,
+                   help="a learn output directory whose final theta is evaluated too")
+    p.add_argument("--days", type=_positive_int, default=None, help="days (default 30)")
+    _add_system_args(p)
+
+    p = sub.add_parser("sweep", help="a grid of learning runs on Dask")
+    p.add_argument("--grid", type=Path, required=True, help="YAML file with the grid")
+    p.add_argument("--out", type=Path, required=True, help="output directory")
+    p.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
+    p.add_argument("--workers", type=_positive_int, default=None, help="local workers")
+    p.add_argument("--notebooks", action="store_true",
+                   help="also execute notebook 05 per grid point into DIR/reports/")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return parser
+
+
+# -- configs from arguments ----------------------------------------------------------------
+def _configs(args: argparse.Namespace, **learning: Any):
+    from .config import LearningConfig, MPCConfig, SystemConfig
+
+    system = {}
+    if args.p_bar is not None:
+        system["P_bar"] = args.p_bar
+    if args.noise_var is not None:
+        system["noise_var"] = args.noise_var
+    if args.n is not None:
+        system["n"] = args.n
+    mpc = {}
+    if args.tau is not None:
+        mpc["tau"] = args.tau
+    if args.backend is not None:
+        mpc["backend"] = args.backend
+    learning = {k: v for k, v in learning.items() if v is not None}
+    try:
+        return (
+            SystemConfig(**system),
+            MPCConfig(**mpc),
+            LearningConfig(seed=args.seed, **learning),
+        )
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+
+
+def _write_json(path: Path, data: dict[str, Any]) -> None:
+    path.write_text(json.dumps(data, indent=1))
+
+
+# -- commands ------------------------------------------------------------------------------
+def cmd_simulate(args: argparse.Namespace) -> int:
+    system, mpc_config, learning = _configs(args)  # validate before any work
+    from .experiment import run_month
+    from .mpc import MPC
+    from .plots import plot_day
+    from .prices import Prices
+    from .solvers import make_solver
+    from .theta import Theta
+
+    out: Path = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    prices = Prices.month(system, args.days)
+    theta = Theta.nominal(system)
+    mpc = MPC(system)
+    solver = make_solver(mpc, mpc_config, theta)
+    rng = np.random.default_rng(learning.seed)
+    t0 = time.perf_counter()
+    record = run_month(theta, solver, prices, system, rng, exploration_std=0.0, sensitivities=False)
+    elapsed = time.perf_counter() - t0
+    summary = {
+        **record.summary(),
+        "days": args.days,
+        "P_bar": system.P_bar,
+        "noise_var": system.noise_var,
+        "seed": learning.seed,
+        "backend": solver.name,
+        "wall_time_s": elapsed,
+        "ms_per_mpc_solve": 1000 * elapsed / (args.days * system.hours_per_day),
+        "theta": theta.to_dict(),
+        "system": system.to_dict(),
+        "mpc": mpc_config.to_dict(),
+    }
+    np.savez_compressed(out / "trajectories.npz", **record.arrays("month"))
+    _write_json(out / "summary.json", summary)
+    fig = plot_day(record, day=0)
+    fig.savefig(out / "day0.png", dpi=110)
+    print(json.dumps({k: summary[k] for k in (
+        "J", "max_P_mpc", "max_P_applied", "hours_soc_below_0_1", "solver_failures", "wall_time_s"
+    )}))
+    return 0
+
+
+def cmd_learn(args: argparse.Namespace) -> int:
+    from .experiment import Experiment
+
+    system, mpc_config, learning = _configs(
+        args, months=args.months, days_per_month=args.days, step_size=args.step_size,
+        optimizer=args.optimizer, exploration_std=args.exploration_std,
+    )
+    out: Path = args.out
+    if out.exists() and (out / "checkpoint.json").exists() and not args.resume:
+        raise UsageError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
+    out.mkdir(parents=True, exist_ok=True)
+    if args.decentralized:
+        from .decentralized import DecentralizedExperiment
+
+        exp = DecentralizedExperiment(system, mpc_config, learning)
+    else:
+        exp = Experiment(system, mpc_config, learning)
+    try:
+        history = exp.run(months=args.months, out=out, resume=args.resume, progress=not args.quiet)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    summary = history.summary()
+    _write_json(out / "summary.json", summary)
+    if not args.no_figures:
+        from .plots import save_paper_figures
+
+        save_paper_figures(history, out, prices=exp.prices)
+    print(json.dumps({
+        "months": history.months,
+        "J_first": history.J[0],
+        "J_last": history.J[-1],
+        "hours_soc_below_0_1_first": history.hours_soc_below_0_1[0],
+        "hours_soc_below_0_1_last": history.hours_soc_below_0_1[-1],
+        "max_P_mpc": max(history.max_P_mpc),
+        "skipped_steps": int(sum(history.skipped_steps)),
+        "wall_time_s": float(sum(history.wall_time_s)),
+    }))
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from .report import run_report
+
+    try:
+        summary = run_report(args.out, profile=args.profile, notebooks=args.notebooks)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    print(json.dumps({"report": str(args.out), "notebooks": list(summary["notebooks"])}))
+    return 0
+
+
+def cmd_baselines(args: argparse.Namespace) -> int:
+    system, mpc_config, learning = _configs(args, days_per_month=args.days)
+    from .baselines import run_baselines_cli
+
+    result = run_baselines_cli(system, mpc_config, learning, args.history, args.out)
+    print(json.dumps({k: v["J"] for k, v in result["policies"].items()}))
+    return 0
+
+
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from .sweep import run_sweep_cli
+
+    try:
+        table = run_sweep_cli(args.grid, args.out, scheduler=args.scheduler, workers=args.workers,
+                              notebooks=args.notebooks, progress=not args.quiet)
+    except (ValueError, FileNotFoundError) as err:
+        raise UsageError(str(err)) from None
+    print(json.dumps({"runs": len(table), "table": str(args.out / "results.csv")}))
+    return 0
+
+
+COMMANDS = {
+    "simulate": cmd_simulate,
+    "learn": cmd_learn,
+    "report": cmd_report,
+    "baselines": cmd_baselines,
+    "sweep": cmd_sweep,
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return COMMANDS[args.command](args)
+    except UsageError as err:
+        print(f"mpcrl_lite {args.command}: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"mpcrl_lite {args.command}: interrupted (checkpoints, if any, are kept)", file=sys.stderr)
+        return 130

@@ -1,0 +1,316 @@
+r"""The learning experiment: months of 30 days in closed loop, one DPG update per month.
+
+Every month (paper, Section IV):
+
+1. all days of the month start at ``soc0`` and advance together, hour by hour: at hour
+   ``k`` one call solves the MPC of every day (:mod:`mpcrl_lite.solvers`), the policy
+   sensitivities are computed at the solutions (:mod:`mpcrl_lite.sensitivity`), Gaussian
+   exploration is added to the MPC action and projected onto the input bounds and the grid
+   limit (:func:`mpcrl_lite.model.project_action`), and the true system takes a step
+   (:func:`mpcrl_lite.model.step`);
+2. LSTD fits the compatible action-value function on the month's transitions
+   (:func:`mpcrl_lite.lstd.lstd_q`); each day is an episode, so the last hour of a day does
+   not bootstrap (the next day restarts at ``soc0``);
+3. the policy gradient ``mean(grad pi grad pi^T w)`` moves theta
+   (:class:`mpcrl_lite.dpg.DPGUpdater`).
+
+Random draws come from one ``numpy.random.Generator`` seeded with ``LearningConfig.seed``,
+in a fixed order (per hour: exploration, then noise), so a seed fixes a run. After every
+month the run can be checkpointed (History, theta, the updater's state and the generator's
+state, all as JSON/npz) and resumed with identical results.
+
+Hours whose MPC failed use the fallback action (idle) and, like hours whose KKT system was
+unusable, are left out of LSTD and of the gradient; :attr:`History.skipped_steps` counts
+them.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from .config import LearningConfig, MPCConfig, SystemConfig
+from .dpg import DPGUpdater, policy_gradient
+from .history import History, MonthRecord
+from .lstd import compatible_features, lstd_q, value_features
+from .model import project_action, sample_noise, step
+from .mpc import MPC
+from .prices import Prices
+from .solvers import make_solver
+from .theta import Theta
+
+__all__ = ["Experiment", "run_month", "Callback"]
+
+log = logging.getLogger(__name__)
+
+#: ``callback(month_index, history, experiment)``, called after each month's update.
+Callback = Callable[[int, History, "Experiment"], None]
+
+CHECKPOINT = "checkpoint.json"
+
+
+def run_month(
+    theta: Theta,
+    solver: Any,
+    prices: Prices,
+    system: SystemConfig,
+    rng: np.random.Generator,
+    exploration_std: float = 0.0,
+    sensitivities: bool = True,
+    soc0: float | np.ndarray | None = None,
+) -> MonthRecord:
+    """One month in closed loop; every day of ``prices`` advances together.
+
+    Parameters
+    ----------
+    theta
+        MPC parameters used all month.
+    solver
+        A back-end from :func:`mpcrl_lite.solvers.make_solver` (``solve_batch`` and
+        ``sensitivity``).
+    prices
+        The month's prices, ``prices.days`` days.
+    system
+        The true system.
+    rng
+        Draws exploration (if ``exploration_std > 0``) then noise, each (days, n), per hour.
+    exploration_std
+        Std of the Gaussian exploration added to the MPC action.
+    sensitivities
+        Compute grad_theta pi at every solution (needed for learning).
+    soc0
+        Start of day soc (default ``system.soc0``), scalar, (n,) or (days, n).
+
+    Returns
+    -------
+    MonthRecord
+    """
+    mpc = solver.mpc
+    D, H, n, N = prices.days, system.hours_per_day, system.n, system.N
+    soc = np.broadcast_to(np.asarray(system.soc0 if soc0 is None else soc0, float), (D, n)).copy()
+    out = {k: np.zeros((H, D, n)) for k in ("policy", "a", "b", "s", "correction", "agent_cost", "noise")}
+    socs = np.zeros((H + 1, D, n))
+    socs[0] = soc
+    stage_cost = np.zeros((H, D))
+    grid = np.zeros((H, D))
+    planned = np.zeros((H, D))
+    buy = np.zeros((H, D))
+    solver_ok = np.zeros((H, D), dtype=bool)
+    sens_ok = np.zeros((H, D), dtype=bool)
+    grad_pi = np.zeros((H, D, mpc.n_theta, n)) if sensitivities else None
+    ib, is_ = mpc.index("b"), mpc.index("s")
+    x_prev = None
+    for k in range(H):
+        buy_w, sell_w = prices.window(k, N)
+        warm = None if x_prev is None else mpc.shift(x_prev)
+        sol = solver.solve_batch(soc, buy_w, sell_w, theta, x0=warm)
+        x_prev = np.where(sol.success[:, None], sol.x, warm) if warm is not None else sol.x
+        pi = sol.action
+        solver_ok[k] = sol.success
+        planned[k] = np.maximum(sol.x[:, ib].sum(axis=2), sol.x[:, is_].sum(axis=2)).max(axis=1)
+        if sensitivities:
+            sens = solver.sensitivity(sol)
+            grad_pi[k] = sens.grad
+            sens_ok[k] = sens.ok
+        if exploration_std > 0:
+            a = project_action(pi + exploration_std * rng.standard_normal((D, n)), system)
+        else:
+            a = pi
+        noise = sample_noise(rng, (D, n), system)
+        res = step(soc, a, noise, buy_w[:, 0], sell_w[:, 0], system)
+        out["policy"][k], out["a"][k], out["noise"][k] = pi, a, noise
+        out["b"][k], out["s"][k], out["correction"][k] = res.b, res.s, res.correction
+        out["agent_cost"][k] = res.agent_cost
+        stage_cost[k], grid[k], buy[k] = res.stage_cost, res.grid_power, buy_w[:, 0]
+        soc = res.soc_next
+        socs[k + 1] = soc
+    return MonthRecord(
+        soc=socs, stage_cost=stage_cost, grid_power=grid, planned_power=planned, buy=buy,
+        solver_ok=solver_ok, sens_ok=sens_ok, system=system, grad_pi=grad_pi, **out,
+    )
+
+
+class Experiment:
+    """The paper's learning run: months x days, LSTD critic, DPG update at each month's end.
+
+    Parameters
+    ----------
+    system, mpc_config, learning
+        Configurations (defaults: the paper's).
+    prices
+        The month's prices (default: the embedded NO3 profile, first
+        ``learning.days_per_month`` days).
+    theta0
+        Initial parameters (default :meth:`Theta.nominal`).
+    callbacks
+        Called after every month as ``callback(month, history, experiment)``.
+    """
+
+    def __init__(
+        self,
+        system: SystemConfig | None = None,
+        mpc_config: MPCConfig | None = None,
+        learning: LearningConfig | None = None,
+        prices: Prices | None = None,
+        theta0: Theta | None = None,
+        callbacks: Sequence[Callback] = (),
+    ) -> None:
+        self.system = system or SystemConfig()
+        self.mpc_config = mpc_config or MPCConfig()
+        self.learning = learning or LearningConfig()
+        if prices is None:
+            prices = Prices.month(self.system, self.learning.days_per_month)
+        if prices.days != self.learning.days_per_month:
+            raise ValueError(
+                f"prices have {prices.days} days; expected days_per_month="
+                f"{self.learning.days_per_month}"
+            )
+        self.prices = prices
+        self.theta = theta0 or Theta.nominal(self.system)
+        if self.theta.n != self.system.n:
+            raise ValueError(f"theta0 has n={self.theta.n}; expected n={self.system.n}")
+        self.callbacks = list(callbacks)
+        self.mpc = MPC(self.system)
+        self.solver = make_solver(self.mpc, self.mpc_config, self.theta)
+        self.updater = DPGUpdater.from_configs(self.learning, self.system)
+        self.rng = np.random.default_rng(self.learning.seed)
+        self.history = History(self.system, self.mpc_config, self.learning, backend=self.solver.name)
+
+    # -- one learning step ----------------------------------------------------------------
+    def learning_step(self, record: MonthRecord) -> tuple[np.ndarray, int, dict[str, Any]]:
+        """LSTD + policy gradient from a month; returns ``(grad, skipped, info)``."""
+        sysc = self.system
+        H = sysc.hours_per_day
+        use = record.sens_ok & record.solver_ok
+        skipped = int(use.size - np.count_nonzero(use))
+        if not use.any():
+            return np.zeros(self.mpc.n_theta), skipped, {"lstd": "no usable samples"}
+        phi = value_features(record.soc[:-1])
+        phi_next = value_features(record.soc[1:])
+        psi = compatible_features(record.grad_pi, record.a, record.policy)
+        done = np.broadcast_to((np.arange(H) == H - 1)[:, None], use.shape)
+        fit = lstd_q(
+            phi[use], psi[use], record.stage_cost[use], phi_next[use], sysc.gamma,
+            done=done[use], ridge=self.learning.ridge,
+        )
+        grad = policy_gradient(record.grad_pi[use], fit.w)
+        info = {
+            "lstd_condition": float(fit.condition),
+            "lstd_rank_deficient": bool(fit.rank_deficient),
+            "td_rms": float(fit.td_rms),
+            "samples": int(fit.n_samples),
+        }
+        return grad, skipped, info
+
+    def run_one_month(self) -> MonthRecord:
+        """Simulate one month with the current theta and update it."""
+        t0 = time.perf_counter()
+        theta_used = self.theta
+        if self.mpc_config.backend == "auto" and not theta_used.is_convex() and self.solver.name != "ipopt":
+            log.info("theta is no longer convex: switching the MPC back-end to IPOPT")
+            self.solver = make_solver(self.mpc, self.mpc_config.replace(backend="ipopt"))
+            self.history.backend = self.solver.name
+        record = run_month(
+            theta_used, self.solver, self.prices, self.system, self.rng,
+            exploration_std=self.learning.exploration_std, sensitivities=True,
+        )
+        grad, skipped, info = self.learning_step(record)
+        self.theta = self.updater.step(theta_used, grad)
+        info.update(self.updater.last_info)
+        info = json.loads(json.dumps(info, default=_jsonable))
+        record.grad_pi = None  # large; not kept in the history
+        self.history.append(record, theta_used, grad, skipped, time.perf_counter() - t0, info)
+        self.history.theta_final = self.theta.to_vector().tolist()
+        return record
+
+    # -- the run --------------------------------------------------------------------------
+    def run(
+        self,
+        months: int | None = None,
+        out: str | Path | None = None,
+        resume: bool = False,
+        progress: bool = True,
+    ) -> History:
+        """Run until ``months`` months are recorded (default ``learning.months``).
+
+        With ``out``, a checkpoint is written after every month; with ``resume`` a run
+        found in ``out`` continues where it stopped (same results as an uninterrupted run).
+        """
+        months = self.learning.months if months is None else months
+        if not isinstance(months, int) or months < 1:
+            raise ValueError(f"months={months!r}: expected an integer >= 1")
+        out = Path(out) if out is not None else None
+        if resume:
+            if out is None:
+                raise ValueError("resume=True needs out=DIR (where the checkpoint is)")
+            if (out / CHECKPOINT).exists():
+                self.load_checkpoint(out)
+        bar = tqdm(
+            total=months, initial=min(self.history.months, months), desc="learning",
+            unit="month", disable=not progress,
+        )
+        with bar:
+            while self.history.months < months:
+                self.run_one_month()
+                m = self.history.months - 1
+                bar.set_postfix(J=f"{self.history.J[-1]:.1f}", refresh=False)
+                bar.update(1)
+                if out is not None:
+                    self.save_checkpoint(out)
+                for callback in self.callbacks:
+                    callback(m, self.history, self)
+        return self.history
+
+    # -- checkpoints ----------------------------------------------------------------------
+    def save_checkpoint(self, directory: str | Path) -> None:
+        """History plus everything needed to continue (theta, optimizer, RNG state)."""
+        directory = Path(directory)
+        self.history.save(directory)
+        state = {
+            "format": "mpcrl_lite.Checkpoint/1",
+            "months_done": self.history.months,
+            "theta": self.theta.to_vector().tolist(),
+            "updater": self.updater.state_dict(),
+            "rng": self.rng.bit_generator.state,
+            "system": self.system.to_dict(),
+            "mpc": self.mpc_config.to_dict(),
+            "learning": self.learning.to_dict(),
+        }
+        tmp = directory / (CHECKPOINT + ".tmp")
+        tmp.write_text(json.dumps(state, indent=1, default=_jsonable))
+        tmp.replace(directory / CHECKPOINT)
+
+    def load_checkpoint(self, directory: str | Path) -> None:
+        """Continue from :meth:`save_checkpoint`'s files; the configs must match."""
+        directory = Path(directory)
+        state = json.loads((directory / CHECKPOINT).read_text())
+        for key, cfg in (("system", self.system), ("mpc", self.mpc_config), ("learning", self.learning)):
+            saved = type(cfg).from_dict(state[key])
+            mine = cfg if key != "learning" else cfg.replace(months=saved.months)
+            if saved != mine:
+                raise ValueError(
+                    f"checkpoint in {directory} was written with a different {key} config: "
+                    f"{saved} vs {cfg}"
+                )
+        self.history = History.load(directory)
+        self.theta = Theta.from_vector(np.asarray(state["theta"]), self.system.n)
+        self.updater.load_state_dict(state["updater"])
+        self.rng.bit_generator.state = state["rng"]
+        if self.mpc_config.backend == "auto" and not self.theta.is_convex():
+            self.solver = make_solver(self.mpc, self.mpc_config.replace(backend="ipopt"))
+        self.history.backend = self.solver.name
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"cannot store {type(value).__name__} in JSON")

@@ -1,0 +1,265 @@
+"""Results of a learning run as data: per-month figures and two months of trajectories.
+
+A :class:`History` is saved as two plain files, never as pickle:
+
+* ``history.json`` -- the configurations, theta's entry names, and every per-month scalar
+  series (human-readable);
+* ``history.npz`` -- the arrays (theta per month, J per agent, and the full trajectories of
+  the first and last month), loaded with ``allow_pickle=False``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .config import LearningConfig, MPCConfig, SystemConfig
+from .model import Trajectory, discounted_return
+from .theta import Theta
+
+__all__ = ["MonthRecord", "History", "MONTH_ARRAYS"]
+
+#: The arrays of a :class:`MonthRecord`, with their shapes (H hours, D days, n agents).
+MONTH_ARRAYS = {
+    "soc": "(H+1, D, n) state of charge, soc_0 .. soc_H",
+    "policy": "(H, D, n) MPC action pi(s) before exploration",
+    "a": "(H, D, n) commanded action (pi plus projected exploration)",
+    "b": "(H, D, n) power bought (after the low-level controller)",
+    "s": "(H, D, n) power sold (after the low-level controller)",
+    "correction": "(H, D, n) extra net power of the low-level controller",
+    "agent_cost": "(H, D, n) per-agent stage cost L~_i",
+    "stage_cost": "(H, D) stage cost L~",
+    "grid_power": "(H, D) applied grid power P_k",
+    "planned_power": "(H, D) largest planned sum b or sum s over the MPC horizon",
+    "noise": "(H, D, n) production-demand noise Delta",
+    "buy": "(H, D) buying price of the hour",
+    "solver_ok": "(H, D) the MPC converged",
+    "sens_ok": "(H, D) the sensitivity was usable (False also where none was computed)",
+}
+
+
+@dataclass(eq=False)
+class MonthRecord:
+    """One month in closed loop: all days advance together, hour by hour.
+
+    Arrays are described in :data:`MONTH_ARRAYS`; ``grad_pi`` (H, D, n_theta, n) holds the
+    policy sensitivities when they were computed (kept in memory, not saved).
+    """
+
+    soc: np.ndarray
+    policy: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    s: np.ndarray
+    correction: np.ndarray
+    agent_cost: np.ndarray
+    stage_cost: np.ndarray
+    grid_power: np.ndarray
+    planned_power: np.ndarray
+    noise: np.ndarray
+    buy: np.ndarray
+    solver_ok: np.ndarray
+    sens_ok: np.ndarray
+    system: SystemConfig
+    grad_pi: np.ndarray | None = None
+
+    # -- figures of the month -------------------------------------------------------------
+    @property
+    def trajectory(self) -> Trajectory:
+        """The month as a :class:`~mpcrl_lite.model.Trajectory` (days as the batch)."""
+        return Trajectory(
+            soc=self.soc, a=self.a, b=self.b, s=self.s, correction=self.correction,
+            agent_cost=self.agent_cost, stage_cost=self.stage_cost,
+            grid_power=self.grid_power, noise=self.noise, system=self.system,
+        )
+
+    def J(self) -> float:
+        """Mean over days of the discounted daily sum of L~."""
+        return float(discounted_return(self.stage_cost, self.system.gamma).mean())
+
+    def J_per_agent(self) -> np.ndarray:
+        """Per-agent J^i, shape (n,)."""
+        return discounted_return(self.agent_cost, self.system.gamma).mean(axis=0)
+
+    def summary(self) -> dict[str, Any]:
+        """The month's key figures as JSON-friendly values."""
+        t = self.trajectory
+        return {
+            "J": self.J(),
+            "J_per_agent": self.J_per_agent().tolist(),
+            "hours_soc_below_0_1": t.hours_soc_below(),
+            "hours_soc_above_0_9": t.hours_soc_above(),
+            "max_P_mpc": float(np.max(self.planned_power, initial=0.0, where=self.solver_ok)),
+            "max_P_applied": float(np.max(self.grid_power)),
+            "solver_failures": int(np.count_nonzero(~self.solver_ok)),
+            "low_level_interventions": int(np.count_nonzero(np.abs(self.correction) > 1e-12)),
+        }
+
+    # -- storage --------------------------------------------------------------------------
+    def arrays(self, prefix: str) -> dict[str, np.ndarray]:
+        """The saved arrays, keys prefixed (e.g. ``first_soc``)."""
+        return {f"{prefix}_{k}": getattr(self, k) for k in MONTH_ARRAYS}
+
+    @classmethod
+    def from_arrays(cls, data: Any, prefix: str, system: SystemConfig) -> "MonthRecord":
+        """Inverse of :meth:`arrays`."""
+        return cls(**{k: np.asarray(data[f"{prefix}_{k}"]) for k in MONTH_ARRAYS}, system=system)
+
+
+@dataclass(eq=False)
+class History:
+    """Per-month results of a learning run.
+
+    Lists grow by one entry per month; ``theta`` holds the parameters *used* in each month
+    and ``theta_final`` those after the last update.
+    """
+
+    system: SystemConfig
+    mpc: MPCConfig
+    learning: LearningConfig
+    J: list[float] = field(default_factory=list)
+    J_per_agent: list[list[float]] = field(default_factory=list)
+    grad_norm: list[float] = field(default_factory=list)
+    theta: list[list[float]] = field(default_factory=list)
+    theta_final: list[float] = field(default_factory=list)
+    hours_soc_below_0_1: list[int] = field(default_factory=list)
+    hours_soc_above_0_9: list[int] = field(default_factory=list)
+    max_P_mpc: list[float] = field(default_factory=list)
+    max_P_applied: list[float] = field(default_factory=list)
+    solver_failures: list[int] = field(default_factory=list)
+    skipped_steps: list[int] = field(default_factory=list)
+    low_level_interventions: list[int] = field(default_factory=list)
+    wall_time_s: list[float] = field(default_factory=list)
+    update_info: list[dict[str, Any]] = field(default_factory=list)
+    first_month: MonthRecord | None = None
+    last_month: MonthRecord | None = None
+    backend: str = ""
+
+    SERIES = (
+        "J", "J_per_agent", "grad_norm", "theta", "hours_soc_below_0_1",
+        "hours_soc_above_0_9", "max_P_mpc", "max_P_applied", "solver_failures",
+        "skipped_steps", "low_level_interventions", "wall_time_s", "update_info",
+    )
+
+    @property
+    def months(self) -> int:
+        """Number of months recorded."""
+        return len(self.J)
+
+    def append(
+        self, record: MonthRecord, theta: Theta, grad: np.ndarray, skipped: int,
+        wall_time: float, info: dict[str, Any],
+    ) -> None:
+        """Record one month (``theta`` is the parameter vector used during the month)."""
+        s = record.summary()
+        self.J.append(s["J"])
+        self.J_per_agent.append(s["J_per_agent"])
+        self.grad_norm.append(float(np.linalg.norm(grad)))
+        self.theta.append(theta.to_vector().tolist())
+        self.hours_soc_below_0_1.append(s["hours_soc_below_0_1"])
+        self.hours_soc_above_0_9.append(s["hours_soc_above_0_9"])
+        self.max_P_mpc.append(s["max_P_mpc"])
+        self.max_P_applied.append(s["max_P_applied"])
+        self.solver_failures.append(s["solver_failures"])
+        self.skipped_steps.append(int(skipped))
+        self.low_level_interventions.append(s["low_level_interventions"])
+        self.wall_time_s.append(float(wall_time))
+        self.update_info.append(info)
+        if self.first_month is None:
+            self.first_month = record
+        self.last_month = record
+
+    # -- views ----------------------------------------------------------------------------
+    def theta_array(self) -> np.ndarray:
+        """theta per month, shape (months, n_theta)."""
+        return np.asarray(self.theta, dtype=float).reshape(len(self.theta), -1)
+
+    def theta_part(self, part: str) -> np.ndarray:
+        """One part of theta per month, shape (months + 1, n), the final value last."""
+        n = self.system.n
+        values = np.vstack([self.theta_array(), np.asarray(self.theta_final)[None, :]])
+        return values[:, Theta.index(n, part)]
+
+    def final_theta(self) -> Theta:
+        """theta after the last update."""
+        return Theta.from_vector(np.asarray(self.theta_final), self.system.n)
+
+    def summary(self) -> dict[str, Any]:
+        """The JSON summary written next to a run (see the ``learn`` command)."""
+        n = self.system.n
+        return {
+            "months": self.months,
+            "J": self.J,
+            "J_per_agent": self.J_per_agent,
+            "grad_norm": self.grad_norm,
+            "theta_final": self.final_theta().to_dict() if self.theta_final else {},
+            "theta_names": Theta.names(n),
+            "hours_soc_below_0_1": self.hours_soc_below_0_1,
+            "hours_soc_above_0_9": self.hours_soc_above_0_9,
+            "max_P_mpc": self.max_P_mpc,
+            "max_P_applied": self.max_P_applied,
+            "P_bar": self.system.P_bar,
+            "solver_failures": self.solver_failures,
+            "skipped_steps": self.skipped_steps,
+            "wall_time_s": self.wall_time_s,
+            "backend": self.backend,
+        }
+
+    # -- storage --------------------------------------------------------------------------
+    def save(self, directory: str | Path) -> Path:
+        """Write ``history.json`` and ``history.npz`` into ``directory`` (atomically)."""
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        meta = {
+            "format": "mpcrl_lite.History/1",
+            "system": self.system.to_dict(),
+            "mpc": self.mpc.to_dict(),
+            "learning": self.learning.to_dict(),
+            "theta_final": self.theta_final,
+            "backend": self.backend,
+            **{k: getattr(self, k) for k in self.SERIES},
+        }
+        arrays: dict[str, np.ndarray] = {}
+        if self.first_month is not None:
+            arrays.update(self.first_month.arrays("first"))
+        if self.last_month is not None:
+            arrays.update(self.last_month.arrays("last"))
+        tmp_json = directory / "history.json.tmp"
+        tmp_npz = directory / "history.tmp.npz"
+        tmp_json.write_text(json.dumps(meta, indent=1))
+        np.savez_compressed(tmp_npz, **arrays)
+        tmp_npz.replace(directory / "history.npz")
+        tmp_json.replace(directory / "history.json")
+        return directory
+
+    @classmethod
+    def load(cls, directory: str | Path) -> "History":
+        """Read a History written by :meth:`save`."""
+        directory = Path(directory)
+        path = directory / "history.json"
+        if not path.exists():
+            raise FileNotFoundError(f"{path} not found: expected a directory written by History.save")
+        meta = json.loads(path.read_text())
+        if meta.get("format") != "mpcrl_lite.History/1":
+            raise ValueError(f"{path}: format {meta.get('format')!r}, expected 'mpcrl_lite.History/1'")
+        system = SystemConfig.from_dict(meta["system"])
+        hist = cls(
+            system=system,
+            mpc=MPCConfig.from_dict(meta["mpc"]),
+            learning=LearningConfig.from_dict(meta["learning"]),
+            theta_final=meta["theta_final"],
+            backend=meta.get("backend", ""),
+            **{k: meta[k] for k in cls.SERIES},
+        )
+        npz = directory / "history.npz"
+        if npz.exists():
+            with np.load(npz, allow_pickle=False) as data:
+                if "first_soc" in data:
+                    hist.first_month = MonthRecord.from_arrays(data, "first", system)
+                if "last_soc" in data:
+                    hist.last_month = MonthRecord.from_arrays(data, "last", system)
+        return hist

@@ -1,0 +1,255 @@
+"""The policy gradient estimate and the theta update (SGD, Adam, mask, clip, projection)."""
+
+from __future__ import annotations
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+from mpcrl_lite.config import ConfigWarning, LearningConfig, SystemConfig
+from mpcrl_lite.dpg import (
+    ADAM_BETAS,
+    ADAM_EPS,
+    ADAM_STEP_SIZE,
+    DPGUpdater,
+    learnable_mask,
+    policy_gradient,
+)
+from mpcrl_lite.theta import CONSTANT_PARTS, PARTS, Theta
+
+N = 3
+ALPHA = 1.0 / 12.0
+
+
+def theta_from(seed: int = 0) -> Theta:
+    """A theta well inside the projection's bounds."""
+    rng = np.random.default_rng(seed)
+    vector = rng.normal(size=10 * N)
+    theta = Theta.from_vector(vector, N)
+    return theta.replace(alpha=np.full(N, ALPHA), phi1=np.full(N, 5.0), T1=np.full(N, 5.0))
+
+
+def updater(**changes) -> DPGUpdater:
+    base = dict(step_size=0.1, keep_well_posed=False)
+    base.update(changes)
+    return DPGUpdater(LearningConfig(**base), N, ALPHA)
+
+
+# -- policy_gradient -------------------------------------------------------------------------
+def test_policy_gradient_hand_computed():
+    # two samples, n_theta = 2, n = 1:  grad_pi^T w = 3 for both;  mean of grad_pi * 3
+    grad_pi = np.array([[[1.0], [2.0]], [[0.0], [3.0]]])
+    np.testing.assert_allclose(policy_gradient(grad_pi, np.array([1.0, 1.0])), [1.5, 7.5])
+    # one sample, n = 2: G G^T w with G = [[1, 0], [1, 1], [0, 2]], w = [1, -1, 2]
+    G = np.array([[1.0, 0.0], [1.0, 1.0], [0.0, 2.0]])
+    w = np.array([1.0, -1.0, 2.0])
+    # G^T w = [0, 3];  G [0, 3] = [0, 3, 6]
+    np.testing.assert_allclose(policy_gradient(G, w), [0.0, 3.0, 6.0])
+
+
+def test_policy_gradient_batch_dims_and_errors():
+    rng = np.random.default_rng(1)
+    grad_pi = rng.normal(size=(24, 30, 10 * N, N))
+    w = rng.normal(size=10 * N)
+    expected = np.mean([g @ g.T @ w for g in grad_pi.reshape(-1, 10 * N, N)], axis=0)
+    np.testing.assert_allclose(policy_gradient(grad_pi, w), expected, rtol=1e-12)
+    with pytest.raises(ValueError, match=r"w has shape \(29,\); expected \(30,\)"):
+        policy_gradient(grad_pi, w[:29])
+    with pytest.raises(ValueError, match="grad_pi has shape"):
+        policy_gradient(w, w)
+
+
+def test_policy_gradient_of_an_affine_scalar_policy():
+    """u = k x + m, grad_theta pi = [x, 1]; if the critic's action gradient is the true
+    dQ/du = g1 x + g0 (w = (g1, g0)), the gradient is E[[x, 1] (g1 x + g0)]."""
+    x = np.array([-1.0, 0.5, 2.0])
+    grad_pi = np.stack([x, np.ones(3)], axis=-1)[..., None]  # (3, 2, 1)
+    g1, g0 = 0.7, -0.2
+    expected = [np.mean(x * (g1 * x + g0)), np.mean(g1 * x + g0)]
+    np.testing.assert_allclose(policy_gradient(grad_pi, np.array([g1, g0])), expected)
+
+
+# -- mask ------------------------------------------------------------------------------------
+def test_learnable_mask():
+    mask = learnable_mask(N, learn_constants=False)
+    assert mask.shape == (10 * N,) and mask.dtype == bool
+    assert mask.sum() == 8 * N  # the paper's 24 parameters for n = 3
+    for part in PARTS:
+        assert mask[Theta.index(N, part)].all() == (part not in CONSTANT_PARTS)
+    assert learnable_mask(N, learn_constants=True).all()
+    with pytest.raises(ValueError, match="n=0"):
+        learnable_mask(0)
+
+
+# -- SGD ---------------------------------------------------------------------------------------
+def test_sgd_step_is_theta_minus_step_times_grad_on_learnable_parts():
+    theta = theta_from(2)
+    grad = np.random.default_rng(3).normal(size=10 * N)
+    up = updater(step_size=0.01)
+    new = up.step(theta, grad)
+    mask = learnable_mask(N)
+    expected = np.where(mask, theta.to_vector() - 0.01 * grad, theta.to_vector())
+    np.testing.assert_array_equal(new.to_vector(), expected)
+    np.testing.assert_array_equal(new.phi3, theta.phi3)
+    np.testing.assert_array_equal(new.T3, theta.T3)
+    info = up.last_info
+    assert info["step"] == 1 and not info["clipped"] and info["projected"] == []
+    np.testing.assert_allclose(info["step_norm"], 0.01 * np.linalg.norm(grad[mask]))
+    # with learn_constants the constants move as well
+    new = updater(step_size=0.01, learn_constants=True).step(theta, grad)
+    np.testing.assert_array_equal(new.to_vector(), theta.to_vector() - 0.01 * grad)
+
+
+def test_paper_step_size_is_the_default():
+    up = DPGUpdater(LearningConfig(), N, ALPHA)
+    theta = Theta.nominal(SystemConfig(n=N))
+    grad = np.zeros(10 * N)
+    grad[Theta.index(N, "delta")] = 1e6
+    new = up.step(theta, grad)
+    np.testing.assert_allclose(new.delta, theta.delta - 5e-8 * 1e6)
+
+
+# -- clipping and projection -----------------------------------------------------------------
+def test_clipping_rescales_the_step_to_the_bound():
+    theta = theta_from(4)
+    grad = np.random.default_rng(5).normal(size=10 * N)
+    free = updater(step_size=1.0).step(theta, grad)
+    up = updater(step_size=1.0, grad_clip=0.5)
+    clipped = up.step(theta, grad)
+    step = theta.to_vector() - clipped.to_vector()
+    np.testing.assert_allclose(np.linalg.norm(step), 0.5)
+    free_step = theta.to_vector() - free.to_vector()
+    np.testing.assert_allclose(step, free_step * 0.5 / np.linalg.norm(free_step))
+    assert up.last_info["clipped"] and up.last_info["step_norm"] == pytest.approx(0.5)
+    assert up.last_info["raw_step_norm"] == pytest.approx(np.linalg.norm(free_step))
+    # a step already small enough is left alone
+    small = updater(step_size=1e-3, grad_clip=0.5)
+    small.step(theta, grad)
+    assert not small.last_info["clipped"]
+
+
+def test_projection_keeps_the_mpc_well_posed():
+    theta = theta_from(6).replace(
+        alpha=np.array([0.002, ALPHA, ALPHA]), phi1=np.array([0.1, 1.0, 1.0]),
+        T1=np.array([1.0, 1.0, 0.05]),
+    )
+    grad = np.zeros(10 * N)
+    grad[Theta.index(N, "alpha")] = [1.0, 0.0, 0.0]  # alpha[1] -> 0.002 - 0.01 < alpha_min
+    grad[Theta.index(N, "phi1")] = [20.0, 0.0, 0.0]  # phi1[1] -> 0.1 - 0.2 < 0
+    grad[Theta.index(N, "T1")] = [0.0, 0.0, 10.0]  # T1[3] -> 0.05 - 0.1 < 0
+    grad[Theta.index(N, "phi2")] = [100.0, 0.0, 0.0]  # unconstrained: moves freely
+    up = updater(step_size=0.01, keep_well_posed=True, alpha_min=1e-3)
+    new = up.step(theta, grad)
+    np.testing.assert_allclose(new.alpha, [1e-3, ALPHA, ALPHA])
+    np.testing.assert_allclose(new.phi1, [0.0, 1.0, 1.0])
+    np.testing.assert_allclose(new.T1, [1.0, 1.0, 0.0])
+    np.testing.assert_allclose(new.phi2[0], theta.phi2[0] - 1.0)
+    assert new.is_convex()
+    assert up.last_info["projected"] == ["alpha[1]", "phi1[1]", "T1[3]"]
+    assert up.last_info["projection_norm"] == pytest.approx(np.linalg.norm([0.009, 0.1, 0.05]))
+    # without the projection the same step leaves the convex set
+    assert not updater(step_size=0.01).step(theta, grad).is_convex()
+
+
+# -- Adam --------------------------------------------------------------------------------------
+def test_adam_first_and_second_steps_by_hand():
+    theta = theta_from(7)
+    rng = np.random.default_rng(8)
+    g1, g2 = rng.normal(size=(2, 10 * N))
+    up = updater(optimizer="adam", step_size=ADAM_STEP_SIZE)
+    mask = learnable_mask(N)
+    scale = np.ones(10 * N)
+    scale[Theta.index(N, "alpha")] = ALPHA
+    scale[Theta.index(N, "delta")] = ALPHA
+    b1, b2 = ADAM_BETAS
+    # first step: m_hat = g, v_hat = g^2  =>  direction = scale * g / (|g| + eps)
+    new = up.step(theta, g1)
+    d1 = np.where(mask, scale * g1 / (np.abs(g1) + ADAM_EPS), 0.0)
+    np.testing.assert_allclose(new.to_vector(), theta.to_vector() - ADAM_STEP_SIZE * d1, rtol=1e-14)
+    # second step
+    newer = up.step(new, g2)
+    m = (1 - b1) * (b1 * g1 + g2)
+    v = (1 - b2) * (b2 * g1**2 + g2**2)
+    d2 = np.where(mask, scale * (m / (1 - b1**2)) / (np.sqrt(v / (1 - b2**2)) + ADAM_EPS), 0.0)
+    np.testing.assert_allclose(
+        newer.to_vector(), new.to_vector() - ADAM_STEP_SIZE * d2, rtol=1e-13
+    )
+    np.testing.assert_array_equal(newer.phi3, theta.phi3)
+
+
+def test_adam_custom_scale_and_small_step_warning():
+    up = DPGUpdater(
+        LearningConfig(optimizer="adam", step_size=0.1, keep_well_posed=False), N, ALPHA,
+        scale={"b": 100.0},
+    )
+    theta = theta_from(9)
+    grad = np.ones(10 * N)
+    new = up.step(theta, grad)
+    np.testing.assert_allclose(theta.b - new.b, 0.1 * 100.0, rtol=1e-7)
+    np.testing.assert_allclose(theta.alpha - new.alpha, 0.1 * ALPHA, rtol=1e-7)
+    np.testing.assert_allclose(theta.phi2 - new.phi2, 0.1, rtol=1e-7)
+    with pytest.warns(ConfigWarning, match="optimizer='adam'"):
+        DPGUpdater(LearningConfig(optimizer="adam"), N, ALPHA)
+    with pytest.raises(ValueError, match="unknown part"):
+        DPGUpdater(LearningConfig(optimizer="adam", step_size=0.1), N, ALPHA, scale={"x": 1.0})
+
+
+# -- checkpoints -------------------------------------------------------------------------------
+@pytest.mark.parametrize("optimizer", ["sgd", "adam"])
+def test_state_dict_round_trip_resumes_exactly(optimizer):
+    config = LearningConfig(optimizer=optimizer, step_size=0.05, grad_clip=1.0)
+    grads = np.random.default_rng(10).normal(size=(6, 10 * N))
+    original = DPGUpdater(config, N, ALPHA)
+    theta = theta_from(11)
+    for g in grads[:3]:
+        theta = original.step(theta, g)
+    state = json.loads(json.dumps(original.state_dict()))  # through JSON, as a checkpoint
+    resumed = DPGUpdater(config, N, ALPHA)
+    resumed.load_state_dict(state)
+    theta_a = theta_b = Theta.from_dict(json.loads(json.dumps(theta.to_dict())))
+    for g in grads[3:]:
+        theta_a = original.step(theta_a, g)
+        theta_b = resumed.step(theta_b, g)
+        assert theta_a == theta_b
+        assert original.last_info == resumed.last_info
+    assert resumed.step_count == 6
+
+
+def test_load_state_dict_rejects_mismatches():
+    sgd = DPGUpdater(LearningConfig(), N, ALPHA)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConfigWarning)
+        adam = DPGUpdater(LearningConfig(optimizer="adam"), N, ALPHA)
+    with pytest.raises(ValueError, match="state optimizer='sgd'; expected 'adam'"):
+        adam.load_state_dict(sgd.state_dict())
+    state = sgd.state_dict()
+    with pytest.raises(ValueError, match="state n=3; expected 2"):
+        DPGUpdater(LearningConfig(), 2, ALPHA).load_state_dict(state)
+    with pytest.raises(ValueError, match=r"state 'm' has shape \(2,\)"):
+        sgd.load_state_dict(dict(state, m=[0.0, 0.0]))
+    with pytest.raises(ValueError, match="expected"):
+        sgd.load_state_dict({"m": []})
+
+
+# -- errors ------------------------------------------------------------------------------------
+def test_step_errors():
+    up = updater()
+    theta = theta_from(12)
+    with pytest.raises(ValueError, match=r"grad has shape \(29,\); expected \(30,\)"):
+        up.step(theta, np.zeros(29))
+    with pytest.raises(ValueError, match="non-finite"):
+        up.step(theta, np.full(30, np.nan))
+    with pytest.raises(ValueError, match="expected a Theta with n=3"):
+        up.step(Theta.nominal(SystemConfig(n=2)), np.zeros(30))
+    with pytest.raises(ValueError, match="system_alpha=0"):
+        DPGUpdater(LearningConfig(), N, 0.0)
+    with pytest.warns(ConfigWarning, match="alpha_min"):
+        DPGUpdater(LearningConfig(alpha_min=0.5), N, ALPHA)
+    assert up.step_count == 0  # failed calls do not count
+
+
+def test_from_configs():
+    up = DPGUpdater.from_configs(LearningConfig(), SystemConfig(n=2))
+    assert up.n == 2 and up.system_alpha == pytest.approx(1 / 12) and up.mask.sum() == 16

@@ -1,0 +1,490 @@
+"""Tests of mpcrl_lite.prices: the shipped month, the Nord Pool reader, and price windows."""
+
+from __future__ import annotations
+
+import datetime as dt
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from mpcrl_lite.config import PRICE_UNIT, SystemConfig
+from mpcrl_lite.prices import (
+    DATA_DIR,
+    Prices,
+    daily_matrix,
+    load_default_profile,
+    load_nordpool_csv,
+    nordpool_areas,
+)
+
+FIXTURES = Path(__file__).resolve().parent / "fixtures"
+SPRING = FIXTURES / "elspot_spring_dst_2021.csv"  # 27..29.03.2021, clock change on the 28th
+AUTUMN = FIXTURES / "elspot_autumn_dst_2021.csv"  # 30.10..01.11.2021, clock change on the 31st
+NOT_EXPORT = FIXTURES / "not_an_export.csv"
+REAL_EXPORT = (
+    Path(__file__).resolve().parents[2]
+    / "shared/data/nordpool/elspot-prices_2020_hourly_nok.csv"
+)
+
+
+def trheim(day: int, hour: int) -> float:
+    """The invented Tr.heim price of the fixtures (see tests/fixtures/make_nordpool_fixtures.py)."""
+    return 30.25 + 10 * day + hour
+
+
+def oslo_time(text: str, offset: str) -> pd.Timestamp:
+    return pd.Timestamp(f"{text}{offset}").tz_convert("Europe/Oslo")
+
+
+# ----------------------------------------------------------------------------------------------
+# The shipped default month
+# ----------------------------------------------------------------------------------------------
+
+
+def test_data_dir_is_found_through_the_package(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert DATA_DIR.is_absolute()
+    assert (DATA_DIR / "no3_nov2020_daily.csv").is_file()
+    assert load_default_profile().shape == (30, 24)
+
+
+def test_default_profile_matches_the_data_readme():
+    profile = load_default_profile()
+    assert profile.shape == (30, 24)
+    assert np.isfinite(profile).all()
+    assert profile.mean() == pytest.approx(56.35, abs=0.01)
+    assert profile.min() == pytest.approx(6.44, abs=0.01)
+    assert profile.max() == pytest.approx(123.18, abs=0.01)
+
+
+def test_default_profile_is_the_reconstruction_formula():
+    shape = pd.read_csv(DATA_DIR / "no3_nov2020_intraday_shape.csv")["shape"].to_numpy()
+    daily = pd.read_csv(DATA_DIR / "no3_nov2020_daily.csv")
+    assert daily["date"].iloc[0] == "2020-11-01" and daily["date"].iloc[-1] == "2020-11-30"
+    # Day 0 by hand: 62.995 + 19.162 * shape[h]; hour 3 is the night minimum of the shape.
+    profile = load_default_profile()
+    np.testing.assert_allclose(profile[0], 62.995 + 19.162 * shape)
+    assert profile[0, 3] == pytest.approx(62.995 + 19.162 * -1.3850)
+    np.testing.assert_allclose(
+        profile,
+        daily["daily_mean"].to_numpy()[:, None] + daily["daily_std"].to_numpy()[:, None] * shape,
+    )
+
+
+def test_default_profile_returns_a_fresh_copy():
+    a = load_default_profile()
+    a[:] = 0.0
+    assert load_default_profile().mean() == pytest.approx(56.35, abs=0.01)
+
+
+# ----------------------------------------------------------------------------------------------
+# Prices
+# ----------------------------------------------------------------------------------------------
+
+
+def ramp_prices(days: int = 3, sell_ratio: float = 0.5) -> Prices:
+    """buy[d, h] = 100 d + h, so every value tells its day and hour."""
+    buy = 100.0 * np.arange(days)[:, None] + np.arange(24)[None, :]
+    return Prices(buy, sell_ratio=sell_ratio, source="ramp")
+
+
+def test_default_prices():
+    prices = Prices.default()
+    assert prices.days == 30
+    assert prices.unit == PRICE_UNIT == "NOK/MWh"
+    assert prices.sell_ratio == 0.5
+    np.testing.assert_allclose(prices.buy, load_default_profile())
+    np.testing.assert_allclose(prices.sell, 0.5 * prices.buy)
+    assert "NO3" in prices.source and "2020" in prices.source
+    assert "Prices(days=30" in repr(prices)
+
+
+def test_default_prices_follow_the_system_config():
+    system = SystemConfig(price_scale=0.01, sell_ratio=0.8)
+    prices = Prices.default(system)
+    np.testing.assert_allclose(prices.buy, 0.01 * load_default_profile())
+    np.testing.assert_allclose(prices.sell, 0.8 * 0.01 * load_default_profile())
+    assert prices.sell_ratio == 0.8
+
+
+def test_buy_is_a_read_only_copy():
+    raw = np.ones((2, 24))
+    prices = Prices(raw)
+    raw[:] = 5.0
+    assert (prices.buy == 1.0).all()
+    with pytest.raises(ValueError):
+        prices.buy[0, 0] = 3.0
+    with pytest.raises(AttributeError):
+        prices.sell_ratio = 0.7  # frozen
+
+
+def test_window_within_one_day():
+    prices = ramp_prices()
+    buy, sell = prices.window(hour=5, N=4)
+    assert buy.shape == sell.shape == (3, 4)
+    np.testing.assert_array_equal(buy[1], [105, 106, 107, 108])
+    np.testing.assert_allclose(sell, 0.5 * buy)
+
+
+def test_window_crosses_midnight_into_the_next_day():
+    buy, _ = ramp_prices().window(hour=22, N=4)
+    np.testing.assert_array_equal(buy[0], [22, 23, 100, 101])
+    np.testing.assert_array_equal(buy[1], [122, 123, 200, 201])
+
+
+def test_window_after_the_last_day_wraps_to_the_first():
+    buy, _ = ramp_prices().window(hour=20, N=12)
+    np.testing.assert_array_equal(buy[2], [220, 221, 222, 223, 0, 1, 2, 3, 4, 5, 6, 7])
+
+
+def test_window_longer_than_a_day():
+    buy, _ = ramp_prices().window(hour=23, N=50)
+    assert buy.shape == (3, 50)
+    # Day 1 at 23:00: 123, then all of day 2 (200..223), then day 0 again (0..24 hours on).
+    expected = [123] + [200 + h for h in range(24)] + [h for h in range(24)] + [100]
+    np.testing.assert_array_equal(buy[1], expected)
+    # A horizon of whole months comes back to the same price.
+    long, _ = ramp_prices().window(hour=0, N=3 * 24 + 1)
+    np.testing.assert_array_equal(long[:, -1], long[:, 0])
+
+
+def test_window_matches_a_flattened_cyclic_series():
+    prices = Prices.default()
+    flat = np.tile(prices.buy.reshape(-1), 3)
+    for hour in (0, 7, 23):
+        for N in (1, 12, 30):
+            buy, sell = prices.window(hour, N)
+            for d in (0, 13, 29):
+                start = 24 * d + hour
+                np.testing.assert_allclose(buy[d], flat[start : start + N])
+                np.testing.assert_allclose(sell[d], 0.5 * flat[start : start + N])
+
+
+@pytest.mark.parametrize(
+    ("hour", "N"), [(-1, 12), (24, 12), (3.0, 12), (True, 12), (0, 0), (0, 2.5)]
+)
+def test_window_rejects_bad_arguments(hour, N):
+    with pytest.raises(ValueError, match="hour|N"):
+        ramp_prices().window(hour, N)
+
+
+def test_window_accepts_numpy_integers():
+    buy, _ = ramp_prices().window(np.int64(22), np.int32(3))
+    np.testing.assert_array_equal(buy[0], [22, 23, 100])
+
+
+def test_take_makes_a_smaller_cyclic_month():
+    small = ramp_prices(days=5).take(2)
+    assert small.days == 2
+    assert small.sell_ratio == 0.5 and small.unit == PRICE_UNIT
+    buy, _ = small.window(hour=23, N=2)
+    # The last day of the smaller month is followed by its own day 0 (not by day 2).
+    np.testing.assert_array_equal(buy[1], [123, 0])
+    assert Prices.default().take(30).days == 30
+    with pytest.raises(ValueError, match="at most 5"):
+        ramp_prices(days=5).take(6)
+    with pytest.raises(ValueError, match="days"):
+        ramp_prices(days=5).take(0)
+
+
+def test_scaled():
+    prices = ramp_prices(sell_ratio=0.25)
+    double = prices.scaled(2.0)
+    np.testing.assert_allclose(double.buy, 2.0 * prices.buy)
+    np.testing.assert_allclose(double.sell, 0.5 * prices.buy)
+    assert "x2" in double.source
+    with pytest.raises(ValueError, match="factor"):
+        prices.scaled(-1.0)
+    with pytest.raises(ValueError, match="factor"):
+        prices.scaled(float("nan"))
+
+
+def test_to_frame_is_tidy():
+    frame = ramp_prices(days=2).to_frame()
+    assert list(frame.columns) == ["day", "hour", "buy", "sell"]
+    assert len(frame) == 48
+    row = frame[(frame["day"] == 1) & (frame["hour"] == 5)].iloc[0]
+    assert row["buy"] == 105 and row["sell"] == 52.5
+    assert frame.attrs["unit"] == PRICE_UNIT
+
+
+@pytest.mark.parametrize(
+    ("buy", "match"),
+    [
+        (np.ones(24), r"shape \(days, 24\)"),
+        (np.ones((2, 23)), r"shape \(days, 24\)"),
+        (np.ones((0, 24)), "at least 1 day"),
+        (np.full((2, 24), np.nan), "finite"),
+        (np.array([[np.inf] * 24]), "finite"),
+        ([["a"] * 24], "real numbers"),
+    ],
+)
+def test_prices_validation(buy, match):
+    with pytest.raises(ValueError, match=match):
+        Prices(buy)
+
+
+def test_prices_validation_of_ratio_and_labels():
+    with pytest.raises(ValueError, match="sell_ratio"):
+        Prices(np.ones((1, 24)), sell_ratio=-0.5)
+    with pytest.raises(ValueError, match="sell_ratio"):
+        Prices(np.ones((1, 24)), sell_ratio=float("inf"))
+    with pytest.raises(ValueError, match="unit"):
+        Prices(np.ones((1, 24)), unit=None)
+
+
+# ----------------------------------------------------------------------------------------------
+# Nord Pool reader on hand-written fixtures
+# ----------------------------------------------------------------------------------------------
+
+
+def test_fixtures_have_the_export_layout():
+    raw = SPRING.read_bytes()
+    assert raw.startswith(b"\xef\xbb\xbf")
+    assert b"\r\n" in raw and b"\n" not in raw.replace(b"\r\n", b"")
+    text = raw.decode("utf-8-sig")
+    assert text.splitlines()[2].startswith(";Hours;")
+    assert "28.03.2021;02 - 03;;;;" in text
+    assert AUTUMN.read_bytes().decode("utf-8-sig").count("31.10.2021;02 - 03;") == 2
+
+
+def test_areas_listed_once_in_file_order():
+    assert nordpool_areas(SPRING) == ["SYS", "Oslo", "Molde", "Tr.heim", "Tromsø", "EE", "LV"]
+
+
+def check_hourly_index(series: pd.Series) -> None:
+    assert isinstance(series.index, pd.DatetimeIndex)
+    assert str(series.index.tz) == "Europe/Oslo"
+    utc = series.index.tz_convert("UTC")
+    assert utc.is_monotonic_increasing and utc.is_unique
+    # One real hour between consecutive values, also across the clock change.
+    assert (np.diff(utc.asi8) > 0).all()
+    assert set(utc.to_series().diff().dropna()) == {pd.Timedelta(hours=1)}
+
+
+def test_spring_clock_change_day_has_23_hours():
+    series = load_nordpool_csv(SPRING)
+    assert series.name == "Tr.heim"
+    assert series.dtype == np.float64
+    check_hourly_index(series)
+    counts = series.groupby(series.index.date).size()
+    assert counts.to_dict() == {dt.date(2021, 3, 27): 24, dt.date(2021, 3, 28): 23,
+                                dt.date(2021, 3, 29): 24}
+    assert len(series) == 71
+    # 01:00 (+01:00) is followed directly by 03:00 (+02:00), one hour later.
+    assert series[oslo_time("2021-03-28 01:00", "+01:00")] == pytest.approx(trheim(1, 1))
+    assert series[oslo_time("2021-03-28 03:00", "+02:00")] == pytest.approx(trheim(1, 3))
+    # Values are never shifted: every stamp carries the price written on its own row.
+    local = series.index
+    expected = [trheim((d.day - 27), h) for d, h in zip(local.date, local.hour)]
+    np.testing.assert_allclose(series.to_numpy(), expected)
+
+
+def test_autumn_clock_change_day_has_25_hours():
+    series = load_nordpool_csv(AUTUMN)
+    check_hourly_index(series)
+    counts = series.groupby(series.index.date).size()
+    assert counts[dt.date(2021, 10, 31)] == 25
+    assert counts[dt.date(2021, 10, 30)] == 24 and counts[dt.date(2021, 11, 1)] == 24
+    # The first 02 - 03 row is summer time, the second winter time.
+    summer = oslo_time("2021-10-31 02:00", "+02:00")
+    winter = oslo_time("2021-10-31 02:00", "+01:00")
+    assert winter - summer == pd.Timedelta(hours=1)
+    assert series[summer] == pytest.approx(61.5)
+    assert series[winter] == pytest.approx(48.25)
+    assert series[oslo_time("2021-10-31 01:00", "+02:00")] == pytest.approx(trheim(1, 1))
+    assert series[oslo_time("2021-10-31 03:00", "+01:00")] == pytest.approx(trheim(1, 3))
+
+
+def test_negative_prices_and_non_ascii_area_names():
+    sys_price = load_nordpool_csv(SPRING, area="SYS")
+    assert sys_price.iloc[0] == pytest.approx(trheim(0, 0) - 40.0)
+    assert (sys_price < 0).any()
+    tromso = load_nordpool_csv(SPRING, area="Tromsø")
+    assert (tromso == 12.5).all()
+
+
+def test_molde_equals_trondheim_in_the_fixture():
+    pd.testing.assert_series_equal(
+        load_nordpool_csv(AUTUMN, area="Molde"), load_nordpool_csv(AUTUMN, area="Tr.heim"),
+        check_names=False,
+    )
+
+
+def test_repeated_area_names_use_the_column_holding_data():
+    ee = load_nordpool_csv(SPRING, area="EE")  # second EE column on day 1, first on days 2, 3
+    assert len(ee) == 71
+    np.testing.assert_allclose(ee.to_numpy(), 100.0 + ee.index.hour)
+    lv = load_nordpool_csv(SPRING, area="LV")  # the second LV column is always empty
+    np.testing.assert_allclose(lv.to_numpy(), 200.0 + lv.index.hour)
+
+
+def test_repeated_area_with_conflicting_values_is_an_error(tmp_path):
+    text = SPRING.read_bytes().decode("utf-8-sig")
+    text = text.replace("27.03.2021;00 - 01;-9,75;35,25;30,25;30,25;12,5;;100;",
+                        "27.03.2021;00 - 01;-9,75;35,25;30,25;30,25;12,5;99;100;")
+    bad = tmp_path / "conflict.csv"
+    bad.write_bytes(b"\xef\xbb\xbf" + text.encode("utf-8"))
+    with pytest.raises(ValueError, match="'EE'.*different prices"):
+        load_nordpool_csv(bad, area="EE")
+
+
+def test_empty_cell_is_a_missing_hour():
+    oslo = load_nordpool_csv(SPRING, area="Oslo")
+    assert len(oslo) == 70
+    assert oslo_time("2021-03-29 10:00", "+02:00") not in oslo.index
+    with pytest.raises(ValueError, match=r"missing.*2021-03-29 10:00"):
+        daily_matrix(oslo, "2021-03-29", 1)
+
+
+def test_plain_lf_file_without_bom_is_read_the_same(tmp_path):
+    text = SPRING.read_bytes().decode("utf-8-sig").replace("\r\n", "\n")
+    plain = tmp_path / "plain.csv"
+    plain.write_text(text, encoding="utf-8", newline="\n")
+    pd.testing.assert_series_equal(load_nordpool_csv(plain), load_nordpool_csv(SPRING))
+
+
+def test_not_an_export():
+    with pytest.raises(ValueError, match=r"not_an_export\.csv is not a Nord Pool price export"):
+        load_nordpool_csv(NOT_EXPORT)
+
+
+def test_binary_and_missing_files(tmp_path):
+    binary = tmp_path / "prices.xlsx"
+    binary.write_bytes(b"PK\x03\x04\xff\xfe\x00\x01" * 20)
+    with pytest.raises(ValueError, match="not a Nord Pool price export"):
+        load_nordpool_csv(binary)
+    with pytest.raises(FileNotFoundError):
+        load_nordpool_csv(tmp_path / "nowhere.csv")
+
+
+def test_unknown_area_lists_the_available_ones():
+    with pytest.raises(ValueError, match="unknown area 'NO3'") as err:
+        load_nordpool_csv(SPRING, area="NO3")
+    assert "SYS, Oslo, Molde, Tr.heim, Tromsø, EE, LV" in str(err.value)
+
+
+def test_unreadable_cells_are_reported(tmp_path):
+    text = SPRING.read_bytes().decode("utf-8-sig")
+    bad = tmp_path / "bad_price.csv"
+    bad.write_text(text.replace(";30,25;30,25;", ";30,25;n/a;", 1), encoding="utf-8")
+    with pytest.raises(ValueError, match=r"27\.03\.2021 00 - 01.*'n/a'"):
+        load_nordpool_csv(bad)
+    bad_date = tmp_path / "bad_date.csv"
+    bad_date.write_text(text.replace("27.03.2021;05 - 06", "2021-03-27;05 - 06"), encoding="utf-8")
+    with pytest.raises(ValueError, match="DD.MM.YYYY"):
+        load_nordpool_csv(bad_date)
+
+
+def test_price_in_the_skipped_spring_hour_is_an_error(tmp_path):
+    text = SPRING.read_bytes().decode("utf-8-sig")
+    bad = tmp_path / "spring_value.csv"
+    bad.write_text(
+        text.replace("28.03.2021;02 - 03;;;;;", "28.03.2021;02 - 03;1;2;3;4;"), encoding="utf-8"
+    )
+    with pytest.raises(ValueError, match="does not exist"):
+        load_nordpool_csv(bad)
+
+
+# ----------------------------------------------------------------------------------------------
+# daily_matrix and Prices.from_series
+# ----------------------------------------------------------------------------------------------
+
+
+def test_daily_matrix_on_ordinary_days():
+    series = load_nordpool_csv(SPRING)
+    matrix = daily_matrix(series, "2021-03-29", 1)
+    assert matrix.shape == (1, 24)
+    np.testing.assert_allclose(matrix[0], [trheim(2, h) for h in range(24)])
+    same = daily_matrix(series, dt.date(2021, 3, 29), 1)
+    np.testing.assert_array_equal(same, matrix)
+
+
+def test_daily_matrix_spring_day_repeats_the_hour_before_the_gap():
+    matrix = daily_matrix(load_nordpool_csv(SPRING), "2021-03-27", 3)
+    assert matrix.shape == (3, 24)
+    expected = np.array([[trheim(d, h) for h in range(24)] for d in range(3)])
+    expected[1, 2] = trheim(1, 1)
+    np.testing.assert_allclose(matrix, expected)
+
+
+def test_daily_matrix_autumn_day_averages_the_repeated_hour():
+    matrix = daily_matrix(load_nordpool_csv(AUTUMN), "2021-10-30", 3)
+    expected = np.array([[trheim(d, h) for h in range(24)] for d in range(3)])
+    expected[1, 2] = (61.5 + 48.25) / 2
+    np.testing.assert_allclose(matrix, expected)
+
+
+def test_daily_matrix_errors():
+    series = load_nordpool_csv(SPRING)
+    with pytest.raises(ValueError, match=r"no prices from 2022-01-01 to 2022-01-02"):
+        daily_matrix(series, "2022-01-01", 2)
+    with pytest.raises(ValueError, match=r"missing from 2021-03-29 to 2021-03-30"):
+        daily_matrix(series, "2021-03-29", 2)
+    with pytest.raises(ValueError, match="days"):
+        daily_matrix(series, "2021-03-27", 0)
+    with pytest.raises(ValueError, match="time-zone-aware"):
+        daily_matrix(series.tz_localize(None), "2021-03-27", 1)
+    with pytest.raises(ValueError, match="not a time of day"):
+        daily_matrix(series, "2021-03-27 05:00", 1)
+
+
+def test_from_series():
+    prices = Prices.from_series(load_nordpool_csv(AUTUMN), "2021-10-30", 3, sell_ratio=0.4)
+    assert prices.days == 3 and prices.sell_ratio == 0.4
+    assert "Tr.heim" in prices.source and "2021-10-30" in prices.source
+    buy, sell = prices.window(hour=23, N=2)
+    np.testing.assert_allclose(buy[2], [trheim(2, 23), trheim(0, 0)])
+    np.testing.assert_allclose(sell, 0.4 * buy)
+
+
+# ----------------------------------------------------------------------------------------------
+# The real Nord Pool export (read in place; never copied into the project)
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def real_trheim() -> pd.Series:
+    if not REAL_EXPORT.is_file():
+        pytest.skip(
+            f"real Nord Pool export not found at {REAL_EXPORT} (it is not shipped with the "
+            "project because of Nord Pool's terms; see data/README.md)"
+        )
+    return load_nordpool_csv(REAL_EXPORT, area="Tr.heim")
+
+
+def test_real_export_november_2020(real_trheim):
+    check_hourly_index(real_trheim)
+    november = real_trheim[
+        (real_trheim.index >= pd.Timestamp("2020-11-01", tz="Europe/Oslo"))
+        & (real_trheim.index < pd.Timestamp("2020-12-01", tz="Europe/Oslo"))
+    ]
+    assert len(november) == 720
+    assert november.mean() == pytest.approx(56.35, abs=0.01)
+    assert november.min() == pytest.approx(2.89) and november.max() == pytest.approx(128.62)
+
+
+def test_real_export_clock_change_days(real_trheim):
+    counts = real_trheim.groupby(real_trheim.index.date).size()
+    assert counts[dt.date(2020, 3, 29)] == 23
+    assert counts[dt.date(2020, 10, 25)] == 25
+    assert (counts.drop([dt.date(2020, 3, 29), dt.date(2020, 10, 25)]) == 24).all()
+    assert len(real_trheim) == 366 * 24  # 2020 is a leap year; the two changes cancel
+
+
+def test_real_export_molde_equals_trondheim_in_november(real_trheim):
+    molde = load_nordpool_csv(REAL_EXPORT, area="Molde")
+    nov = slice("2020-11-01", "2020-11-30")
+    pd.testing.assert_series_equal(molde.loc[nov], real_trheim.loc[nov], check_names=False)
+
+
+def test_real_export_matches_the_shipped_profile(real_trheim):
+    matrix = daily_matrix(real_trheim, "2020-11-01", 30)
+    assert matrix.shape == (30, 24)
+    assert matrix.mean() == pytest.approx(56.35, abs=0.01)
+    corr = np.corrcoef(matrix.ravel(), load_default_profile().ravel())[0, 1]
+    assert corr > 0.97
+    prices = Prices.from_series(real_trheim, "2020-11-01", 30)
+    assert prices.buy.min() == pytest.approx(2.89)
