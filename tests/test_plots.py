@@ -1,0 +1,300 @@
+"""Tests of the figures (mpcrl_lite.plots): structure, plotted data, reference lines, files."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
+
+from mpcrl_lite import plots  # noqa: E402
+from mpcrl_lite.config import LearningConfig  # noqa: E402
+from mpcrl_lite.experiment import Experiment  # noqa: E402
+from mpcrl_lite.history import History  # noqa: E402
+from mpcrl_lite.plots import (  # noqa: E402
+    FIRST_COLOR,
+    LAST_COLOR,
+    PAPER_FIGURES,
+    fig1_trajectories,
+    fig2_performance,
+    fig3_gradient_norm,
+    fig4_grid_power,
+    fig5_policy_and_agent_costs,
+    fig6_prices,
+    fig7_theta,
+    find_lines,
+    plot_day,
+    save_paper_figures,
+)
+from mpcrl_lite.prices import Prices  # noqa: E402
+
+DAYS, MONTHS = 3, 2
+
+
+@pytest.fixture(scope="module")
+def history() -> History:
+    """A real (short) learning run: 2 months of 3 days."""
+    learning = LearningConfig(days_per_month=DAYS, months=MONTHS)
+    return Experiment(learning=learning).run(progress=False)
+
+
+@pytest.fixture(autouse=True)
+def _no_show_and_close(monkeypatch):
+    def refuse(*args, **kwargs):
+        raise AssertionError("plots must not call plt.show()")
+
+    monkeypatch.setattr(plt, "show", refuse)
+    yield
+    plt.close("all")
+
+
+def one_line(fig_or_ax, gid: str):
+    lines = find_lines(fig_or_ax, gid)
+    assert len(lines) == 1, f"expected one line {gid!r}, found {len(lines)}"
+    return lines[0]
+
+
+def hline_at(fig_or_ax, gid: str, value: float) -> None:
+    """A reference line ``gid`` exists in every given axes and is horizontal at ``value``."""
+    lines = find_lines(fig_or_ax, gid)
+    assert lines, f"no reference line {gid!r}"
+    for line in lines:
+        np.testing.assert_allclose(np.asarray(line.get_ydata(), float), value)
+
+
+def days_concat(values: np.ndarray, days, i=None) -> np.ndarray:
+    if i is None:
+        return np.concatenate([values[:, d] for d in days])
+    return np.concatenate([values[:, d, i] for d in days])
+
+
+# -- plot_day ----------------------------------------------------------------------------------
+def test_plot_day_data_and_references(history):
+    rec = history.last_month
+    H, D, n = rec.policy.shape
+    fig = plot_day(rec, day=1)
+    assert isinstance(fig, Figure)
+    assert len(fig.axes) == 4
+    for i in range(n):
+        np.testing.assert_allclose(one_line(fig, f"soc[{i + 1}]").get_ydata(), rec.soc[:, 1, i])
+        np.testing.assert_allclose(one_line(fig, f"policy[{i + 1}]").get_ydata()[:H],
+                                   rec.policy[:, 1, i])
+        np.testing.assert_allclose(one_line(fig, f"net_power[{i + 1}]").get_ydata()[:H],
+                                   rec.b[:, 1, i] - rec.s[:, 1, i])
+    np.testing.assert_allclose(one_line(fig, "grid_power").get_ydata()[:H], rec.grid_power[:, 1])
+    np.testing.assert_allclose(one_line(fig, "buy").get_ydata()[:H], rec.buy[:, 1])
+    np.testing.assert_allclose(one_line(fig, "sell").get_ydata()[:H],
+                               history.system.sell_ratio * rec.buy[:, 1])
+    hline_at(fig, "soc_low", 0.1)
+    hline_at(fig, "soc_high", 0.9)
+    hline_at(fig, "soc_min", 0.0)
+    hline_at(fig, "soc_max", 1.0)
+    hline_at(fig, "P_bar", history.system.P_bar)
+    assert fig.axes[-1].get_xlim() == (0.0, float(H))
+    assert "NOK/MWh" in fig.axes[-1].get_ylabel()
+    assert "MW" in fig.axes[1].get_ylabel() and "MW" in fig.axes[2].get_ylabel()
+
+
+def test_plot_day_uses_given_prices_and_axes(history):
+    rec = history.first_month
+    prices = Prices.month(history.system, DAYS).scaled(2.0)
+    fig0, axes = plt.subplots(4, 1)
+    fig = plot_day(rec, day=2, prices=prices, axes=axes)
+    assert fig is fig0
+    np.testing.assert_allclose(one_line(fig, "buy").get_ydata()[:24], prices.buy[2])
+    np.testing.assert_allclose(one_line(fig, "sell").get_ydata()[:24], prices.sell[2])
+
+
+@pytest.mark.parametrize("day", [DAYS, -1, 1.0, True])
+def test_plot_day_rejects_bad_day(history, day):
+    with pytest.raises(ValueError, match=f"day={day!r}"):
+        plot_day(history.last_month, day=day)
+
+
+def test_plot_day_rejects_short_prices_and_wrong_axes(history):
+    prices = Prices.month(history.system, 1)
+    with pytest.raises(ValueError, match="day=2"):
+        plot_day(history.last_month, day=2, prices=prices)
+    _, axes = plt.subplots(2, 1)
+    with pytest.raises(ValueError, match="expected 4"):
+        plot_day(history.last_month, axes=axes)
+
+
+# -- Fig. 1 ------------------------------------------------------------------------------------
+def test_fig1_first_red_last_blue(history):
+    n = history.system.n
+    fig = fig1_trajectories(history)
+    assert len(fig.axes) == 2 * n
+    days = list(range(DAYS))  # the default takes at most five days; the month has three
+    for i in range(n):
+        for key, rec, color in (("first", history.first_month, FIRST_COLOR),
+                                ("last", history.last_month, LAST_COLOR)):
+            soc = one_line(fig, f"soc[{i + 1}] {key}")
+            y = np.asarray(soc.get_ydata(), float)
+            np.testing.assert_allclose(y[~np.isnan(y)], days_concat(rec.soc, days, i))
+            assert soc.get_color() == color
+            pol = one_line(fig, f"policy[{i + 1}] {key}")
+            np.testing.assert_allclose(pol.get_ydata()[:-1], days_concat(rec.policy, days, i))
+            assert pol.get_color() == color
+    hline_at(fig, "soc_low", 0.1)
+    hline_at(fig, "soc_high", 0.9)
+    assert len(find_lines(fig, "soc_low")) == n
+    assert fig.axes[0].get_xlim() == (0.0, 24.0 * DAYS)
+
+
+def test_fig1_selected_days(history):
+    fig = fig1_trajectories(history, days=[2])
+    np.testing.assert_allclose(one_line(fig, "policy[1] last").get_ydata()[:-1],
+                               history.last_month.policy[:, 2, 0])
+    with pytest.raises(ValueError, match="day=7"):
+        fig1_trajectories(history, days=(0, 7))
+    with pytest.raises(ValueError, match="days=0"):
+        fig1_trajectories(history, days=0)
+
+
+# -- Figs. 2 and 3 -----------------------------------------------------------------------------
+def test_fig2_performance(history):
+    fig = fig2_performance(history)
+    assert len(fig.axes) == 1
+    line = one_line(fig, "J")
+    np.testing.assert_allclose(line.get_ydata(), history.J)
+    np.testing.assert_allclose(line.get_xdata(), np.arange(1, MONTHS + 1))
+    assert find_lines(fig, "J_rolling") == []  # fewer months than the window
+    assert "NOK" in fig.axes[0].get_ylabel()
+
+
+def test_fig2_rolling_mean_on_a_longer_history(history):
+    J = [float(v) for v in np.linspace(100.0, 50.0, 12)]
+    longer = dataclasses.replace(history, J=J)
+    fig = fig2_performance(longer, rolling=4)
+    rolling = one_line(fig, "J_rolling")
+    expected = [np.mean(J[k - 3 : k + 1]) for k in range(3, 12)]
+    np.testing.assert_allclose(rolling.get_ydata(), expected)
+    np.testing.assert_allclose(rolling.get_xdata(), np.arange(4, 13))
+    with pytest.raises(ValueError, match="rolling=0"):
+        fig2_performance(longer, rolling=0)
+
+
+def test_fig3_gradient_norm_log_scale(history):
+    fig3, ax = plt.subplots()
+    fig = fig3_gradient_norm(history, ax=ax)
+    assert fig is fig3 and len(fig.axes) == 1
+    assert ax.get_yscale() == "log"
+    np.testing.assert_allclose(one_line(fig, "grad_norm").get_ydata(), history.grad_norm)
+
+
+# -- Fig. 4 ------------------------------------------------------------------------------------
+def test_fig4_grid_power_against_P_bar(history):
+    rec = history.last_month
+    fig = fig4_grid_power(history)
+    assert len(fig.axes) == 1
+    days = range(DAYS)
+    np.testing.assert_allclose(one_line(fig, "grid_power").get_ydata()[:-1],
+                               days_concat(rec.grid_power, days))
+    np.testing.assert_allclose(one_line(fig, "planned_power").get_ydata()[:-1],
+                               days_concat(rec.planned_power, days))
+    hline_at(fig, "P_bar", history.system.P_bar)
+    assert one_line(fig, "grid_power").get_color() == LAST_COLOR
+    assert "MW" in fig.axes[0].get_ylabel() and "(h)" in fig.axes[0].get_xlabel()
+    over = np.count_nonzero(rec.grid_power > history.system.P_bar + 1e-9)
+    shaded = [p for p in fig.axes[0].patches if p.get_gid() == "P_over"]
+    assert (len(shaded) > 0) == (over > 0)
+
+
+def test_fig4_days(history):
+    fig = fig4_grid_power(history, days=2)
+    assert fig.axes[0].get_xlim() == (0.0, 48.0)
+    with pytest.raises(ValueError, match=f"days={DAYS + 1}"):
+        fig4_grid_power(history, days=DAYS + 1)
+
+
+# -- Fig. 5 ------------------------------------------------------------------------------------
+def test_fig5_policy_scatter_and_agent_costs(history):
+    n = history.system.n
+    rec = history.last_month
+    fig = fig5_policy_and_agent_costs(history)
+    assert len(fig.axes) == 2
+    ax_pi, ax_J = fig.axes
+    scatters = {c.get_gid(): c for c in ax_pi.collections}
+    J_i = np.asarray(history.J_per_agent)
+    for i in range(n):
+        points = scatters[f"policy[{i + 1}]"].get_offsets()
+        np.testing.assert_allclose(points[:, 1], rec.policy[:, :, i].reshape(-1))
+        hours = np.floor(points[:, 0]).astype(int)  # every point sits inside its hour
+        np.testing.assert_array_equal(hours, np.repeat(np.arange(rec.policy.shape[0]), DAYS))
+        np.testing.assert_allclose(one_line(ax_J, f"J[{i + 1}]").get_ydata(), J_i[:, i])
+    ubar = sorted(float(line.get_ydata()[0]) for line in find_lines(ax_pi, "U_bar"))
+    assert ubar == [-history.system.U_bar, history.system.U_bar]
+
+
+# -- Fig. 6 ------------------------------------------------------------------------------------
+def test_fig6_prices():
+    prices = Prices.default()
+    fig = fig6_prices(prices)
+    lines = [line for line in fig.axes[0].get_lines() if line.get_gid().startswith("buy day")]
+    assert len(lines) == 5
+    for d, line in enumerate(lines):
+        np.testing.assert_allclose(line.get_ydata(), prices.buy[d])
+    assert "NOK/MWh" in fig.axes[0].get_ylabel()
+    fig = fig6_prices(prices, days=[4, 20])
+    np.testing.assert_allclose(one_line(fig, "buy day 21").get_ydata(), prices.buy[20])
+    with pytest.raises(ValueError, match="day=40"):
+        fig6_prices(prices, days=(0, 40))
+    with pytest.raises(ValueError, match="days=\\[\\]"):
+        fig6_prices(prices, days=[])
+
+
+# -- Fig. 7 ------------------------------------------------------------------------------------
+@pytest.mark.parametrize("part", ["delta", "alpha", "T1"])
+def test_fig7_theta(history, part):
+    fig = fig7_theta(history, part)
+    values = history.theta_part(part)
+    assert values.shape == (MONTHS + 1, history.system.n)
+    for i in range(history.system.n):
+        line = one_line(fig, f"theta_{part}[{i + 1}]")
+        np.testing.assert_allclose(line.get_ydata(), values[:, i])
+        np.testing.assert_allclose(line.get_xdata(), np.arange(MONTHS + 1))
+
+
+def test_fig7_unknown_part(history):
+    with pytest.raises(ValueError, match="'gamma'"):
+        fig7_theta(history, "gamma")
+
+
+# -- empty history, files ----------------------------------------------------------------------
+def test_empty_history_is_rejected(history):
+    empty = History(history.system, history.mpc, history.learning)
+    for make in (fig2_performance, fig3_gradient_norm, fig1_trajectories, fig4_grid_power):
+        with pytest.raises(ValueError, match="no months"):
+            make(empty)
+
+
+def test_save_paper_figures(history, tmp_path):
+    paths = save_paper_figures(history, tmp_path / "figs")
+    assert [p.name for p in paths] == list(PAPER_FIGURES)
+    assert PAPER_FIGURES[-1] == "fig7_theta_delta.png"
+    for path in paths:
+        data = path.read_bytes()
+        assert data.startswith(b"\x89PNG") and len(data) > 5000, path
+    assert plt.get_fignums() == []  # every figure was closed
+
+
+def test_figures_from_a_saved_history(history, tmp_path):
+    loaded = History.load(history.save(tmp_path / "run"))
+    fig = fig1_trajectories(loaded)
+    np.testing.assert_allclose(one_line(fig, "policy[2] first").get_ydata()[:-1],
+                               days_concat(history.first_month.policy, range(DAYS), 1))
+    fig = fig5_policy_and_agent_costs(loaded)
+    np.testing.assert_allclose(one_line(fig, "J[3]").get_ydata(),
+                               np.asarray(history.J_per_agent)[:, 2])
+
+
+def test_public_api():
+    for name in plots.__all__:
+        assert hasattr(plots, name), name
