@@ -1,0 +1,136 @@
+"""The learning loop: closed-loop invariants, determinism, checkpoint/resume, History I/O."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from mpcrl_lite import LearningConfig, MPCConfig, SystemConfig, Theta
+from mpcrl_lite.experiment import Experiment, run_month
+from mpcrl_lite.history import History
+from mpcrl_lite.mpc import MPC
+from mpcrl_lite.prices import Prices
+from mpcrl_lite.solvers import make_solver
+
+SMALL = SystemConfig(N=6)
+
+
+def small_experiment(months: int = 3, **learning) -> Experiment:
+    cfg = LearningConfig(days_per_month=3, months=months, seed=7, **learning)
+    return Experiment(system=SMALL, learning=cfg)
+
+
+def test_run_month_invariants():
+    system = SystemConfig(P_bar=1.0)
+    mpc = MPC(system)
+    solver = make_solver(mpc, MPCConfig(), Theta.nominal(system))
+    prices = Prices.month(system, 4)
+    rec = run_month(Theta.nominal(system), solver, prices, system,
+                    np.random.default_rng(0), exploration_std=0.1)
+    assert rec.soc.shape == (25, 4, 3)
+    assert np.all((rec.soc >= 0) & (rec.soc <= 1))
+    assert np.all(rec.soc[0] == system.soc0)
+    assert rec.solver_ok.all()
+    # the MPC's plan never exceeds the grid limit; the commanded (explored) action neither
+    assert np.max(rec.planned_power) <= system.P_bar + 1e-9
+    a = rec.a
+    assert np.all(np.clip(a, 0, None).sum(axis=2) <= system.P_bar + 1e-9)
+    assert np.all(np.clip(-a, 0, None).sum(axis=2) <= system.P_bar + 1e-9)
+    # stage cost is the sum of the agents' costs, and J is its discounted daily mean
+    np.testing.assert_allclose(rec.agent_cost.sum(axis=2), rec.stage_cost)
+    disc = system.gamma ** np.arange(24)
+    assert rec.J() == pytest.approx(float((disc[:, None] * rec.stage_cost).sum(axis=0).mean()))
+    # sensitivities were computed and are finite
+    assert rec.grad_pi.shape == (24, 4, 30, 3)
+    assert np.all(np.isfinite(rec.grad_pi))
+    assert rec.sens_ok.mean() > 0.9
+
+
+def test_prices_follow_the_hour():
+    system = SMALL
+    mpc = MPC(system)
+    solver = make_solver(mpc, MPCConfig(), Theta.nominal(system))
+    prices = Prices.month(system, 2)
+    rec = run_month(Theta.nominal(system), solver, prices, system, np.random.default_rng(1),
+                    sensitivities=False)
+    np.testing.assert_allclose(rec.buy, prices.buy.T)
+
+
+def test_same_seed_same_history():
+    h1 = small_experiment().run(progress=False)
+    h2 = small_experiment().run(progress=False)
+    assert h1.J == h2.J
+    assert h1.theta == h2.theta
+    assert h1.theta_final == h2.theta_final
+    h3 = Experiment(system=SMALL, learning=LearningConfig(days_per_month=3, months=3, seed=8)).run(progress=False)
+    assert h3.J != h1.J
+
+
+def test_resume_reproduces_uninterrupted_run(tmp_path):
+    full = small_experiment(months=4).run(progress=False)
+    # interrupted after two months, then resumed by a fresh process-like object
+    small_experiment(months=4).run(months=2, out=tmp_path, progress=False)
+    saved = json.loads((tmp_path / "checkpoint.json").read_text())
+    assert saved["months_done"] == 2
+    resumed = small_experiment(months=4).run(out=tmp_path, resume=True, progress=False)
+    assert resumed.months == 4
+    np.testing.assert_array_equal(resumed.J, full.J)
+    np.testing.assert_array_equal(resumed.theta_final, full.theta_final)
+    np.testing.assert_array_equal(resumed.last_month.soc, full.last_month.soc)
+    np.testing.assert_array_equal(resumed.first_month.soc, full.first_month.soc)
+
+
+def test_resume_refuses_a_different_config(tmp_path):
+    small_experiment(months=2).run(months=1, out=tmp_path, progress=False)
+    other = Experiment(system=SMALL.replace(P_bar=1.2), learning=LearningConfig(days_per_month=3, months=2, seed=7))
+    with pytest.raises(ValueError, match="different system config"):
+        other.run(out=tmp_path, resume=True, progress=False)
+
+
+def test_history_roundtrip(tmp_path):
+    h = small_experiment(months=2).run(progress=False)
+    h.save(tmp_path)
+    assert not any(p.suffix == ".pkl" for p in tmp_path.iterdir())
+    back = History.load(tmp_path)
+    assert back.J == h.J
+    assert back.J_per_agent == h.J_per_agent
+    assert back.theta == h.theta
+    assert back.system == h.system and back.learning == h.learning
+    np.testing.assert_array_equal(back.last_month.policy, h.last_month.policy)
+    assert back.summary() == h.summary()
+    summary = h.summary()
+    for key in ("J", "J_per_agent", "grad_norm", "theta_final", "hours_soc_below_0_1",
+                "max_P_mpc", "skipped_steps"):
+        assert key in summary
+    assert set(summary["theta_final"]) == {"alpha", "delta", "b", "s", "phi1", "phi2", "phi3",
+                                           "T1", "T2", "T3"}
+
+
+def test_history_load_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="history.json"):
+        History.load(tmp_path)
+    (tmp_path / "history.json").write_text(json.dumps({"format": "something else"}))
+    with pytest.raises(ValueError, match="format"):
+        History.load(tmp_path)
+
+
+def test_constants_never_move_and_alpha_stays_positive():
+    h = small_experiment(months=3).run(progress=False)
+    theta = np.vstack([h.theta_array(), np.asarray(h.theta_final)[None]])
+    n = SMALL.n
+    for part in ("phi3", "T3"):
+        assert np.all(theta[:, Theta.index(n, part)] == 0)
+    assert np.all(theta[:, Theta.index(n, "alpha")] > 0)
+    assert np.all(theta[:, Theta.index(n, "phi1")] >= 0)
+
+
+def test_experiment_rejects_bad_input():
+    with pytest.raises(ValueError, match="months"):
+        small_experiment().run(months=0, progress=False)
+    with pytest.raises(ValueError, match="resume"):
+        small_experiment().run(resume=True, progress=False)
+    with pytest.raises(ValueError, match="theta0 has n=2"):
+        Experiment(system=SMALL, theta0=Theta.nominal(SystemConfig(n=2)),
+                   learning=LearningConfig(days_per_month=3))
