@@ -120,7 +120,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--grid", type=Path, required=True, help="YAML file with the grid")
     p.add_argument("--out", type=Path, required=True, help="output directory")
     p.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
-    p.add_argument("--workers", type=_positive_int, default=None, help="local workers")
+    p.add_argument("--workers", type=_nonneg_int, default=None, help="local workers (0: serial)")
+    p.add_argument("--only", action="append", default=None, metavar="ID",
+                   help="execute only this run id (repeatable); a rerun executes failed/unfinished runs")
     p.add_argument("--notebooks", action="store_true",
                    help="also execute notebook 05 per grid point into DIR/reports/")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -266,10 +268,11 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
     try:
         table = run_sweep_cli(args.grid, args.out, scheduler=args.scheduler, workers=args.workers,
-                              notebooks=args.notebooks, progress=not args.quiet)
+                              notebooks=args.notebooks, progress=not args.quiet, only=args.only)
     except (ValueError, FileNotFoundError) as err:
         raise UsageError(str(err)) from None
-    print(json.dumps({"runs": len(table), "table": str(args.out / "results.csv")}))
+    print(json.dumps({"runs": len(table), "failed": int((table["status"] == "failed").sum()),
+                      "table": str(args.out / "results.csv")}))
     return 0
 
 
