@@ -103,7 +103,11 @@ class PolicySensitivity:
             if not solution.success[d]:
                 reasons.append(f"solver failed: {solution.status[d]}")
                 continue
-            grad, residual, cond = self._function(y_all[d], solution.p[d], self.config.tau)
+            try:
+                grad, residual, cond = self._function(y_all[d], solution.p[d], self.config.tau)
+            except RuntimeError:  # CasADi's QR refuses an exactly singular matrix
+                reasons.append("singular KKT matrix (the linear solve failed)")
+                continue
             grad = np.array(grad)
             residual, cond = float(residual), float(cond)
             conds[d] = cond

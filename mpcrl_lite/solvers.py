@@ -241,7 +241,7 @@ class IpoptSolver:
         scale = 1.0 + np.abs(p).max()
         r = np.array(kkt.residual(y, p, tau)).ravel()
         for _ in range(steps):
-            if np.max(np.abs(r)) <= 1e-13 * scale:
+            if np.max(np.abs(r)) == 0.0:
                 break
             dy = np.array(kkt.newton(y, p, tau)).ravel()
             if not np.all(np.isfinite(dy)):
@@ -261,7 +261,11 @@ class IpoptSolver:
             r_new = np.array(kkt.residual(y_new, p, tau)).ravel()
             if not np.max(np.abs(r_new)) < np.max(np.abs(r)):
                 break  # no more progress: at machine precision
+            # a full Newton step that gains less than two digits is at the rounding level
+            at_floor = step == 1.0 and np.max(np.abs(r_new)) > 1e-2 * np.max(np.abs(r))
             y, r = y_new, r_new
+            if at_floor:
+                break
         x, lam, mu = kkt.split(y)
         ok = bool(np.all(np.isfinite(r)) and np.max(np.abs(r)) <= 1e-6 * scale)
         return x, lam, mu, ok
