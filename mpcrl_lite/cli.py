@@ -258,7 +258,10 @@ def cmd_baselines(args: argparse.Namespace) -> int:
     system, mpc_config, learning = _configs(args, days_per_month=args.days)
     from .baselines import run_baselines_cli
 
-    result = run_baselines_cli(system, mpc_config, learning, args.history, args.out)
+    try:
+        result = run_baselines_cli(system, mpc_config, learning, args.history, args.out)
+    except (ValueError, FileNotFoundError) as err:
+        raise UsageError(str(err)) from None
     print(json.dumps({k: v["J"] for k, v in result["policies"].items()}))
     return 0
 
