@@ -36,5 +36,9 @@ lab: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py
 
+## student version of the notebooks (solution cells removed) into student/
+student: $(STAMP)
+	$(BIN)/python tools/make_student_version.py --out student
+
 clean:
 	rm -rf reports .pytest_cache
