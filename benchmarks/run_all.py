@@ -1,0 +1,206 @@
+"""Run every benchmark and print ONE JSON line, then the scaling table.
+
+    .venv/bin/python benchmarks/run_all.py            # full run (4-13 min on 2 cores)
+    .venv/bin/python benchmarks/run_all.py --quick    # smoke run (~1-2 min)
+
+The mpcrl comparison needs the benchmark-only requirements
+(``pip install -r benchmarks/requirements.txt``); without them it is skipped with a message
+on stderr and ``mpcrl_ms_per_step: null``. Nothing is installed by this script.
+
+Every ratio is computed from figures measured in this same run. Each measurement runs in its
+own interpreter, so imports, caches and memory of one part do not leak into another. Wall
+times are the headline figures; CPU times (``*_cpu_*``) are reported next to them because
+on a shared machine the wall clock also measures the other processes (see README.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import machine, run_json  # noqa: E402
+
+import bench_learning  # noqa: E402
+import bench_mpcrl  # noqa: E402
+
+#: The targets quoted in README.md (reported, never asserted).
+TARGETS = {
+    "speedup_vs_mpcrl": (">=", 10.0),
+    "paper_experiment_s": ("<=", 60.0),
+    "peak_rss_mb": ("<=", 2048.0),
+    "n100_ms_per_step": ("<=", 50.0),
+    "N48_ms_per_step": ("<=", 5.0),
+    "cold_start_s": ("<=", 3.0),
+}
+
+
+def _log(msg: str) -> None:
+    print(f"[bench {time.strftime('%H:%M:%S')}] {msg}", file=sys.stderr, flush=True)
+
+
+def _sub(call: str) -> dict:
+    """``bench_learning.<call>`` in a fresh interpreter."""
+    return run_json(f"import json, bench_learning as b; print(json.dumps(b.{call}))",
+                    timeout=4 * 3600)
+
+
+def _try(label: str, fn):
+    """``fn()``, or None (logged) if it fails: one broken reference must not end the run."""
+    try:
+        return fn()
+    except Exception as err:  # noqa: BLE001  (reported, the run goes on)
+        _log(f"{label} FAILED: {str(err).strip().splitlines()[-1] if str(err).strip() else err}")
+        return None
+
+
+def _scaling_value(rows: list[dict], n: int, N: int) -> float | None:
+    for row in rows:
+        if row["n"] == n and row["N"] == N:
+            return row.get("batch_ms")
+    return None
+
+
+def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
+    info = machine()
+    info["loadavg_start"] = info.pop("loadavg", None)
+    t_start = time.perf_counter()
+    result: dict = {"quick": quick}
+
+    _log("our learning step (run_month + LSTD/DPG update)")
+    ours = _sub(f"learning_step(months={1 if quick else 3})")
+    _log("our learning step without warm start")
+    ours_cold = _sub(f"learning_step(months={1 if quick else 3}, warm_start=False)")
+
+    mpcrl = mpcrl_lbx = None
+    mpcrl_cold = mpcrl_cold_cached = None
+    if skip_mpcrl:
+        _log("mpcrl comparison skipped (--skip-mpcrl)")
+        result["mpcrl_skipped"] = "--skip-mpcrl"
+    elif not bench_mpcrl.available():
+        msg = ("mpcrl is not importable: skipping the mpcrl comparison "
+               "(pip install -r benchmarks/requirements.txt to enable it)")
+        _log(msg)
+        result["mpcrl_skipped"] = msg
+    else:
+        _log("mpcrl learning step (same MPC, LstdDpgAgent)")
+        days = 1 if quick else 3
+        mpcrl = _try("mpcrl learning step", lambda: run_json(
+            "import sys, bench_mpcrl; "
+            f"sys.exit(bench_mpcrl.main(['--days', '{days}', '--warmup-days', '1']))",
+            timeout=3600,
+        ))
+        if not quick:
+            _log("mpcrl learning step, box bounds as variable bounds (inexact sensitivity)")
+            mpcrl_lbx = _try("mpcrl (bounds in lbx)", lambda: run_json(
+                "import sys, bench_mpcrl; "
+                f"sys.exit(bench_mpcrl.main(['--days', '{days}', '--bounds-in-lbx']))",
+                timeout=3600,
+            ))
+        _log("mpcrl cold start")
+        mpcrl_cold_cached = _try("mpcrl cold start", lambda: bench_mpcrl.cold_start_subprocess(
+            fresh_numba_cache=False))
+        if not quick:
+            mpcrl_cold = _try("mpcrl cold start (empty numba cache)",
+                              lambda: bench_mpcrl.cold_start_subprocess(fresh_numba_cache=True))
+
+    months = 3 if quick else 100
+    _log(f"paper experiment ({months} months{', extrapolated to 100' if quick else ''})")
+    paper = bench_learning.paper_experiment(months=months)
+    _log("paper experiment, learning only (eval_every=0)")
+    paper_learn = _try("paper experiment (eval_every=0)",
+                       lambda: bench_learning.paper_experiment(months=months, eval_every=0))
+
+    _log("cold start")
+    cold = bench_learning.cold_start(trials=1 if quick else 3)
+
+    _log("scaling")
+    rows = bench_learning.scaling(quick=quick)
+    # the smoke run leaves the committed figure alone
+    figure = None if quick else bench_learning.scaling_figure(rows)
+
+    ms = ours["ms_per_step"]
+    result.update({
+        "ms_per_step": ms,
+        "cpu_ms_per_step": ours["cpu_ms_per_step"],
+        "mpcrl_ms_per_step": None if mpcrl is None else mpcrl["ms_per_step"],
+        "mpcrl_cpu_ms_per_step": None if mpcrl is None else mpcrl["cpu_ms_per_step"],
+        "speedup_vs_mpcrl": None if mpcrl is None else mpcrl["ms_per_step"] / ms,
+        "speedup_vs_mpcrl_cpu": None if mpcrl is None
+        else mpcrl["cpu_ms_per_step"] / ours["cpu_ms_per_step"],
+        "mpcrl_bounds_in_lbx_ms_per_step": None if mpcrl_lbx is None
+        else mpcrl_lbx["ms_per_step"],
+        "speedup_vs_mpcrl_bounds_in_lbx": None if mpcrl_lbx is None
+        else mpcrl_lbx["ms_per_step"] / ms,
+        "ms_per_step_no_warm_start": ours_cold["ms_per_step"],
+        "cpu_ms_per_step_no_warm_start": ours_cold["cpu_ms_per_step"],
+        "paper_experiment_s": paper["paper_experiment_s"],
+        "paper_experiment_cpu_s": paper["paper_experiment_cpu_s"],
+        "paper_experiment_months_run": paper["months"],
+        "paper_experiment_extrapolated": paper["extrapolated"],
+        "peak_rss_mb": paper["peak_rss_mb"],
+        "paper_experiment_learning_only_s": None if paper_learn is None
+        else paper_learn["paper_experiment_s"],
+        "paper_experiment_learning_only_cpu_s": None if paper_learn is None
+        else paper_learn["paper_experiment_cpu_s"],
+        "cold_start_s": cold["cold_start_s"],
+        "cold_start_cpu_s": cold["cpu_s"],
+        "mpcrl_cold_start_s": None if mpcrl_cold_cached is None
+        else mpcrl_cold_cached["cold_start_s"],
+        "mpcrl_first_day_s": None if mpcrl_cold is None else mpcrl_cold["first_day_s"],
+        "mpcrl_first_day_cached_jit_s": None if mpcrl_cold_cached is None
+        else mpcrl_cold_cached["first_day_s"],
+        "scaling": rows,
+    })
+    values = {
+        "speedup_vs_mpcrl": result["speedup_vs_mpcrl"],
+        "paper_experiment_s": result["paper_experiment_s"],
+        "peak_rss_mb": result["peak_rss_mb"],
+        "n100_ms_per_step": _scaling_value(rows, 100, 12),
+        "N48_ms_per_step": _scaling_value(rows, 3, 48),
+        "cold_start_s": result["cold_start_s"],
+    }
+    targets = {}
+    for name, (op, bound) in TARGETS.items():
+        v = values[name]
+        met = None if v is None else (v >= bound if op == ">=" else v <= bound)
+        targets[name] = {"value": v, "target": f"{op} {bound:g}", "met": met}
+    result["targets"] = targets
+    info["loadavg_end"] = [round(x, 2) for x in os.getloadavg()]
+    result["machine"] = info
+    result["details"] = {
+        "ours": ours, "ours_no_warm_start": ours_cold, "mpcrl": mpcrl,
+        "mpcrl_bounds_in_lbx": mpcrl_lbx, "mpcrl_cold_fresh_numba": mpcrl_cold,
+        "mpcrl_cold_cached_numba": mpcrl_cold_cached, "paper": paper,
+        "paper_learning_only": paper_learn, "cold": cold,
+        "figure": None if figure is None else str(figure),
+    }
+    result["total_s"] = time.perf_counter() - t_start
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description="mpcrl_lite benchmarks (prints one JSON line)")
+    parser.add_argument("--quick", action="store_true",
+                        help="smoke run: 1 month, 3 months of the paper run (extrapolated), "
+                             "fewer scaling sizes")
+    parser.add_argument("--skip-mpcrl", action="store_true", help="leave out the mpcrl comparison")
+    parser.add_argument("--out", type=Path, help="also write the JSON to this file")
+    args = parser.parse_args(argv)
+    result = run(quick=args.quick, skip_mpcrl=args.skip_mpcrl)
+    line = json.dumps(result)
+    print(line, flush=True)
+    if args.out:
+        args.out.write_text(line + "\n")
+    print()
+    print(bench_learning.scaling_table(result["scaling"]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
