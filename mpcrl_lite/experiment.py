@@ -10,12 +10,20 @@ Every month (paper, Section IV):
    (:func:`mpcrl_lite.model.step`);
 2. LSTD fits the compatible action-value function on the month's transitions
    (:func:`mpcrl_lite.lstd.lstd_q`); each day is an episode, so the last hour of a day does
-   not bootstrap (the next day restarts at ``soc0``);
+   not bootstrap (the next day restarts at ``soc0``). The value baseline uses
+   :func:`value_baseline_features` (``LearningConfig.value_features``);
 3. the policy gradient ``mean(grad pi grad pi^T w)`` moves theta
-   (:class:`mpcrl_lite.dpg.DPGUpdater`).
+   (:class:`mpcrl_lite.dpg.DPGUpdater`);
+4. every ``LearningConfig.eval_every`` months the parameters of the month are evaluated:
+   one more month of the same days on a fixed noise draw (``LearningConfig.eval_seed``),
+   without exploration and without sensitivities (:meth:`Experiment.evaluate`). Its J is
+   recorded as ``History.J_eval``: the month's own J moves by +-200 from month to month with
+   its new noise and exploration, J_eval only with the parameters.
 
 Random draws come from one ``numpy.random.Generator`` seeded with ``LearningConfig.seed``,
-in a fixed order (per hour: exploration, then noise), so a seed fixes a run. After every
+in a fixed order (per hour: exploration, then noise), so a seed fixes a run; the evaluation
+draws from its own generator, created anew from ``eval_seed`` each time, so it never changes
+the learning run. After every
 month the run can be checkpointed (History, theta, the updater's state and the generator's
 state, all as JSON/npz) and resumed with identical results.
 
@@ -46,7 +54,7 @@ from .prices import Prices
 from .solvers import make_solver
 from .theta import Theta
 
-__all__ = ["Experiment", "run_month", "Callback"]
+__all__ = ["Experiment", "run_month", "value_baseline_features", "Callback"]
 
 log = logging.getLogger(__name__)
 
@@ -137,8 +145,45 @@ def run_month(
     )
 
 
+def value_baseline_features(soc: np.ndarray, kind: str = "paper+hour") -> np.ndarray:
+    r"""Features :math:`\Phi` of the critic's value baseline for every state of a month.
+
+    Parameters
+    ----------
+    soc : array, shape ``(H + 1, D, n)``
+        States of charge of a month, row ``k`` at hour ``k`` of the day (row ``H`` the end of
+        the day).
+    kind : {'paper', 'paper+hour'}
+        ``'paper'``: the paper's :math:`[soc_i^2, soc_i, 1]`
+        (:func:`mpcrl_lite.lstd.value_features`). ``'paper+hour'``: the same with the
+        constant replaced by one indicator per hour of the day, :math:`[soc_i^2, soc_i,
+        e_k]`; the row of the end of the day has no indicator set (it is never bootstrapped
+        from: the day is an episode).
+
+    Returns
+    -------
+    array, shape ``(H + 1, D, 2 n + 1)`` or ``(H + 1, D, 2 n + H)``
+    """
+    soc = np.asarray(soc, dtype=float)
+    if soc.ndim != 3:
+        raise ValueError(f"soc has shape {soc.shape}; expected (H + 1, D, n)")
+    paper = value_features(soc)
+    if kind == "paper":
+        return paper
+    if kind != "paper+hour":
+        raise ValueError(f"kind={kind!r}: expected 'paper' or 'paper+hour'")
+    hours = soc.shape[0] - 1
+    onehot = np.eye(hours + 1, hours)[:, None, :]  # row k: hour k; row H: all zeros
+    onehot = np.broadcast_to(onehot, soc.shape[:2] + (hours,))
+    return np.concatenate([paper[..., :-1], onehot], axis=-1)
+
+
 class Experiment:
     """The paper's learning run: months x days, LSTD critic, DPG update at each month's end.
+
+    With the default configurations (:mod:`mpcrl_lite.config`) every month's parameters are
+    also evaluated on a fixed noise draw (:meth:`evaluate`, ``History.J_eval``), which shows
+    the learning trend without the month-to-month noise of ``History.J``.
 
     Parameters
     ----------
@@ -192,8 +237,8 @@ class Experiment:
         skipped = int(use.size - np.count_nonzero(use))
         if not use.any():
             return np.zeros(self.mpc.n_theta), skipped, {"lstd": "no usable samples"}
-        phi = value_features(record.soc[:-1])
-        phi_next = value_features(record.soc[1:])
+        features = value_baseline_features(record.soc, self.learning.value_features)
+        phi, phi_next = features[:-1], features[1:]
         psi = compatible_features(record.grad_pi, record.a, record.policy)
         done = np.broadcast_to((np.arange(H) == H - 1)[:, None], use.shape)
         fit = lstd_q(
@@ -209,14 +254,39 @@ class Experiment:
         }
         return grad, skipped, info
 
-    def run_one_month(self) -> MonthRecord:
-        """Simulate one month with the current theta and update it."""
-        t0 = time.perf_counter()
-        theta_used = self.theta
-        if self.mpc_config.backend == "auto" and not theta_used.is_convex() and self.solver.name != "ipopt":
+    # -- evaluation -----------------------------------------------------------------------
+    def evaluate(self, theta: Theta | None = None) -> MonthRecord:
+        """J of ``theta`` (default: the current parameters) on the fixed evaluation draw.
+
+        The month's days are run once more with noise from a generator seeded with
+        ``LearningConfig.eval_seed`` (the same draw every time), without exploration and
+        without sensitivities. The learning generator is not touched.
+        """
+        theta = self.theta if theta is None else theta
+        self._check_solver(theta)
+        rng = np.random.default_rng(self.learning.eval_seed)
+        return run_month(theta, self.solver, self.prices, self.system, rng,
+                         exploration_std=0.0, sensitivities=False)
+
+    def evaluation_due(self, month: int) -> bool:
+        """True when month ``month`` (counted from 0) is evaluated: every
+        ``eval_every`` months and the last month of ``LearningConfig.months``."""
+        every = self.learning.eval_every
+        return every > 0 and (month % every == 0 or month == self.learning.months - 1)
+
+    def _check_solver(self, theta: Theta) -> None:
+        if self.mpc_config.backend == "auto" and not theta.is_convex() and self.solver.name != "ipopt":
             log.info("theta is no longer convex: switching the MPC back-end to IPOPT")
             self.solver = make_solver(self.mpc, self.mpc_config.replace(backend="ipopt"))
             self.history.backend = self.solver.name
+
+    def run_one_month(self) -> MonthRecord:
+        """Simulate one month with the current theta and update it (and evaluate the
+        month's theta when :meth:`evaluation_due`)."""
+        t0 = time.perf_counter()
+        theta_used = self.theta
+        month = self.history.months
+        self._check_solver(theta_used)
         record = run_month(
             theta_used, self.solver, self.prices, self.system, self.rng,
             exploration_std=self.learning.exploration_std, sensitivities=True,
@@ -226,7 +296,12 @@ class Experiment:
         info.update(self.updater.last_info)
         info = json.loads(json.dumps(info, default=_jsonable))
         record.grad_pi = None  # large; not kept in the history
-        self.history.append(record, theta_used, grad, skipped, time.perf_counter() - t0, info)
+        wall_time = time.perf_counter() - t0
+        if self.evaluation_due(month):
+            t1 = time.perf_counter()
+            self.history.append_evaluation(month, self.evaluate(theta_used))
+            info["eval_time_s"] = time.perf_counter() - t1
+        self.history.append(record, theta_used, grad, skipped, wall_time, info)
         self.history.theta_final = self.theta.to_vector().tolist()
         return record
 
@@ -260,7 +335,10 @@ class Experiment:
             while self.history.months < months:
                 self.run_one_month()
                 m = self.history.months - 1
-                bar.set_postfix(J=f"{self.history.J[-1]:.1f}", refresh=False)
+                postfix = {"J": f"{self.history.J[-1]:.1f}"}
+                if self.history.J_eval:
+                    postfix["J_eval"] = f"{self.history.J_eval[-1]:.1f}"
+                bar.set_postfix(postfix, refresh=False)
                 bar.update(1)
                 if out is not None:
                     self.save_checkpoint(out)
@@ -303,8 +381,7 @@ class Experiment:
         self.theta = Theta.from_vector(np.asarray(state["theta"]), self.system.n)
         self.updater.load_state_dict(state["updater"])
         self.rng.bit_generator.state = state["rng"]
-        if self.mpc_config.backend == "auto" and not self.theta.is_convex():
-            self.solver = make_solver(self.mpc, self.mpc_config.replace(backend="ipopt"))
+        self._check_solver(self.theta)
         self.history.backend = self.solver.name
 
 

@@ -3,7 +3,9 @@
 A :class:`History` is saved as two plain files, never as pickle:
 
 * ``history.json`` -- the configurations, theta's entry names, and every per-month scalar
-  series (human-readable);
+  series (human-readable), including the evaluation series (``J_eval`` and friends: the
+  parameters of a month evaluated on one fixed noise draw without exploration, see
+  :meth:`mpcrl_lite.experiment.Experiment.evaluate`);
 * ``history.npz`` -- the arrays (theta per month, J per agent, and the full trajectories of
   the first and last month), loaded with ``allow_pickle=False``.
 """
@@ -85,6 +87,25 @@ class MonthRecord:
         """Per-agent J^i, shape (n,)."""
         return discounted_return(self.agent_cost, self.system.gamma).mean(axis=0)
 
+    def bound_share(self, tol: float = 0.05) -> float:
+        """Share of the MPC's actions (agent-hours) within ``tol`` of a constraint.
+
+        An action ``pi_i`` counts when ``|pi_i| >= U_bar - tol`` (buying or selling at the
+        battery's limit), ``|pi_i| <= tol`` (idle), or it takes part in a grid-limited group
+        (``pi_i > 0`` and ``sum_j max(pi_j, 0) >= P_bar - tol``, likewise for selling). A
+        bang-bang policy has a share of 1. Hours whose MPC failed are left out.
+        """
+        if not (np.isfinite(tol) and tol >= 0):
+            raise ValueError(f"tol={tol!r}: expected a finite value >= 0")
+        sysc = self.system
+        a = self.policy
+        at_bound = (np.abs(a) >= sysc.U_bar - tol) | (np.abs(a) <= tol)
+        buy = np.clip(a, 0.0, None).sum(axis=-1, keepdims=True)
+        sell = np.clip(-a, 0.0, None).sum(axis=-1, keepdims=True)
+        grid = ((a > 0) & (buy >= sysc.P_bar - tol)) | ((a < 0) & (sell >= sysc.P_bar - tol))
+        hit = (at_bound | grid)[self.solver_ok]
+        return float(hit.mean()) if hit.size else float("nan")
+
     def summary(self) -> dict[str, Any]:
         """The month's key figures as JSON-friendly values."""
         t = self.trajectory
@@ -116,6 +137,14 @@ class History:
 
     Lists grow by one entry per month; ``theta`` holds the parameters *used* in each month
     and ``theta_final`` those after the last update.
+
+    The evaluation series (:data:`EVAL_SERIES`) grow by one entry per evaluated month:
+    ``eval_month[j]`` is the month whose parameters were evaluated, ``J_eval[j]`` their J on
+    the fixed evaluation draw (no exploration), ``J_eval_per_agent[j]`` the per-agent J^i,
+    ``eval_hours_soc_below_0_1[j]`` the agent-hours with soc < 0.1, ``eval_max_P_mpc[j]`` the
+    largest planned grid power and ``eval_bound_share[j]`` the share of actions within 0.05 of
+    a constraint (:meth:`MonthRecord.bound_share`). Unlike ``J``, these are not disturbed by
+    the month's own noise and exploration, so they show the learning trend.
     """
 
     system: SystemConfig
@@ -135,6 +164,12 @@ class History:
     low_level_interventions: list[int] = field(default_factory=list)
     wall_time_s: list[float] = field(default_factory=list)
     update_info: list[dict[str, Any]] = field(default_factory=list)
+    eval_month: list[int] = field(default_factory=list)
+    J_eval: list[float] = field(default_factory=list)
+    J_eval_per_agent: list[list[float]] = field(default_factory=list)
+    eval_hours_soc_below_0_1: list[int] = field(default_factory=list)
+    eval_max_P_mpc: list[float] = field(default_factory=list)
+    eval_bound_share: list[float] = field(default_factory=list)
     first_month: MonthRecord | None = None
     last_month: MonthRecord | None = None
     backend: str = ""
@@ -143,6 +178,11 @@ class History:
         "J", "J_per_agent", "grad_norm", "theta", "hours_soc_below_0_1",
         "hours_soc_above_0_9", "max_P_mpc", "max_P_applied", "solver_failures",
         "skipped_steps", "low_level_interventions", "wall_time_s", "update_info",
+    )
+    #: Series of the evaluation on fixed noise (absent from files of older versions).
+    EVAL_SERIES = (
+        "eval_month", "J_eval", "J_eval_per_agent", "eval_hours_soc_below_0_1",
+        "eval_max_P_mpc", "eval_bound_share",
     )
 
     @property
@@ -172,6 +212,19 @@ class History:
         if self.first_month is None:
             self.first_month = record
         self.last_month = record
+
+    def append_evaluation(self, month: int, record: MonthRecord) -> None:
+        """Record the evaluation of month ``month``'s parameters (a month on the fixed
+        evaluation draw, without exploration)."""
+        if isinstance(month, bool) or not isinstance(month, (int, np.integer)) or month < 0:
+            raise ValueError(f"month={month!r}: expected an integer >= 0")
+        s = record.summary()
+        self.eval_month.append(int(month))
+        self.J_eval.append(s["J"])
+        self.J_eval_per_agent.append(s["J_per_agent"])
+        self.eval_hours_soc_below_0_1.append(s["hours_soc_below_0_1"])
+        self.eval_max_P_mpc.append(s["max_P_mpc"])
+        self.eval_bound_share.append(record.bound_share())
 
     # -- views ----------------------------------------------------------------------------
     def theta_array(self) -> np.ndarray:
@@ -207,6 +260,7 @@ class History:
             "skipped_steps": self.skipped_steps,
             "wall_time_s": self.wall_time_s,
             "backend": self.backend,
+            **{k: getattr(self, k) for k in self.EVAL_SERIES},
         }
 
     # -- storage --------------------------------------------------------------------------
@@ -221,7 +275,7 @@ class History:
             "learning": self.learning.to_dict(),
             "theta_final": self.theta_final,
             "backend": self.backend,
-            **{k: getattr(self, k) for k in self.SERIES},
+            **{k: getattr(self, k) for k in self.SERIES + self.EVAL_SERIES},
         }
         arrays: dict[str, np.ndarray] = {}
         if self.first_month is not None:
@@ -254,6 +308,7 @@ class History:
             theta_final=meta["theta_final"],
             backend=meta.get("backend", ""),
             **{k: meta[k] for k in cls.SERIES},
+            **{k: meta.get(k, []) for k in cls.EVAL_SERIES},
         )
         npz = directory / "history.npz"
         if npz.exists():

@@ -8,13 +8,15 @@ import warnings
 import numpy as np
 import pytest
 
-from mpcrl_lite.config import ConfigWarning, LearningConfig, SystemConfig
+from mpcrl_lite.config import PAPER_STEP_SIZE, ConfigWarning, LearningConfig, SystemConfig
 from mpcrl_lite.dpg import (
     ADAM_BETAS,
     ADAM_EPS,
     ADAM_STEP_SIZE,
+    DEFAULT_SCALE,
     DPGUpdater,
     learnable_mask,
+    part_scales,
     policy_gradient,
 )
 from mpcrl_lite.theta import CONSTANT_PARTS, PARTS, Theta
@@ -32,7 +34,7 @@ def theta_from(seed: int = 0) -> Theta:
 
 
 def updater(**changes) -> DPGUpdater:
-    base = dict(step_size=0.1, keep_well_posed=False)
+    base = dict(step_size=0.1, keep_well_posed=False, optimizer="sgd")
     base.update(changes)
     return DPGUpdater(LearningConfig(**base), N, ALPHA)
 
@@ -102,13 +104,49 @@ def test_sgd_step_is_theta_minus_step_times_grad_on_learnable_parts():
     np.testing.assert_array_equal(new.to_vector(), theta.to_vector() - 0.01 * grad)
 
 
-def test_paper_step_size_is_the_default():
-    up = DPGUpdater(LearningConfig(), N, ALPHA)
+def test_paper_rule_is_one_call_away():
+    config = LearningConfig.paper()
+    assert config.optimizer == "sgd" and config.step_size == PAPER_STEP_SIZE == 5e-8
+    up = DPGUpdater(config, N, ALPHA)
     theta = Theta.nominal(SystemConfig(n=N))
     grad = np.zeros(10 * N)
     grad[Theta.index(N, "delta")] = 1e6
     new = up.step(theta, grad)
     np.testing.assert_allclose(new.delta, theta.delta - 5e-8 * 1e6)
+
+
+def test_default_is_per_part_scaled_adam():
+    config = LearningConfig()
+    assert config.optimizer == "adam" and config.step_size == ADAM_STEP_SIZE
+    up = DPGUpdater.from_configs(config, SystemConfig(n=N))
+    expected = part_scales(ALPHA)
+    for part in PARTS:
+        np.testing.assert_allclose(up.scale[Theta.index(N, part)], expected[part])
+    assert expected["alpha"] == expected["delta"] == pytest.approx(ALPHA)
+    assert expected["b"] == DEFAULT_SCALE["b"] == 10.0 and expected["T2"] == 100.0
+    # the first Adam step moves every learnable entry by step_size times its scale
+    theta = theta_from(5)  # phi1 = T1 = 5: the projection does not interfere
+    grad = np.random.default_rng(0).normal(size=10 * N)
+    new = up.step(theta, grad)
+    move = np.abs(new.to_vector() - theta.to_vector())
+    mask = learnable_mask(N)
+    np.testing.assert_allclose(move[mask], (ADAM_STEP_SIZE * up.scale)[mask], rtol=1e-6)
+    assert np.all(move[~mask] == 0)
+    # the scales follow the unit of the prices
+    cheap = DPGUpdater.from_configs(config, SystemConfig(n=N, price_scale=1e-3))
+    np.testing.assert_allclose(cheap.scale[Theta.index(N, "phi2")], 0.1)
+    np.testing.assert_allclose(cheap.scale[Theta.index(N, "alpha")], ALPHA)
+    with pytest.raises(ValueError, match="price_scale"):
+        part_scales(ALPHA, 0.0)
+
+
+def test_scaled_gradient_norm_is_recorded():
+    up = updater(optimizer="adam", step_size=ADAM_STEP_SIZE)
+    grad = np.random.default_rng(1).normal(size=10 * N)
+    up.step(theta_from(3), grad)
+    g = np.where(learnable_mask(N), grad, 0.0)
+    assert up.last_info["grad_norm"] == pytest.approx(np.linalg.norm(g))
+    assert up.last_info["grad_norm_scaled"] == pytest.approx(np.linalg.norm(up.scale * g))
 
 
 # -- clipping and projection -----------------------------------------------------------------
@@ -161,8 +199,8 @@ def test_adam_first_and_second_steps_by_hand():
     up = updater(optimizer="adam", step_size=ADAM_STEP_SIZE)
     mask = learnable_mask(N)
     scale = np.ones(10 * N)
-    scale[Theta.index(N, "alpha")] = ALPHA
-    scale[Theta.index(N, "delta")] = ALPHA
+    for part, value in part_scales(ALPHA).items():
+        scale[Theta.index(N, part)] = value
     b1, b2 = ADAM_BETAS
     # first step: m_hat = g, v_hat = g^2  =>  direction = scale * g / (|g| + eps)
     new = up.step(theta, g1)
@@ -189,9 +227,9 @@ def test_adam_custom_scale_and_small_step_warning():
     new = up.step(theta, grad)
     np.testing.assert_allclose(theta.b - new.b, 0.1 * 100.0, rtol=1e-7)
     np.testing.assert_allclose(theta.alpha - new.alpha, 0.1 * ALPHA, rtol=1e-7)
-    np.testing.assert_allclose(theta.phi2 - new.phi2, 0.1, rtol=1e-7)
+    np.testing.assert_allclose(theta.phi2 - new.phi2, 0.1 * DEFAULT_SCALE["phi2"], rtol=1e-7)
     with pytest.warns(ConfigWarning, match="optimizer='adam'"):
-        DPGUpdater(LearningConfig(optimizer="adam"), N, ALPHA)
+        DPGUpdater(LearningConfig(optimizer="adam", step_size=PAPER_STEP_SIZE), N, ALPHA)
     with pytest.raises(ValueError, match="unknown part"):
         DPGUpdater(LearningConfig(optimizer="adam", step_size=0.1), N, ALPHA, scale={"x": 1.0})
 
@@ -218,7 +256,7 @@ def test_state_dict_round_trip_resumes_exactly(optimizer):
 
 
 def test_load_state_dict_rejects_mismatches():
-    sgd = DPGUpdater(LearningConfig(), N, ALPHA)
+    sgd = DPGUpdater(LearningConfig.paper(), N, ALPHA)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConfigWarning)
         adam = DPGUpdater(LearningConfig(optimizer="adam"), N, ALPHA)
@@ -226,7 +264,7 @@ def test_load_state_dict_rejects_mismatches():
         adam.load_state_dict(sgd.state_dict())
     state = sgd.state_dict()
     with pytest.raises(ValueError, match="state n=3; expected 2"):
-        DPGUpdater(LearningConfig(), 2, ALPHA).load_state_dict(state)
+        DPGUpdater(LearningConfig.paper(), 2, ALPHA).load_state_dict(state)
     with pytest.raises(ValueError, match=r"state 'm' has shape \(2,\)"):
         sgd.load_state_dict(dict(state, m=[0.0, 0.0]))
     with pytest.raises(ValueError, match="expected"):

@@ -134,3 +134,120 @@ def test_experiment_rejects_bad_input():
     with pytest.raises(ValueError, match="theta0 has n=2"):
         Experiment(system=SMALL, theta0=Theta.nominal(SystemConfig(n=2)),
                    learning=LearningConfig(days_per_month=3))
+
+
+# -- critic features --------------------------------------------------------------------------
+def test_value_baseline_features():
+    from mpcrl_lite.experiment import value_baseline_features
+    from mpcrl_lite.lstd import value_features
+
+    soc = np.random.default_rng(0).uniform(size=(25, 4, 3))
+    paper = value_baseline_features(soc, "paper")
+    np.testing.assert_array_equal(paper, value_features(soc))
+    hourly = value_baseline_features(soc, "paper+hour")
+    assert hourly.shape == (25, 4, 6 + 24)
+    np.testing.assert_array_equal(hourly[..., :6], paper[..., :6])
+    # one indicator per hour of the day; the end of the day (row 24) has none
+    np.testing.assert_array_equal(hourly[:24, 2, 6:], np.eye(24))
+    assert np.all(hourly[24, :, 6:] == 0)
+    with pytest.raises(ValueError, match="kind='hour'"):
+        value_baseline_features(soc, "hour")
+    with pytest.raises(ValueError, match="expected \\(H \\+ 1, D, n\\)"):
+        value_baseline_features(soc[0], "paper")
+    with pytest.raises(ValueError, match="value_features='x'"):
+        LearningConfig(value_features="x")
+
+
+def test_learning_step_uses_the_configured_features():
+    from mpcrl_lite.dpg import policy_gradient
+    from mpcrl_lite.lstd import compatible_features, lstd_q, value_features
+
+    exp = small_experiment(value_features="paper")
+    rec = run_month(exp.theta, exp.solver, exp.prices, exp.system, np.random.default_rng(3),
+                    exploration_std=0.2)
+    grad, skipped, _ = exp.learning_step(rec)
+    use = rec.sens_ok & rec.solver_ok
+    H = exp.system.hours_per_day
+    done = np.broadcast_to((np.arange(H) == H - 1)[:, None], use.shape)
+    psi = compatible_features(rec.grad_pi, rec.a, rec.policy)
+    fit = lstd_q(value_features(rec.soc[:-1])[use], psi[use], rec.stage_cost[use],
+                 value_features(rec.soc[1:])[use], exp.system.gamma, done=done[use],
+                 ridge=exp.learning.ridge)
+    np.testing.assert_allclose(grad, policy_gradient(rec.grad_pi[use], fit.w), rtol=1e-12)
+    hourly = small_experiment()
+    assert hourly.learning.value_features == "paper+hour"
+    grad_h, _, info = hourly.learning_step(rec)
+    assert np.all(np.isfinite(grad_h)) and not np.allclose(grad_h, grad)
+
+
+# -- evaluation on fixed noise ----------------------------------------------------------------
+def test_evaluation_series_and_schedule():
+    exp = small_experiment(months=4, eval_every=2)
+    h = exp.run(progress=False)
+    assert h.eval_month == [0, 2, 3]  # every 2 months and the last month
+    for key in History.EVAL_SERIES:
+        assert len(getattr(h, key)) == 3, key
+    # J_eval[j] is J of that month's theta on the fixed draw: repeatable at will
+    theta0 = Theta.from_vector(np.asarray(h.theta[0]), SMALL.n)
+    again = exp.evaluate(theta0)
+    assert again.J() == h.J_eval[0]
+    assert exp.evaluate(theta0).J() == again.J()
+    assert np.all(again.a == again.policy)  # no exploration
+    assert again.grad_pi is None
+    np.testing.assert_allclose(h.J_eval_per_agent[0], again.J_per_agent())
+    assert h.eval_hours_soc_below_0_1[0] == again.summary()["hours_soc_below_0_1"]
+    assert max(h.eval_max_P_mpc) <= SMALL.P_bar + 1e-9
+    assert all(0.0 <= b <= 1.0 for b in h.eval_bound_share)
+    # the evaluation never touches the learning run
+    quiet = small_experiment(months=4, eval_every=0).run(progress=False)
+    assert quiet.J == h.J and quiet.theta_final == h.theta_final
+    assert quiet.J_eval == [] and quiet.eval_month == []
+    # a different evaluation seed gives a different draw
+    other = small_experiment(months=1, eval_seed=5).run(progress=False)
+    assert other.J_eval[0] != h.J_eval[0]
+    with pytest.raises(ValueError, match="eval_every=-1"):
+        LearningConfig(eval_every=-1)
+
+
+def test_resume_reproduces_the_evaluation_series(tmp_path):
+    full = small_experiment(months=3).run(progress=False)
+    small_experiment(months=3).run(months=1, out=tmp_path, progress=False)
+    resumed = small_experiment(months=3).run(out=tmp_path, resume=True, progress=False)
+    assert resumed.eval_month == full.eval_month == [0, 1, 2]
+    assert resumed.J_eval == full.J_eval
+    assert resumed.J_eval_per_agent == full.J_eval_per_agent
+
+
+def test_history_roundtrip_keeps_the_evaluation_and_reads_older_files(tmp_path):
+    h = small_experiment(months=2).run(progress=False)
+    h.save(tmp_path)
+    back = History.load(tmp_path)
+    for key in History.EVAL_SERIES:
+        assert getattr(back, key) == getattr(h, key), key
+    assert back.summary()["J_eval"] == h.J_eval
+    # a history written before the evaluation series existed still loads
+    meta = json.loads((tmp_path / "history.json").read_text())
+    for key in History.EVAL_SERIES:
+        del meta[key]
+    (tmp_path / "history.json").write_text(json.dumps(meta))
+    old = History.load(tmp_path)
+    assert old.J == h.J and old.J_eval == [] and old.eval_month == []
+
+
+def test_bound_share_by_hand():
+    system = SystemConfig(P_bar=1.5)
+    rec = small_experiment(months=1).evaluate()
+    # hand-made actions: (hours=1, days=1, n=3) rows
+    cases = {
+        (1.0, -1.0, 0.0): 1.0,      # at U_bar, at -U_bar, idle
+        (0.5, 0.5, 0.5): 1.0,       # buying together at the grid limit 1.5
+        (0.5, 0.5, 0.2): 0.0,       # interior, total 1.2 < P_bar
+        (-0.97, 0.3, 0.03): 2 / 3,  # within 0.05 of -U_bar and of 0; 0.3 is interior
+    }
+    for actions, share in cases.items():
+        a = np.array(actions, dtype=float).reshape(1, 1, 3)
+        rec.policy, rec.solver_ok, rec.system = a, np.ones((1, 1), bool), system
+        assert rec.bound_share() == pytest.approx(share), actions
+    assert rec.bound_share(tol=0.0) == pytest.approx(0.0)
+    with pytest.raises(ValueError, match="tol"):
+        rec.bound_share(tol=-1.0)
