@@ -74,7 +74,7 @@ def _add_system_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--noise-var", type=_float, default=None,
                    help="variance of the production-demand noise (default 0.5)")
     p.add_argument("--n", type=_positive_int, default=None, help="number of batteries (default 3)")
-    p.add_argument("--tau", type=_float, default=None, help="MPC barrier parameter (default 1e-4)")
+    p.add_argument("--tau", type=_float, default=None, help="MPC barrier parameter in NOK (default 0.1; 1e-4 is the nearly exact MPC)")
     p.add_argument("--backend", choices=("auto", "ipopt", "batch"), default=None,
                    help="MPC solver back-end (default auto)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -236,6 +236,8 @@ def cmd_learn(args: argparse.Namespace) -> int:
         "J_last": history.J[-1],
         "hours_soc_below_0_1_first": history.hours_soc_below_0_1[0],
         "hours_soc_below_0_1_last": history.hours_soc_below_0_1[-1],
+        "J_eval_first": history.J_eval[0] if history.J_eval else None,
+        "J_eval_last": history.J_eval[-1] if history.J_eval else None,
         "max_P_mpc": max(history.max_P_mpc),
         "skipped_steps": int(sum(history.skipped_steps)),
         "wall_time_s": float(sum(history.wall_time_s)),

@@ -20,7 +20,7 @@ MONTHS, DAYS = 12, 10
 
 @pytest.fixture(scope="module")
 def default_run():
-    learning = LearningConfig(months=MONTHS, days_per_month=DAYS, seed=0)
+    learning = LearningConfig(months=MONTHS, days_per_month=DAYS, seed=0, eval_every=1)
     experiment = Experiment(system=SYSTEM, learning=learning)
     return experiment, experiment.run(progress=False)
 
@@ -31,7 +31,7 @@ def test_defaults_are_the_documented_ones():
     assert learning.optimizer == "adam" and learning.step_size == 0.02
     assert learning.exploration_std == 0.2
     assert learning.value_features == "paper+hour"
-    assert learning.eval_every == 1
+    assert learning.eval_every == 5
     paper = LearningConfig.paper()
     assert (paper.optimizer, paper.step_size, paper.value_features) == ("sgd", 5e-8, "paper")
     assert MPCConfig.paper().tau == 1e-4

@@ -1,0 +1,78 @@
+"""The command line: contracts of `simulate` and `learn`, one-line errors."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from mpcrl_lite.cli import main
+
+
+def test_simulate_writes_summary_and_figure(tmp_path, capsys):
+    out = tmp_path / "nominal"
+    assert main(["simulate", "--days", "2", "--out", str(out), "--seed", "3", "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    for key in ("J", "J_per_agent", "max_P_mpc", "max_P_applied", "hours_soc_below_0_1",
+                "hours_soc_above_0_9", "solver_failures"):
+        assert key in summary
+    assert summary["max_P_mpc"] <= 1.5 + 1e-9
+    assert summary["solver_failures"] == 0
+    assert len(summary["J_per_agent"]) == 3
+    assert summary["J"] == pytest.approx(sum(summary["J_per_agent"]))
+    assert (out / "day0.png").stat().st_size > 0
+    assert (out / "trajectories.npz").exists()
+    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert printed["J"] == summary["J"]
+
+
+def test_simulate_options_change_the_system(tmp_path):
+    out = tmp_path / "tight"
+    assert main(["simulate", "--days", "1", "--out", str(out), "--p-bar", "0.8",
+                 "--noise-var", "0.1"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["P_bar"] == 0.8 and summary["noise_var"] == 0.1
+    assert summary["max_P_mpc"] <= 0.8 + 1e-9
+
+
+def test_learn_writes_history_summary_and_figures(tmp_path):
+    out = tmp_path / "run"
+    args = ["learn", "--months", "2", "--days", "2", "--out", str(out), "--quiet"]
+    assert main(args) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    for key in ("J", "J_per_agent", "grad_norm", "theta_final", "hours_soc_below_0_1",
+                "max_P_mpc", "skipped_steps"):
+        assert key in summary
+    assert len(summary["J"]) == 2 and len(summary["grad_norm"]) == 2
+    assert set(summary["theta_final"]) >= {"alpha", "delta", "T2"}
+    assert (out / "history.json").exists() and (out / "history.npz").exists()
+    assert len(list(out.glob("fig*.png"))) == 7
+    # a second call without --resume refuses to overwrite; with --resume it extends the run
+    assert main(args) == 2
+    assert main(["learn", "--months", "3", "--days", "2", "--out", str(out), "--quiet",
+                 "--resume", "--no-figures"]) == 0
+    assert len(json.loads((out / "summary.json").read_text())["J"]) == 3
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["simulate", "--days", "0", "--out", "x"], "--days: 0 must be >= 1"),
+        (["simulate", "--days", "2", "--out", "x", "--p-bar", "-1"], "P_bar=-1.0"),
+        (["simulate", "--days", "2", "--out", "x", "--noise-var", "abc"], "'abc' is not a number"),
+        (["simulate", "--days", "2", "--out", "x", "--noise-var", "-0.5"], "noise_var=-0.5"),
+        (["learn", "--months", "1", "--out", "x", "--step-size", "-1"], "step_size=-1.0"),
+        (["learn", "--out", "x"], "--months"),
+    ],
+)
+def test_bad_arguments_give_one_line(argv, message, tmp_path):
+    argv = [a if a != "x" else str(tmp_path / "x") for a in argv]
+    proc = subprocess.run([sys.executable, "-m", "mpcrl_lite", *argv],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert message in lines[0]
+    assert "Traceback" not in proc.stderr
