@@ -86,7 +86,8 @@ less than one round on average and occasionally stalled, so it is not done).
   never leaves it), so :math:`\sum_i \hat b^i_j < \bar P` holds at *every* round, converged
   or not, and the recorded ``violation`` is negative; only the fallback's independent local
   solves can exceed the limit, which is why their joint action is projected.
-* **Failure.** If a day does not converge within ``max_iter`` rounds, each battery solves its
+* **Failure.** If a day does not converge within ``max_iter`` rounds, or its Newton system
+  is singular or not finite (the day's rounds then stop there), each battery solves its
   own MPC with the reference IPOPT back-end at the last prices, and the joint action is
   projected onto the grid limit with :func:`~mpcrl_lite.model.project_action`; the hour is
   recorded as projected. A battery whose solve fails idles (the fallback of
@@ -313,7 +314,8 @@ class _LocalQP:
     def feasible(self, A: np.ndarray, e: np.ndarray, x: np.ndarray) -> np.ndarray:
         """A point near ``x`` satisfying the dynamics and strictly inside every local bound:
         inputs kept where strictly inside their bounds, soc recomputed from the model, slacks
-        raised only where needed."""
+        raised only where needed (to at least 1e-3 above the soc band's bound, so that no
+        barrier term starts at a vanishing distance from its bound)."""
         x = x.copy()
         margin = 1e-3 * self.U
         for i in (self.ib, self.is_):
@@ -326,7 +328,7 @@ class _LocalQP:
         x[:, self.isoc] = soc
         for i, need in ((self.ihi, np.maximum(soc - self.soc_high, 0.0)),
                         (self.ilo, np.maximum(self.soc_low - soc, 0.0))):
-            x[:, i] = np.where(x[:, i] > need, x[:, i], need + 1e-3)
+            x[:, i] = np.where(x[:, i] >= need + 1e-3, x[:, i], need + 1e-3)
         return x
 
     def residual(self, Hd, q, A, e, x, lam, mu, tau):
@@ -579,8 +581,65 @@ class CoordinatedMPC:
                                            np.abs(rc).max((1, 2))]).reshape(-1, n).max(1)
             return merit, np.maximum(local_max, np.abs(cc).max(1)), qeff, rc, h, c, cc
 
+        def direction_of(rows, xa, la, ma, na, ta, qeff, rc, h, c):
+            """The Newton direction ``(dx, dlam, dmu, dnu)`` of the days owning ``rows``."""
+            # 1. local Newton systems, split by their price dependence
+            dx0, lam0, L, M, Winv = qp.newton(Hd[rows], qeff, A[rows], e[rows], xa, ma, h,
+                                              np.repeat(ta, n))
+            # 2. the coordinator's price step, per day
+            Mtot = M.reshape(-1, n, 2 * N, 2 * N).sum(1)
+            Edx0 = qp.E(dx0).reshape(-1, n, 2 * N).sum(1)
+            K = Mtot + np.einsum("dm,mk->dmk", c / na, np.eye(2 * N))
+            dnu = np.linalg.solve(K, (-(c + ta[:, None] / na) - Edx0)[..., None])[..., 0]
+            # 3. every battery's step given the price step
+            dnu_r = np.repeat(dnu, n, axis=0)
+            dx = dx0 + qp.price_step(A[rows], L, Winv, dnu_r)
+            dlam = lam0 + (L @ dnu_r[..., None])[..., 0] - la
+            dh = qp.h(dx) + qp.db
+            dmu = -(rc + ma * dh) / h
+            return dx, dlam, dmu, dnu
+
+        def direction(rows, xa, la, ma, na, ta, qeff, rc, h, c):
+            """:func:`direction_of` for every day, and which days have a finite direction
+            (their Newton systems solved); the others get a zero direction."""
+            D_a = na.shape[0]
+            try:
+                with np.errstate(all="ignore"):
+                    out = direction_of(rows, xa, la, ma, na, ta, qeff, rc, h, c)
+            except np.linalg.LinAlgError:
+                out = None  # one day's system is singular: solve them day by day
+            if out is None:
+                out = (np.zeros_like(xa), np.zeros((xa.shape[0], N)), np.zeros_like(ma),
+                       np.zeros_like(na))
+                for k in range(D_a):
+                    r = slice(k * n, (k + 1) * n)
+                    try:
+                        with np.errstate(all="ignore"):
+                            part = direction_of(rows[r], xa[r], la[r], ma[r], na[k : k + 1],
+                                                ta[k : k + 1], qeff[r], rc[r], h[r], c[k : k + 1])
+                    except np.linalg.LinAlgError:
+                        part = None
+                    if part is not None:
+                        for full, piece in zip(out[:3], part[:3]):
+                            full[r] = piece
+                        out[3][k] = part[3][0]
+                    else:
+                        out[3][k] = np.nan  # marks the day as failed below
+            dx, dlam, dmu, dnu = out
+            ok = (np.isfinite(dnu).all(1)
+                  & np.isfinite(dx).reshape(D_a, -1).all(1)
+                  & np.isfinite(dlam).reshape(D_a, -1).all(1)
+                  & np.isfinite(dmu).reshape(D_a, -1).all(1))
+            okr = np.repeat(ok, n)
+            dx = np.where(okr[:, None], dx, 0.0)
+            dlam = np.where(okr[:, None], dlam, 0.0)
+            dmu = np.where(okr[:, None, None], dmu, 0.0)
+            dnu = np.where(ok[:, None], dnu, 0.0)
+            return (dx, dlam, dmu, dnu), ok
+
+        stopped = np.zeros(D, bool)  # singular Newton system: no more rounds, fallback
         for _ in range(cfg.max_iter + 1):
-            days = np.flatnonzero(~done)
+            days = np.flatnonzero(~done & ~stopped)
             if days.size == 0:
                 break
             rows = (days[:, None] * n + np.arange(n)).ravel()
@@ -598,20 +657,17 @@ class CoordinatedMPC:
             if lower.any():
                 ta = np.where(lower, np.maximum(tau_t, 0.1 * ta), ta)
                 merit, wmax, qeff, rc, h, c, cc = kkt(rows, xa, la, ma, na, ta)
-            # 1. local Newton systems, split by their price dependence
-            dx0, lam0, L, M, Winv = qp.newton(Hd[rows], qeff, A[rows], e[rows], xa, ma, h,
-                                              np.repeat(ta, n))
-            # 2. the coordinator's price step, per day
-            Mtot = M.reshape(-1, n, 2 * N, 2 * N).sum(1)
-            Edx0 = qp.E(dx0).reshape(-1, n, 2 * N).sum(1)
-            K = Mtot + np.einsum("dm,mk->dmk", c / na, np.eye(2 * N))
-            dnu = np.linalg.solve(K, (-(c + ta[:, None] / na) - Edx0)[..., None])[..., 0]
-            # 3. every battery's step given the price step
-            dnu_r = np.repeat(dnu, n, axis=0)
-            dx = dx0 + qp.price_step(A[rows], L, Winv, dnu_r)
-            dlam = lam0 + (L @ dnu_r[..., None])[..., 0] - la
+            # 1.-3. the Newton direction: local systems, price step, every battery's step
+            step, ok = direction(rows, xa, la, ma, na, ta, qeff, rc, h, c)
+            if not ok.all():
+                # a singular or non-finite Newton system: that day's rounds stop here, and
+                # it takes the fallback (local IPOPT solves and projection) in _finish
+                for d in days[~ok]:
+                    log.info("coordination stopped (day %d): singular or non-finite Newton "
+                             "system", d)
+                stopped[days[~ok]] = True
+            dx, dlam, dmu, dnu = step
             dh = qp.h(dx) + qp.db
-            dmu = -(rc + ma * dh) / h
             dc = qp.E(dx).reshape(-1, n, 2 * N).sum(1)
             with np.errstate(divide="ignore", invalid="ignore"):
                 limits = [
@@ -620,7 +676,7 @@ class CoordinatedMPC:
                     np.where(dc > 0, -c / dc, np.inf).min(1),
                     np.where(dnu < 0, -na / dnu, np.inf).min(1),
                 ]
-            t = np.minimum(1.0, 0.995 * np.minimum.reduce(limits))
+            t = np.where(ok, np.minimum(1.0, 0.995 * np.minimum.reduce(limits)), 0.0)
             for _ in range(40):  # backtracking on the total KKT residual
                 tr = np.repeat(t, n)
                 xn, ln = xa + tr[:, None] * dx, la + tr[:, None] * dlam
@@ -631,7 +687,7 @@ class CoordinatedMPC:
                     break
                 t = np.where(bad, 0.5 * t, t)
             x[rows], lam[rows], mu[rows], nu[days], tau[days] = xn, ln, mn, nn, ta
-            rounds[days] += 1
+            rounds[days[ok]] += 1
 
         return self._finish(soc, buy, sell, thetas, x, lam, mu.reshape(B, -1), nu, rounds,
                             done, worst, t0)

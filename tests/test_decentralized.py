@@ -120,24 +120,75 @@ def test_unconverged_coordination_falls_back_to_projection():
     assert ok.all()
 
 
+def test_empty_and_full_batteries_start_strictly_inside_and_converge():
+    # soc 0 or 1 with the guess b = s puts the planned soc at 0 or 1: the soc band's slacks
+    # must start clearly above their bounds, not at a vanishing distance
+    days = 2
+    prices = Prices.month(TIGHT, days)
+    buy, sell = prices.window(18, TIGHT.N)
+    soc = np.array([[0.0, 1.0, 0.5], [1.0, 0.0, 0.0]])
+    theta = Theta.nominal(TIGHT)
+    sol = CoordinatedMPC(TIGHT, IPOPT).solve(soc, buy, sell, theta)
+    assert sol.converged.all() and not sol.projected.any() and sol.success.all()
+    ref = IpoptSolver(MPC(TIGHT), IPOPT).solve_batch(soc, buy, sell, theta)
+    np.testing.assert_allclose(sol.action, ref.action, atol=1e-6)
+
+
+def test_singular_newton_system_falls_back_for_that_day_only(monkeypatch):
+    days = 3
+    prices = Prices.month(TIGHT, days)
+    buy, sell = prices.window(18, TIGHT.N)
+    soc = states(days, 3, 5)
+    soc[1, 0] = 0.123456  # marks day 1: its first dynamics row reads soc0 (theta_delta = 0)
+    theta = Theta.nominal(TIGHT)
+    reference = CoordinatedMPC(TIGHT, IPOPT).solve(soc, buy, sell, theta)
+    assert reference.converged.all()
+
+    policy = CoordinatedMPC(TIGHT, IPOPT)
+    newton = policy._qp.newton
+
+    def singular_on_day_1(Hd, q, A, e, *args):
+        if np.isclose(e[:, 0], 0.123456, rtol=0, atol=1e-12).any():
+            raise np.linalg.LinAlgError("Singular matrix")
+        return newton(Hd, q, A, e, *args)
+
+    monkeypatch.setattr(policy._qp, "newton", singular_on_day_1)
+    sol = policy.solve(soc, buy, sell, theta)  # no exception mid-run
+    # day 1 stops its rounds and takes the documented fallback: local IPOPT and projection
+    np.testing.assert_array_equal(sol.converged, [True, False, True])
+    np.testing.assert_array_equal(sol.projected, [False, True, False])
+    assert sol.success.all()
+    a = sol.action
+    assert np.all(np.maximum(a, 0).sum(1) <= TIGHT.P_bar + 1e-12)
+    assert np.all(np.maximum(-a, 0).sum(1) <= TIGHT.P_bar + 1e-12)
+    assert np.all(np.abs(a) <= TIGHT.U_bar + 1e-12)
+    # the other days are coordinated as without the failure
+    np.testing.assert_allclose(a[[0, 2]], reference.action[[0, 2]], atol=1e-9)
+    np.testing.assert_allclose(sol.price_buy[[0, 2]], reference.price_buy[[0, 2]],
+                               rtol=1e-6, atol=1e-9)
+
+
 def test_loose_limit_splits_into_independent_problems():
+    # nearly exact MPC (tau = 1e-4): the slack grid limit's barrier then moves the policy by
+    # less than 1e-6, so every battery solves its own problem as if it were alone
+    exact = MPCConfig.paper(backend="ipopt")
     system = loose_system()
     days, hour = 3, 18
     prices = Prices.month(system, days)
     buy, sell = prices.window(hour, system.N)
     soc = states(days, 3, 7)
     theta = shaped_theta(system, 1)
-    sol = CoordinatedMPC(system, IPOPT).solve(soc, buy, sell, theta)
+    sol = CoordinatedMPC(system, exact).solve(soc, buy, sell, theta)
     assert sol.converged.all()
     # the prices are zero up to the barrier: tau / (P_bar - n U_bar) at most
-    barrier_level = IPOPT.tau / (system.P_bar - system.n * system.U_bar)
+    barrier_level = exact.tau / (system.P_bar - system.n * system.U_bar)
     assert sol.price_buy.max() <= barrier_level * (1 + 1e-9)
     assert sol.price_sell.max() <= barrier_level * (1 + 1e-9)
     # same policy as the centralized MPC ...
-    ref = IpoptSolver(MPC(system), IPOPT).solve_batch(soc, buy, sell, theta)
+    ref = IpoptSolver(MPC(system), exact).solve_batch(soc, buy, sell, theta)
     np.testing.assert_allclose(sol.action, ref.action, atol=1e-6)
     # ... and as every battery alone, solving its own MPC without any price
-    local = IpoptSolver(MPC(local_system(system)), IPOPT)
+    local = IpoptSolver(MPC(local_system(system)), exact)
     for i, theta_i in enumerate(split_theta(theta)):
         alone = local.solve_batch(soc[:, i : i + 1], buy, sell, theta_i)
         np.testing.assert_allclose(sol.action[:, i], alone.action[:, 0], atol=1e-6)
@@ -181,7 +232,9 @@ def test_first_month_equals_the_centralized_experiment():
 
 
 def test_decentralized_learning_runs_and_resumes_identically(tmp_path):
-    learning = LearningConfig(days_per_month=3, months=2, seed=1, step_size=1e-9)
+    # the paper's plain gradient step, tiny: theta moves, but stays close to theta0
+    learning = LearningConfig(days_per_month=3, months=2, seed=1, optimizer="sgd",
+                              step_size=1e-9)
     def experiment() -> DecentralizedExperiment:
         return DecentralizedExperiment(TIGHT, IPOPT, learning)
 

@@ -210,9 +210,11 @@ def test_evaluation_series_and_schedule():
 
 
 def test_resume_reproduces_the_evaluation_series(tmp_path):
-    full = small_experiment(months=3).run(progress=False)
-    small_experiment(months=3).run(months=1, out=tmp_path, progress=False)
-    resumed = small_experiment(months=3).run(out=tmp_path, resume=True, progress=False)
+    # evaluate every month, so that the month the run stopped in is evaluated too
+    full = small_experiment(months=3, eval_every=1).run(progress=False)
+    small_experiment(months=3, eval_every=1).run(months=1, out=tmp_path, progress=False)
+    resumed = small_experiment(months=3, eval_every=1).run(out=tmp_path, resume=True,
+                                                           progress=False)
     assert resumed.eval_month == full.eval_month == [0, 1, 2]
     assert resumed.J_eval == full.J_eval
     assert resumed.J_eval_per_agent == full.J_eval_per_agent

@@ -314,10 +314,11 @@ def test_ipopt_solution_at_tau_1e_3(mpc, system, month_prices):
 
 @pytest.fixture(scope="module")
 def tight_grid():
-    """A grid that takes at most 0.6 of the three batteries' 3.0."""
+    """A grid that takes at most 0.6 of the three batteries' 3.0, solved nearly exactly
+    (tau = 1e-4), so that the barrier keeps the grid power within 1e-3 of its limit."""
     system = SystemConfig(P_bar=0.6)
     mpc = MPC(system)
-    return system, mpc, IpoptSolver(mpc)
+    return system, mpc, IpoptSolver(mpc, MPCConfig(tau=1e-4))
 
 
 @pytest.mark.parametrize(

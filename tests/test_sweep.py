@@ -232,7 +232,8 @@ def test_rerun_with_other_settings_is_refused(serial, tmp_path: Path) -> None:
     out = tmp_path / "changed"
     shutil.copytree(serial[0], out)
     changed = {**GRID, "base": {**GRID["base"], "mpc": {"backend": "ipopt", "tau": 1e-3}}}
-    message = r"holds a run with mpc.tau=0.0001, but this sweep sets 0.001"
+    # the stored runs use the default tau (0.1)
+    message = r"holds a run with mpc\.tau=0\.1, but this sweep sets 0\.001"
     with pytest.raises(GridError, match=message):
         run_sweep(changed, out, scheduler="serial", progress=False)
 

@@ -115,11 +115,12 @@ def test_one_day_matches_the_same_day_of_a_whole_month():
     """The one-day view reads on into the next day's prices, exactly as in a month."""
     system = SystemConfig(noise_var=0.0)
     month = Prices.default(system)
-    solver = make_solver(MPC(system), MPCConfig())
+    tau = 1e-4  # the same barrier on both sides (the widgets' default)
+    solver = make_solver(MPC(system), MPCConfig(tau=tau))
     full = run_month(Theta.nominal(system), solver, month, system, np.random.default_rng(0),
                      sensitivities=False)
     for d in (4, month.days - 1):
-        one = simulate_day(system, day=d, seed=0, prices=month)
+        one = simulate_day(system, day=d, seed=0, tau=tau, prices=month)
         np.testing.assert_allclose(one.soc[:, 0], full.soc[:, d], atol=1e-9)
         np.testing.assert_allclose(one.policy[:, 0], full.policy[:, d], atol=1e-9)
     view = DayPrices(month, 29)
