@@ -128,13 +128,12 @@ from typing import Any
 
 import casadi as ca
 import numpy as np
-from tqdm.auto import tqdm
 
 from .config import ConfigWarning, LearningConfig, MPCConfig, SystemConfig
 from .dpg import DPGUpdater, policy_gradient
-from .experiment import Experiment
+from .experiment import Experiment, run_months, value_baseline_features
 from .history import History, MonthRecord
-from .lstd import compatible_features, lstd_q, value_features
+from .lstd import compatible_features, lstd_q
 from .model import project_action, sample_noise, step
 from .mpc import MPC
 from .prices import Prices
@@ -970,8 +969,8 @@ class DecentralizedExperiment:
                 grads.append(np.zeros(10))
                 infos.append({"lstd": "no usable samples"})
                 continue
-            soc_i = record.soc[..., i : i + 1]
-            phi, phi_next = value_features(soc_i[:-1]), value_features(soc_i[1:])
+            features = value_baseline_features(record.soc[..., i : i + 1], self.learning.value_features)
+            phi, phi_next = features[:-1], features[1:]
             g_pi = extra.grad_pi[:, :, i, :, None]  # (H, D, 10, 1)
             psi = compatible_features(g_pi, record.a[..., i : i + 1], record.policy[..., i : i + 1])
             fit = lstd_q(
@@ -1019,28 +1018,7 @@ class DecentralizedExperiment:
         """Run until ``months`` months are recorded (default ``learning.months``); with
         ``out`` a checkpoint is written after every month, with ``resume`` a run found in
         ``out`` continues where it stopped (same results as an uninterrupted run)."""
-        months = self.learning.months if months is None else months
-        if isinstance(months, bool) or not isinstance(months, int) or months < 1:
-            raise ValueError(f"months={months!r}: expected an integer >= 1")
-        out = Path(out) if out is not None else None
-        if resume:
-            if out is None:
-                raise ValueError("resume=True needs out=DIR (where the checkpoint is)")
-            if (out / CHECKPOINT).exists():
-                self.load_checkpoint(out)
-        bar = tqdm(total=months, initial=min(self.history.months, months),
-                   desc="learning (decentralized)", unit="month", disable=not progress)
-        with bar:
-            while self.history.months < months:
-                self.run_one_month()
-                m = self.history.months - 1
-                bar.set_postfix(J=f"{self.history.J[-1]:.1f}", refresh=False)
-                bar.update(1)
-                if out is not None:
-                    self.save_checkpoint(out)
-                for callback in self.callbacks:
-                    callback(m, self.history, self)
-        return self.history
+        return run_months(self, months, out, resume, progress, desc="learning (decentralized)")
 
     # -- checkpoints ----------------------------------------------------------------------
     def save_checkpoint(self, directory: str | Path) -> None:

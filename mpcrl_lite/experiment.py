@@ -54,7 +54,7 @@ from .prices import Prices
 from .solvers import make_solver
 from .theta import Theta
 
-__all__ = ["Experiment", "run_month", "value_baseline_features", "Callback"]
+__all__ = ["Experiment", "run_month", "run_months", "value_baseline_features", "Callback"]
 
 log = logging.getLogger(__name__)
 
@@ -177,6 +177,51 @@ def value_baseline_features(soc: np.ndarray, kind: str = "paper+hour") -> np.nda
     onehot = np.broadcast_to(onehot, soc.shape[:2] + (hours,))
     return np.concatenate([paper[..., :-1], onehot], axis=-1)
 
+
+
+def run_months(
+    learner: Any,
+    months: int | None,
+    out: str | Path | None,
+    resume: bool,
+    progress: bool,
+    desc: str = "learning",
+) -> History:
+    """The month loop shared by every learner (:class:`Experiment` and
+    :class:`~mpcrl_lite.decentralized.DecentralizedExperiment`).
+
+    ``learner`` provides ``learning``, ``history``, ``callbacks``, ``run_one_month()``,
+    ``save_checkpoint(dir)`` and ``load_checkpoint(dir)``. Runs until ``months`` months are
+    recorded (default ``learning.months``); with ``out`` a checkpoint is written after every
+    month, with ``resume`` a run found in ``out`` continues where it stopped.
+    """
+    months = learner.learning.months if months is None else months
+    if isinstance(months, bool) or not isinstance(months, int) or months < 1:
+        raise ValueError(f"months={months!r}: expected an integer >= 1")
+    out = Path(out) if out is not None else None
+    if resume:
+        if out is None:
+            raise ValueError("resume=True needs out=DIR (where the checkpoint is)")
+        if (out / CHECKPOINT).exists():
+            learner.load_checkpoint(out)
+    history = learner.history
+    bar = tqdm(total=months, initial=min(history.months, months), desc=desc, unit="month",
+               disable=not progress)
+    with bar:
+        while learner.history.months < months:
+            learner.run_one_month()
+            history = learner.history
+            m = history.months - 1
+            postfix = {"J": f"{history.J[-1]:.1f}"}
+            if history.J_eval:
+                postfix["J_eval"] = f"{history.J_eval[-1]:.1f}"
+            bar.set_postfix(postfix, refresh=False)
+            bar.update(1)
+            if out is not None:
+                learner.save_checkpoint(out)
+            for callback in learner.callbacks:
+                callback(m, history, learner)
+    return learner.history
 
 class Experiment:
     """The paper's learning run: months x days, LSTD critic, DPG update at each month's end.
@@ -318,33 +363,7 @@ class Experiment:
         With ``out``, a checkpoint is written after every month; with ``resume`` a run
         found in ``out`` continues where it stopped (same results as an uninterrupted run).
         """
-        months = self.learning.months if months is None else months
-        if not isinstance(months, int) or months < 1:
-            raise ValueError(f"months={months!r}: expected an integer >= 1")
-        out = Path(out) if out is not None else None
-        if resume:
-            if out is None:
-                raise ValueError("resume=True needs out=DIR (where the checkpoint is)")
-            if (out / CHECKPOINT).exists():
-                self.load_checkpoint(out)
-        bar = tqdm(
-            total=months, initial=min(self.history.months, months), desc="learning",
-            unit="month", disable=not progress,
-        )
-        with bar:
-            while self.history.months < months:
-                self.run_one_month()
-                m = self.history.months - 1
-                postfix = {"J": f"{self.history.J[-1]:.1f}"}
-                if self.history.J_eval:
-                    postfix["J_eval"] = f"{self.history.J_eval[-1]:.1f}"
-                bar.set_postfix(postfix, refresh=False)
-                bar.update(1)
-                if out is not None:
-                    self.save_checkpoint(out)
-                for callback in self.callbacks:
-                    callback(m, self.history, self)
-        return self.history
+        return run_months(self, months, out, resume, progress, desc="learning")
 
     # -- checkpoints ----------------------------------------------------------------------
     def save_checkpoint(self, directory: str | Path) -> None:
