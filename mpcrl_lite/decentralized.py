@@ -131,10 +131,10 @@ import numpy as np
 
 from .config import ConfigWarning, LearningConfig, MPCConfig, SystemConfig
 from .dpg import DPGUpdater, policy_gradient
-from .experiment import Experiment, run_months, value_baseline_features
+from .experiment import ClosedLoop, Experiment, run_months, value_baseline_features
 from .history import History, MonthRecord
 from .lstd import compatible_features, lstd_q
-from .model import project_action, sample_noise, step
+from .model import project_action
 from .mpc import MPC
 from .prices import Prices
 from .sensitivity import PolicySensitivity
@@ -836,12 +836,7 @@ def run_month_decentralized(
     extra : DecentralizedMonth
     """
     D, H, n, N = prices.days, system.hours_per_day, system.n, system.N
-    soc = np.broadcast_to(np.asarray(system.soc0 if soc0 is None else soc0, float), (D, n)).copy()
-    names = ("policy", "a", "b", "s", "correction", "agent_cost", "noise")
-    out = {k: np.zeros((H, D, n)) for k in names}
-    socs = np.zeros((H + 1, D, n))
-    socs[0] = soc
-    stage_cost, grid, planned, buy = (np.zeros((H, D)) for _ in range(4))
+    loop = ClosedLoop(prices, system, soc0)
     solver_ok = np.zeros((H, D, n), bool)
     sens_ok = np.zeros((H, D, n), bool)
     grad_pi = np.zeros((H, D, n, 10)) if sensitivities else None
@@ -851,33 +846,16 @@ def run_month_decentralized(
     times = np.zeros(H)
     for k in range(H):
         buy_w, sell_w = prices.window(k, N)
-        sol = policy.solve(soc, buy_w, sell_w, thetas)
-        pi = sol.action
+        sol = policy.solve(loop.soc, buy_w, sell_w, thetas)
         solver_ok[k] = sol.success
-        planned[k] = sol.planned_power
         iters[k], conv[k], proj[k] = sol.iterations, sol.converged, sol.projected
         viol[k] = sol.violation
         pmax[k] = np.maximum(sol.price_buy.max(1), sol.price_sell.max(1))
         times[k] = sol.solve_time
         if sensitivities:
             grad_pi[k], sens_ok[k] = policy.sensitivity(sol)
-        if exploration_std > 0:
-            a = project_action(pi + exploration_std * rng.standard_normal((D, n)), system)
-        else:
-            a = pi
-        noise = sample_noise(rng, (D, n), system)
-        res = step(soc, a, noise, buy_w[:, 0], sell_w[:, 0], system)
-        out["policy"][k], out["a"][k], out["noise"][k] = pi, a, noise
-        out["b"][k], out["s"][k], out["correction"][k] = res.b, res.s, res.correction
-        out["agent_cost"][k] = res.agent_cost
-        stage_cost[k], grid[k], buy[k] = res.stage_cost, res.grid_power, buy_w[:, 0]
-        soc = res.soc_next
-        socs[k + 1] = soc
-    record = MonthRecord(
-        soc=socs, stage_cost=stage_cost, grid_power=grid, planned_power=planned, buy=buy,
-        solver_ok=solver_ok.all(-1), sens_ok=sens_ok.all(-1), system=system, grad_pi=None,
-        **out,
-    )
+        loop.advance(k, sol.action, sol.planned_power, rng, exploration_std)
+    record = loop.record(solver_ok.all(-1), sens_ok.all(-1), None)
     extra = DecentralizedMonth(grad_pi, sens_ok, solver_ok, iters, conv, proj, viol, pmax, times)
     return record, extra
 

@@ -54,7 +54,7 @@ from .prices import Prices
 from .solvers import make_solver
 from .theta import Theta
 
-__all__ = ["Experiment", "run_month", "run_months", "value_baseline_features", "Callback"]
+__all__ = ["Experiment", "ClosedLoop", "run_month", "run_months", "value_baseline_features", "Callback"]
 
 log = logging.getLogger(__name__)
 
@@ -63,6 +63,61 @@ Callback = Callable[[int, History, "Experiment"], None]
 
 CHECKPOINT = "checkpoint.json"
 
+
+
+class ClosedLoop:
+    """Bookkeeping of one month in closed loop, shared by every learner.
+
+    Holds the true state of the ``days`` days and the month's arrays; :meth:`advance` applies
+    one hour's policy (with projected exploration) to the true system and records it;
+    :meth:`record` returns the :class:`MonthRecord`. Random draws per hour: exploration
+    (if ``exploration_std > 0``), then noise, each of shape (days, n).
+    """
+
+    def __init__(self, prices: Prices, system: SystemConfig, soc0: float | np.ndarray | None = None) -> None:
+        D, H, n = prices.days, system.hours_per_day, system.n
+        self.prices, self.system = prices, system
+        self.soc = np.broadcast_to(
+            np.asarray(system.soc0 if soc0 is None else soc0, float), (D, n)
+        ).copy()
+        self.arrays = {k: np.zeros((H, D, n)) for k in
+                       ("policy", "a", "b", "s", "correction", "agent_cost", "noise")}
+        self.socs = np.zeros((H + 1, D, n))
+        self.socs[0] = self.soc
+        self.stage_cost, self.grid, self.planned, self.buy = (np.zeros((H, D)) for _ in range(4))
+
+    def advance(
+        self, k: int, pi: np.ndarray, planned: np.ndarray, rng: np.random.Generator,
+        exploration_std: float,
+    ) -> None:
+        """Hour ``k``: policy ``pi`` (days, n), the MPC's largest planned grid power
+        ``planned`` (days,); explore, step the true system, record."""
+        system = self.system
+        D, n = self.soc.shape
+        if exploration_std > 0:
+            a = project_action(pi + exploration_std * rng.standard_normal((D, n)), system)
+        else:
+            a = pi
+        noise = sample_noise(rng, (D, n), system)
+        buy, sell = self.prices.buy[:, k], self.prices.sell[:, k]
+        res = step(self.soc, a, noise, buy, sell, system)
+        out = self.arrays
+        out["policy"][k], out["a"][k], out["noise"][k] = pi, a, noise
+        out["b"][k], out["s"][k], out["correction"][k] = res.b, res.s, res.correction
+        out["agent_cost"][k] = res.agent_cost
+        self.stage_cost[k], self.grid[k], self.buy[k] = res.stage_cost, res.grid_power, buy
+        self.planned[k] = planned
+        self.soc = res.soc_next
+        self.socs[k + 1] = self.soc
+
+    def record(self, solver_ok: np.ndarray, sens_ok: np.ndarray,
+               grad_pi: np.ndarray | None) -> MonthRecord:
+        """The month as a :class:`MonthRecord`."""
+        return MonthRecord(
+            soc=self.socs, stage_cost=self.stage_cost, grid_power=self.grid,
+            planned_power=self.planned, buy=self.buy, solver_ok=solver_ok, sens_ok=sens_ok,
+            system=self.system, grad_pi=grad_pi, **self.arrays,
+        )
 
 def run_month(
     theta: Theta,
@@ -102,14 +157,7 @@ def run_month(
     """
     mpc = solver.mpc
     D, H, n, N = prices.days, system.hours_per_day, system.n, system.N
-    soc = np.broadcast_to(np.asarray(system.soc0 if soc0 is None else soc0, float), (D, n)).copy()
-    out = {k: np.zeros((H, D, n)) for k in ("policy", "a", "b", "s", "correction", "agent_cost", "noise")}
-    socs = np.zeros((H + 1, D, n))
-    socs[0] = soc
-    stage_cost = np.zeros((H, D))
-    grid = np.zeros((H, D))
-    planned = np.zeros((H, D))
-    buy = np.zeros((H, D))
+    loop = ClosedLoop(prices, system, soc0)
     solver_ok = np.zeros((H, D), dtype=bool)
     sens_ok = np.zeros((H, D), dtype=bool)
     grad_pi = np.zeros((H, D, mpc.n_theta, n)) if sensitivities else None
@@ -118,31 +166,16 @@ def run_month(
     for k in range(H):
         buy_w, sell_w = prices.window(k, N)
         warm = None if x_prev is None else mpc.shift(x_prev)
-        sol = solver.solve_batch(soc, buy_w, sell_w, theta, x0=warm)
+        sol = solver.solve_batch(loop.soc, buy_w, sell_w, theta, x0=warm)
         x_prev = np.where(sol.success[:, None], sol.x, warm) if warm is not None else sol.x
-        pi = sol.action
         solver_ok[k] = sol.success
-        planned[k] = np.maximum(sol.x[:, ib].sum(axis=2), sol.x[:, is_].sum(axis=2)).max(axis=1)
         if sensitivities:
             sens = solver.sensitivity(sol)
             grad_pi[k] = sens.grad
             sens_ok[k] = sens.ok
-        if exploration_std > 0:
-            a = project_action(pi + exploration_std * rng.standard_normal((D, n)), system)
-        else:
-            a = pi
-        noise = sample_noise(rng, (D, n), system)
-        res = step(soc, a, noise, buy_w[:, 0], sell_w[:, 0], system)
-        out["policy"][k], out["a"][k], out["noise"][k] = pi, a, noise
-        out["b"][k], out["s"][k], out["correction"][k] = res.b, res.s, res.correction
-        out["agent_cost"][k] = res.agent_cost
-        stage_cost[k], grid[k], buy[k] = res.stage_cost, res.grid_power, buy_w[:, 0]
-        soc = res.soc_next
-        socs[k + 1] = soc
-    return MonthRecord(
-        soc=socs, stage_cost=stage_cost, grid_power=grid, planned_power=planned, buy=buy,
-        solver_ok=solver_ok, sens_ok=sens_ok, system=system, grad_pi=grad_pi, **out,
-    )
+        planned = np.maximum(sol.x[:, ib].sum(axis=2), sol.x[:, is_].sum(axis=2)).max(axis=1)
+        loop.advance(k, sol.action, planned, rng, exploration_std)
+    return loop.record(solver_ok, sens_ok, grad_pi)
 
 
 def value_baseline_features(soc: np.ndarray, kind: str = "paper+hour") -> np.ndarray:
