@@ -434,7 +434,10 @@ def fig2_performance(
     r"""Paper Fig. 2: closed-loop cost ``J`` of every month (RL step).
 
     ``J = mean over days of sum_k gamma^k L~(s_k, a_k)`` (paper eq. 4, each day an
-    episode). The first month's point is red, the last month's blue.
+    episode). The first month's point is red, the last month's blue. When the history holds
+    an evaluation series (``history.J_eval`` at ``history.eval_month``: the parameters of a
+    month on one fixed noise draw, without exploration), it is drawn as a second line with
+    square markers; it is not disturbed by each month's own noise and shows the trend.
 
     Parameters
     ----------
@@ -450,7 +453,8 @@ def fig2_performance(
 
     Notes
     -----
-    Line gids: ``"J"`` and ``"J_rolling"``.
+    Line gids: ``"J"``, ``"J_rolling"`` and ``"J_eval"`` (months counted from 1, as for
+    ``"J"``).
     """
     months = _history_months(history)
     if rolling is not None:
@@ -463,6 +467,16 @@ def fig2_performance(
         mean = np.convolve(J, np.ones(rolling) / rolling, mode="valid")
         ax.plot(x[rolling - 1:], mean, color="black", lw=2.2, gid="J_rolling",
                 label=f"mean of last {rolling} months")
+    if history.J_eval:
+        if len(history.eval_month) != len(history.J_eval):
+            raise ValueError(
+                f"history has {len(history.J_eval)} J_eval values but "
+                f"{len(history.eval_month)} eval_month entries"
+            )
+        x_eval = np.asarray(history.eval_month, dtype=float) + 1.0  # months counted from 1
+        ax.plot(x_eval, np.asarray(history.J_eval, dtype=float), color="black", ls="--",
+                lw=1.4, marker="s", ms=4.5, mfc="white", mec="black", mew=1.0, zorder=2.5,
+                gid="J_eval", label="evaluation (fixed draw)")
     ax.plot(x[0], J[0], "o", color=FIRST_COLOR, ms=8, zorder=3, label="first month")
     ax.plot(x[-1], J[-1], "o", color=LAST_COLOR, ms=8, zorder=3, label="last month")
     ax.set_xlabel("RL step (month)")

@@ -167,6 +167,13 @@ def test_fig2_performance(history):
     np.testing.assert_allclose(line.get_xdata(), np.arange(1, MONTHS + 1))
     assert find_lines(fig, "J_rolling") == []  # fewer months than the window
     assert "NOK" in fig.axes[0].get_ylabel()
+    assert history.J_eval  # the default evaluates the first and the last month
+    evaluation = one_line(fig, "J_eval")
+    np.testing.assert_allclose(evaluation.get_ydata(), history.J_eval)
+    np.testing.assert_allclose(evaluation.get_xdata(), np.asarray(history.eval_month) + 1)
+    assert evaluation.get_label() == "evaluation (fixed draw)"
+    no_eval = dataclasses.replace(history, eval_month=[], J_eval=[])
+    assert find_lines(fig2_performance(no_eval), "J_eval") == []
 
 
 def test_fig2_rolling_mean_on_a_longer_history(history):
