@@ -31,8 +31,8 @@ TOOLS = nbref.ROOT / "tools"
 README = nbref.NOTEBOOK_DIR / "README.md"
 
 
-def test_the_five_notebooks_exist():
-    assert [s[:2] for s in STEMS] == ["01", "02", "03", "04", "05"], STEMS
+def test_the_notebooks_exist():
+    assert [s[:2] for s in STEMS] == ["01", "02", "03", "04", "05", "06", "07"], STEMS
 
 
 # -- static structure ----------------------------------------------------------------------
