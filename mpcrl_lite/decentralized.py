@@ -131,7 +131,7 @@ import numpy as np
 
 from .config import ConfigWarning, LearningConfig, MPCConfig, SystemConfig
 from .dpg import DPGUpdater, policy_gradient
-from .experiment import ClosedLoop, Experiment, run_months, value_baseline_features
+from .experiment import ClosedLoop, Experiment, run_months, value_baseline_features, write_checkpoint
 from .history import History, MonthRecord
 from .lstd import compatible_features, lstd_q
 from .model import project_action
@@ -1014,9 +1014,7 @@ class DecentralizedExperiment:
             "learning": self.learning.to_dict(),
             "coordination": self.coordination.to_dict(),
         }
-        tmp = directory / (CHECKPOINT + ".tmp")
-        tmp.write_text(json.dumps(state, indent=1, default=_jsonable))
-        tmp.replace(directory / CHECKPOINT)
+        write_checkpoint(directory, state)
 
     def load_checkpoint(self, directory: str | Path) -> None:
         """Continue from :meth:`save_checkpoint`'s files; the configs must match."""

@@ -413,9 +413,7 @@ class Experiment:
             "mpc": self.mpc_config.to_dict(),
             "learning": self.learning.to_dict(),
         }
-        tmp = directory / (CHECKPOINT + ".tmp")
-        tmp.write_text(json.dumps(state, indent=1, default=_jsonable))
-        tmp.replace(directory / CHECKPOINT)
+        write_checkpoint(directory, state)
 
     def load_checkpoint(self, directory: str | Path) -> None:
         """Continue from :meth:`save_checkpoint`'s files; the configs must match."""
@@ -435,6 +433,14 @@ class Experiment:
         self.rng.bit_generator.state = state["rng"]
         self._check_solver(self.theta)
         self.history.backend = self.solver.name
+
+
+def write_checkpoint(directory: Path, state: dict[str, Any]) -> None:
+    """Write a learner's checkpoint state as ``directory/checkpoint.json`` atomically (a
+    temporary file renamed into place, so an interruption never leaves half a checkpoint)."""
+    tmp = directory / (CHECKPOINT + ".tmp")
+    tmp.write_text(json.dumps(state, indent=1, default=_jsonable))
+    tmp.replace(directory / CHECKPOINT)
 
 
 def _jsonable(value: Any) -> Any:
