@@ -253,3 +253,21 @@ def test_bound_share_by_hand():
     assert rec.bound_share(tol=0.0) == pytest.approx(0.0)
     with pytest.raises(ValueError, match="tol"):
         rec.bound_share(tol=-1.0)
+
+
+def test_batch_and_ipopt_back_ends_give_the_same_history():
+    """The fast back-end solves the same barrier problem: a short learning run agrees with the
+    IPOPT reference (policy to ~1e-9, so J and theta agree far inside the tolerance)."""
+    learning = LearningConfig(days_per_month=2, months=2, seed=3, eval_every=1)
+    runs = {
+        backend: Experiment(system=SMALL, mpc_config=MPCConfig(backend=backend),
+                            learning=learning).run(progress=False)
+        for backend in ("ipopt", "batch")
+    }
+    ref, fast = runs["ipopt"], runs["batch"]
+    assert ref.backend == "ipopt" and fast.backend == "batch"
+    np.testing.assert_allclose(fast.J, ref.J, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(fast.J_eval, ref.J_eval, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(fast.theta_final, ref.theta_final, rtol=1e-5, atol=1e-8)
+    assert fast.solver_failures == ref.solver_failures == [0, 0]
+    assert fast.skipped_steps == ref.skipped_steps
