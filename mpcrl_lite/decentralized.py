@@ -131,7 +131,14 @@ import numpy as np
 
 from .config import ConfigWarning, LearningConfig, MPCConfig, SystemConfig
 from .dpg import DPGUpdater, policy_gradient
-from .experiment import ClosedLoop, Experiment, run_months, value_baseline_features, write_checkpoint
+from .experiment import (
+    ClosedLoop,
+    Experiment,
+    resolve_setup,
+    run_months,
+    value_baseline_features,
+    write_checkpoint,
+)
 from .history import History, MonthRecord
 from .lstd import compatible_features, lstd_q
 from .model import project_action
@@ -895,21 +902,10 @@ class DecentralizedExperiment:
         coordination: CoordinationConfig | None = None,
         callbacks: Sequence[Callable[[int, History, "DecentralizedExperiment"], None]] = (),
     ) -> None:
-        self.system = system or SystemConfig()
-        self.mpc_config = mpc_config or MPCConfig()
-        self.learning = learning or LearningConfig()
+        self.system, self.mpc_config, self.learning, self.prices, theta0 = resolve_setup(
+            system, mpc_config, learning, prices, theta0
+        )
         self.coordination = coordination or CoordinationConfig()
-        if prices is None:
-            prices = Prices.month(self.system, self.learning.days_per_month)
-        if prices.days != self.learning.days_per_month:
-            raise ValueError(
-                f"prices have {prices.days} days; expected days_per_month="
-                f"{self.learning.days_per_month}"
-            )
-        self.prices = prices
-        theta0 = theta0 or Theta.nominal(self.system)
-        if theta0.n != self.system.n:
-            raise ValueError(f"theta0 has n={theta0.n}; expected n={self.system.n}")
         self.thetas = split_theta(theta0)
         self.callbacks = list(callbacks)
         self.policy = CoordinatedMPC(self.system, self.mpc_config, self.coordination)

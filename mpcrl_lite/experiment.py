@@ -256,6 +256,31 @@ def run_months(
                 callback(m, history, learner)
     return learner.history
 
+def resolve_setup(
+    system: SystemConfig | None,
+    mpc_config: MPCConfig | None,
+    learning: LearningConfig | None,
+    prices: Prices | None,
+    theta0: Theta | None,
+) -> tuple[SystemConfig, MPCConfig, LearningConfig, Prices, Theta]:
+    """Defaults and consistency checks shared by every learner: the paper's configs, the
+    shipped month cut to ``days_per_month`` days, theta0 = the nominal model; prices with
+    another number of days or a theta0 for another ``n`` are errors."""
+    system = system or SystemConfig()
+    mpc_config = mpc_config or MPCConfig()
+    learning = learning or LearningConfig()
+    if prices is None:
+        prices = Prices.month(system, learning.days_per_month)
+    if prices.days != learning.days_per_month:
+        raise ValueError(
+            f"prices have {prices.days} days; expected days_per_month={learning.days_per_month}"
+        )
+    theta0 = theta0 or Theta.nominal(system)
+    if theta0.n != system.n:
+        raise ValueError(f"theta0 has n={theta0.n}; expected n={system.n}")
+    return system, mpc_config, learning, prices, theta0
+
+
 class Experiment:
     """The paper's learning run: months x days, LSTD critic, DPG update at each month's end.
 
@@ -285,20 +310,9 @@ class Experiment:
         theta0: Theta | None = None,
         callbacks: Sequence[Callback] = (),
     ) -> None:
-        self.system = system or SystemConfig()
-        self.mpc_config = mpc_config or MPCConfig()
-        self.learning = learning or LearningConfig()
-        if prices is None:
-            prices = Prices.month(self.system, self.learning.days_per_month)
-        if prices.days != self.learning.days_per_month:
-            raise ValueError(
-                f"prices have {prices.days} days; expected days_per_month="
-                f"{self.learning.days_per_month}"
-            )
-        self.prices = prices
-        self.theta = theta0 or Theta.nominal(self.system)
-        if self.theta.n != self.system.n:
-            raise ValueError(f"theta0 has n={self.theta.n}; expected n={self.system.n}")
+        self.system, self.mpc_config, self.learning, self.prices, self.theta = resolve_setup(
+            system, mpc_config, learning, prices, theta0
+        )
         self.callbacks = list(callbacks)
         self.mpc = MPC(self.system)
         self.solver = make_solver(self.mpc, self.mpc_config, self.theta)
