@@ -9,5 +9,5 @@ The package follows the data flow of the experiment::
 from .config import LearningConfig, MPCConfig, SystemConfig
 from .theta import Theta
 
-__all__ = ["SystemConfig", "MPCConfig", "LearningConfig", "Theta"]
+__all__ = ["LearningConfig", "MPCConfig", "SystemConfig", "Theta"]
 __version__ = "0.1.0"

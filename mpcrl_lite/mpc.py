@@ -24,7 +24,9 @@ Equality constraints ``g(x, p) = 0`` (eq. 9b), ``n`` per stage:
 
 Inequality constraints ``h(x, p) <= 0``, ``8 n + 2`` per stage, in this order:
 ``-b, b - U, -s, s - U`` (eq. 9e), ``sum b - P, sum s - P`` (eq. 9f),
-``soc - 0.9 - sigma_hi, 0.1 - soc - sigma_lo, -sigma_hi, -sigma_lo`` (eqs. 9c-9d).
+``soc - 0.9 - sigma_hi, 0.1 - soc - sigma_lo, -sigma_hi, -sigma_lo`` (eqs. 9c-9d);
+:data:`INEQUALITIES` names these groups and :meth:`MPC.inequality_index` gives their rows, so
+back-ends never write the layout down themselves.
 
 For fixed theta this is a QP in ``x``: ``f = 0.5 x'Hx + q'x + c``, ``g = A x - e``,
 ``h = C x - d``; :meth:`MPC.qp_data` evaluates that data so every solver back-end consumes
@@ -49,7 +51,54 @@ import numpy as np
 from .config import SystemConfig
 from .theta import PARTS, Theta
 
-__all__ = ["MPC", "QPData", "Plan"]
+__all__ = ["GRID_INEQUALITIES", "INEQUALITIES", "MPC", "Plan", "QPData", "shift"]
+
+#: The groups of inequality rows of one stage of ``h``, in their order: name -> the constraint
+#: ``expression <= 0``. A group has one row per agent, except the grid limits (one row).
+INEQUALITIES: dict[str, str] = {
+    "b_min": "-b",
+    "b_max": "b - U_bar",
+    "s_min": "-s",
+    "s_max": "s - U_bar",
+    "grid_b": "sum_i b - P_bar",
+    "grid_s": "sum_i s - P_bar",
+    "soc_max": "soc - soc_high - sigma_hi",
+    "soc_min": "soc_low - soc - sigma_lo",
+    "sigma_hi_min": "-sigma_hi",
+    "sigma_lo_min": "-sigma_lo",
+}
+#: The groups of :data:`INEQUALITIES` with one row per stage (the grid peak limits, eq. 9f).
+GRID_INEQUALITIES = ("grid_b", "grid_s")
+
+
+def shift(x: np.ndarray, n: int) -> np.ndarray:
+    """Shift MPC solutions one stage forward, for warm starting the next hour.
+
+    Stage ``j`` of the result is stage ``j + 1`` of ``x``; the last stage is repeated (see
+    :meth:`MPC.shift`, which checks the full size).
+
+    Parameters
+    ----------
+    x
+        Primal solutions in this module's layout, shape ``(..., 5 n N)``.
+    n
+        Number of agents.
+
+    Returns
+    -------
+    numpy.ndarray
+        Array of the same shape as ``x``.
+    """
+    x = np.asarray(x, dtype=float)
+    stage = 5 * n
+    if x.shape[-1] % stage:
+        raise ValueError(
+            f"x has {x.shape[-1]} entries per problem; expected a multiple of 5 n = {stage}"
+        )
+    out = np.empty_like(x)
+    out[..., :-stage] = x[..., stage:]
+    out[..., -stage:] = x[..., -stage:]
+    return out
 
 
 @dataclass(frozen=True)
@@ -120,6 +169,25 @@ class MPC:
         k = names.index(name)
         idx = (np.arange(self.N)[:, None] * 5 * n) + k * n + np.arange(n)[None, :]
         return idx if stage is None else idx[stage]
+
+    def inequality_index(self, name: str, stage: int | None = None) -> np.ndarray:
+        """Rows of ``h`` of the inequality group ``name`` (a key of :data:`INEQUALITIES`).
+
+        Groups with a row per agent: shape ``(N, n)``, with ``stage`` ``(n,)``; the grid
+        groups (:data:`GRID_INEQUALITIES`): ``(N,)``, with ``stage`` a 0-d array. Rows at
+        stage ``j`` constrain the inputs of stage ``j`` and soc/sigma at step ``j + 1``.
+        """
+        if name not in INEQUALITIES:
+            raise ValueError(
+                f"unknown inequality group {name!r}; expected one of {tuple(INEQUALITIES)}"
+            )
+        sizes = [1 if group in GRID_INEQUALITIES else self.n for group in INEQUALITIES]
+        k = list(INEQUALITIES).index(name)
+        start = sum(sizes[:k])
+        rows = np.arange(self.N)[:, None] * sum(sizes) + start + np.arange(sizes[k])[None, :]
+        if name in GRID_INEQUALITIES:
+            rows = rows[:, 0]
+        return rows if stage is None else rows[stage]
 
     @cached_property
     def policy_selector(self) -> np.ndarray:
@@ -209,7 +277,7 @@ class MPC:
                 cost += ca.sum1(th["T1"] * soc**2 + th["T2"] * soc + th["T3"])
                 cost += ca.sum1(wf_hi * shi + wf_lo * slo)
             g.append(soc - soc_prev - th["alpha"] * (b - s) - th["delta"])
-            h += [
+            h += [  # the groups of INEQUALITIES, in its order
                 -b,
                 b - sysc.U_bar,
                 -s,
@@ -246,11 +314,13 @@ class MPC:
     def shift(self, x: np.ndarray) -> np.ndarray:
         """Warm start for the next hour: drop stage 0, repeat the last stage.
 
-        ``x`` has shape ``(..., nx)``; the result has the same shape.
+        ``x`` has shape ``(..., nx)``; the result has the same shape. Every back-end and the
+        closed loop warm start through this (:func:`shift` with a check of the size).
         """
         x = np.asarray(x, dtype=float)
-        block = 5 * self.n
-        return np.concatenate([x[..., block:], x[..., -block:]], axis=-1)
+        if x.shape[-1:] != (self.nx,):
+            raise ValueError(f"x has shape {x.shape}; expected (..., nx={self.nx})")
+        return shift(x, self.n)
 
     def qp_data(self, p: np.ndarray) -> QPData:
         """The QP at one parameter vector ``p`` of shape ``(np,)``."""
@@ -283,7 +353,7 @@ class MPC:
 
     # -- the barrier problem's KKT conditions ---------------------------------------------
     @cached_property
-    def kkt(self) -> "KKT":
+    def kkt(self) -> KKT:
         """The KKT residual of the barrier problem and its Jacobians (built on first use)."""
         return KKT(self)
 

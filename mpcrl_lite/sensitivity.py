@@ -19,41 +19,24 @@ problem it treats tiny inactive multipliers as active and returns wrong values.
 A KKT matrix that is singular or too ill-conditioned to trust is detected (non-finite
 solution, a large solve residual, or ``||K||_max ||Z||_max`` above
 ``MPCConfig.kkt_cond_max``) and reported in :class:`Sensitivity` rather than raised.
+
+This is the reference every back-end is tested against; the IPOPT back-end
+(:mod:`mpcrl_lite.ipopt_solver`) uses it as its own ``sensitivity``. It needs only the
+formulation (:mod:`mpcrl_lite.mpc`) and the solution types (:mod:`mpcrl_lite.solution`).
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
 
 from .config import MPCConfig
 from .mpc import MPC
-from .solvers import BatchSolution, MPCSolution
+from .solution import BatchSolution, MPCSolution, Sensitivity
 
-__all__ = ["Sensitivity", "PolicySensitivity", "policy_sensitivity"]
-
-
-@dataclass(frozen=True)
-class Sensitivity:
-    """grad_theta pi for a batch of solutions.
-
-    grad : (days, n_theta, n) -- zeros where ``ok`` is False
-    ok : (days,) -- False where the problem failed or its KKT system was unusable
-    cond : (days,) -- the conditioning proxy ``||K||_max ||Z||_max``
-    reason : tuple of str, '' where ok
-    """
-
-    grad: np.ndarray
-    ok: np.ndarray
-    cond: np.ndarray
-    reason: tuple[str, ...]
-
-    @property
-    def skipped(self) -> int:
-        """How many problems gave no usable sensitivity."""
-        return int(np.count_nonzero(~self.ok))
+# Sensitivity is defined in mpcrl_lite.solution (below every back-end) and kept importable
+# from here.
+__all__ = ["PolicySensitivity", "Sensitivity", "policy_sensitivity"]
 
 
 class PolicySensitivity:

@@ -1,6 +1,13 @@
-"""Shared fixtures: the paper's system, its MPC, the reference solver and a month of prices."""
+"""Shared fixtures and helpers: the paper's system, its MPC, the reference solver, a month of
+prices, price windows and random thetas.
+
+The helpers are plain functions (``from conftest import window, random_theta``) because some
+tests build their cases from them at import time.
+"""
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -8,6 +15,41 @@ import pytest
 from mpcrl_lite.config import MPCConfig, SystemConfig
 from mpcrl_lite.mpc import MPC
 from mpcrl_lite.solvers import IpoptSolver
+from mpcrl_lite.theta import Theta
+
+
+# -- helpers ----------------------------------------------------------------------------------
+def window(prices: np.ndarray, day: int, hour: int, N: int) -> np.ndarray:
+    """The N buying prices from (day, hour) on, running past midnight (the month repeats)."""
+    flat = np.asarray(prices).ravel()
+    return flat[(day * prices.shape[1] + hour + np.arange(N)) % flat.size]
+
+
+def random_theta(
+    rng: np.random.Generator, n: int, curvature: tuple[float, float] = (0.0, 1500.0)
+) -> Theta:
+    """A theta far from theta0 for which the MPC stays a convex QP: quadratic stage and
+    terminal costs (``phi1, T1`` drawn from ``curvature``, so >= 0 for the default) pulling soc
+    towards random targets in [0.3, 0.7]; larger curvature gives interior, non-bang-bang
+    actions."""
+    target = rng.uniform(0.3, 0.7, (2, n))
+    phi1 = rng.uniform(*curvature, n)
+    T1 = rng.uniform(*curvature, n)
+    return Theta(
+        alpha=rng.uniform(0.06, 0.11, n),
+        delta=rng.uniform(-0.01, 0.01, n),
+        b=rng.uniform(-5.0, 5.0, n),
+        s=rng.uniform(-5.0, 5.0, n),
+        phi1=phi1,
+        phi2=-2.0 * phi1 * target[0],
+        phi3=rng.uniform(-10.0, 10.0, n),
+        T1=T1,
+        T2=-2.0 * T1 * target[1],
+        T3=rng.uniform(-10.0, 10.0, n),
+    )
+
+
+# -- fixtures ---------------------------------------------------------------------------------
 
 
 @pytest.fixture(scope="session")
@@ -47,3 +89,34 @@ def month_prices() -> np.ndarray:
     prices = prices + 6.0 * np.sin(2 * np.pi * d / 30)
     prices.setflags(write=False)
     return prices
+
+
+@pytest.fixture(scope="session")
+def mpc_of() -> Callable[..., MPC]:
+    """``mpc_of(**system)``: the MPC of ``SystemConfig(**system)``, built once per session
+    (building one takes ~20 ms, an IPOPT solver on it more)."""
+    cache: dict[tuple, MPC] = {}
+
+    def build(**system) -> MPC:
+        key = tuple(sorted(system.items()))
+        if key not in cache:
+            cache[key] = MPC(SystemConfig(**system))
+        return cache[key]
+
+    return build
+
+
+@pytest.fixture(scope="session")
+def ipopt_at(mpc: MPC) -> Callable[..., IpoptSolver]:
+    """``ipopt_at(tau, on=None)``: the reference back-end at barrier parameter ``tau`` (on
+    the MPC ``on``, the paper's by default), built once per session."""
+    cache: dict[tuple[int, float], tuple[MPC, IpoptSolver]] = {}
+
+    def build(tau: float, on: MPC | None = None) -> IpoptSolver:
+        target = mpc if on is None else on
+        key = (id(target), tau)  # the cache holds target, so its id is not reused
+        if key not in cache:
+            cache[key] = (target, IpoptSolver(target, MPCConfig(tau=tau, backend="ipopt")))
+        return cache[key][1]
+
+    return build

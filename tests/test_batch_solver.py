@@ -1,4 +1,5 @@
-"""Tests of the batch interior point (mpcrl_lite.batch_solver).
+"""Tests of the batch interior point (mpcrl_lite.batch_solver, with its structured KKT system
+mpcrl_lite.batch_kkt and its sensitivities mpcrl_lite.batch_adjoint).
 
 The batch back-end must solve the same barrier problem as the IPOPT reference
 (:class:`~mpcrl_lite.solvers.IpoptSolver`) and return the same sensitivities as
@@ -10,12 +11,14 @@ several sizes. Failures are reported per problem without exceptions.
 
 from __future__ import annotations
 
+import logging
 import time
 
 import numpy as np
 import pytest
 
-import mpcrl_lite.batch_solver as bsm
+import mpcrl_lite.batch_adjoint as adjoint
+from mpcrl_lite.batch_adjoint import grad_weights
 from mpcrl_lite.batch_solver import (
     STATUS_CONVERGED,
     STATUS_MAX_ITER,
@@ -25,7 +28,7 @@ from mpcrl_lite.batch_solver import (
 from mpcrl_lite.config import MPCConfig, SystemConfig
 from mpcrl_lite.mpc import MPC
 from mpcrl_lite.sensitivity import PolicySensitivity
-from mpcrl_lite.solvers import BatchSolution, IpoptSolver, make_solver
+from mpcrl_lite.solvers import BatchSolution, make_solver
 from mpcrl_lite.theta import PARTS, Theta
 
 SEED = 20240601  # random states and thetas of the scenarios
@@ -50,7 +53,7 @@ def windows(prices: np.ndarray, hour: int, N: int, days: int) -> tuple[np.ndarra
     return buy, 0.5 * buy
 
 
-def random_theta(rng: np.random.Generator, n: int, quadratic: bool = False) -> Theta:
+def scenario_theta(rng: np.random.Generator, n: int, quadratic: bool = False) -> Theta:
     """A convex theta (phi1, T1 >= 0) away from theta0; ``quadratic`` gives strong soc
     targets (phi1, T1 up to 1500), otherwise mild cost corrections."""
     if quadratic:
@@ -84,51 +87,40 @@ def kkt_residual(mpc: MPC, sol: BatchSolution, d: int, tau: float) -> float:
     return float(np.max(np.abs(r)) / (1.0 + np.max(np.abs(sol.p[d]))))
 
 
-_MPCS: dict = {}
-
-
-def cached_mpc(**system) -> MPC:
-    """One MPC per system configuration for the whole module (building one takes ~20 ms)."""
-    key = tuple(sorted(system.items()))
-    if key not in _MPCS:
-        _MPCS[key] = MPC(SystemConfig(**system))
-    return _MPCS[key]
-
-
 # -- the formulation --------------------------------------------------------------------------
 @pytest.mark.parametrize("n, N", [(1, 3), (2, 4), (3, 12)])
-def test_qp_data_match_the_casadi_formulation(n, N):
+def test_qp_data_match_the_casadi_formulation(n, N, mpc_of):
     """Dense H, q, c, A, e, C, d assembled from the solver's structured operators equal
     MPC.qp_data at random parameters (incl. soc0 outside [0.1, 0.9] and a random theta)."""
-    mpc = cached_mpc(n=n, N=N, P_bar=0.5 * n)
-    solver = BatchSolver(mpc)
+    mpc = mpc_of(n=n, N=N, P_bar=0.5 * n)
+    kkt = BatchSolver(mpc).kkt
     rng = np.random.default_rng(n * 100 + N)
     for soc0 in (rng.uniform(0, 1, n), np.full(n, 0.03), np.full(n, 0.97)):
         p = mpc.parameters(soc0, rng.uniform(5, 130, N), rng.uniform(5, 60, N),
-                           random_theta(rng, n, quadratic=True))
+                           scenario_theta(rng, n, quadratic=True))
         ref = mpc.qp_data(p)
-        data = solver._data(p[None])
-        eye_x = solver._to_internal_x(np.eye(mpc.nx))  # unit vectors as a batch
-        eye_lam = solver._to_internal_lam(np.eye(mpc.neq))
+        data = kkt.batch_data(p[None])
+        eye_x = kkt.to_internal_x(np.eye(mpc.nx))  # unit vectors as a batch
+        eye_lam = kkt.to_internal_lam(np.eye(mpc.neq))
         zeros_x = np.zeros_like(eye_x)
-        q_int = solver._grad_lag_part(np.zeros((1,) + eye_x.shape[1:]),
+        q_int = kkt.grad_lag_part(np.zeros((1,) + eye_x.shape[1:]),
                                       np.zeros((1,) + eye_lam.shape[1:]), data)
-        q = solver._from_internal_x(q_int)[0]
-        H = solver._from_internal_x(
-            solver._grad_lag_part(eye_x, np.zeros((mpc.nx,) + eye_lam.shape[1:]), data)
+        q = kkt.from_internal_x(q_int)[0]
+        H = kkt.from_internal_x(
+            kkt.grad_lag_part(eye_x, np.zeros((mpc.nx,) + eye_lam.shape[1:]), data)
             - q_int)
-        A = solver._from_internal_lam(solver._apply_A(eye_x, data))
-        At = solver._from_internal_x(solver._grad_lag_part(zeros_x[: mpc.neq], eye_lam, data)
+        A = kkt.from_internal_lam(kkt.apply_A(eye_x, data))
+        At = kkt.from_internal_x(kkt.grad_lag_part(zeros_x[: mpc.neq], eye_lam, data)
                                      - q_int)
-        C = -solver._mu_to_flat(solver._slacks(eye_x, offset=False))
-        Ct = solver._from_internal_x(solver._apply_Ct(solver._mu_from_flat(np.eye(mpc.nin))))
-        d = solver._mu_to_flat(solver._slacks(np.zeros((1,) + eye_x.shape[1:])))[0]
+        C = -kkt.mu_to_flat(kkt.slacks(eye_x, offset=False))
+        Ct = kkt.from_internal_x(kkt.apply_Ct(kkt.mu_from_flat(np.eye(mpc.nin))))
+        d = kkt.mu_to_flat(kkt.slacks(np.zeros((1,) + eye_x.shape[1:])))[0]
         np.testing.assert_allclose(H, ref.H, atol=1e-12)
         np.testing.assert_allclose(q, ref.q, rtol=1e-13, atol=1e-12)
         np.testing.assert_allclose(data.c[0], ref.c, rtol=1e-13, atol=1e-12)
         np.testing.assert_array_equal(A.T, ref.A)  # rows of A.T are A applied to unit vectors
         np.testing.assert_allclose(At, ref.A, atol=1e-12)  # rows: A' applied to unit vectors
-        np.testing.assert_allclose(solver._from_internal_lam(data.e)[0], ref.e, atol=1e-15)
+        np.testing.assert_allclose(kkt.from_internal_lam(data.e)[0], ref.e, atol=1e-15)
         np.testing.assert_array_equal(C.T, ref.C)
         np.testing.assert_array_equal(Ct, ref.C)
         np.testing.assert_array_equal(d, ref.d)
@@ -148,21 +140,21 @@ def test_formulation_change_is_detected_at_construction():
         BatchSolver(mpc)
 
 
-def test_dR_dtheta_matches_casadi():
+def test_dR_dtheta_matches_casadi(mpc_of):
     """The closed-form -dR/dtheta (weights on Zb, Zs, Zsoc, Zlam) equals CasADi's Jacobian
     at a random point; the rows of sigma_hi, sigma_lo and mu do not depend on theta."""
     n, N = 2, 5
-    mpc = cached_mpc(n=n, N=N)
-    solver = BatchSolver(mpc)
+    mpc = mpc_of(n=n, N=N)
+    kkt = BatchSolver(mpc).kkt
     rng = np.random.default_rng(7)
     p = mpc.parameters(rng.uniform(0, 1, n), rng.uniform(5, 130, N), rng.uniform(5, 60, N),
-                       random_theta(rng, n))
+                       scenario_theta(rng, n))
     y = rng.normal(size=mpc.kkt.ny)
     _, R_theta = mpc.kkt.jacobians(y, p, 1e-4)
     ref = -np.array(R_theta.full()).T  # (n_theta, ny)
     x, lam = y[: mpc.nx], y[mpc.nx : mpc.nx + mpc.neq]
-    X, L = solver._to_internal_x(x[None]), solver._to_internal_lam(lam[None])
-    wb, ws, wsoc, wl = solver._grad_weights(X, L)  # (1, n, parts, N)
+    X, L = kkt.to_internal_x(x[None]), kkt.to_internal_lam(lam[None])
+    wb, ws, wsoc, wl = grad_weights(kkt, X, L)  # (1, n, parts, N)
     mine = np.zeros((mpc.n_theta, mpc.nx + mpc.neq))
     for i in range(n):
         for k in range(len(PARTS)):
@@ -179,39 +171,39 @@ def test_dR_dtheta_matches_casadi():
 # -- agreement with the reference -------------------------------------------------------------
 SCENARIOS = {
     # name: (system, theta kind, soc0 range, hour, days)
-    "nominal": (dict(), "nominal", (0.05, 0.95), 7, 10),
-    "grid-binds": (dict(P_bar=0.5), "mild", (0.05, 0.95), 17, 8),
-    "soft-low": (dict(), "mild", (0.0, 0.08), 3, 8),
-    "soft-high": (dict(P_bar=1.0), "quadratic", (0.92, 1.0), 19, 8),
-    "learned": (dict(), "quadratic", (0.05, 0.95), 11, 8),
-    "n=1": (dict(n=1, P_bar=0.5), "mild", (0.05, 0.95), 5, 6),
-    "n=5": (dict(n=5, P_bar=1.0), "mild", (0.05, 0.95), 9, 6),
-    "N=3": (dict(N=3), "quadratic", (0.0, 1.0), 20, 6),
+    "nominal": ({}, "nominal", (0.05, 0.95), 7, 10),
+    "grid-binds": ({"P_bar": 0.5}, "mild", (0.05, 0.95), 17, 8),
+    "soft-low": ({}, "mild", (0.0, 0.08), 3, 8),
+    "soft-high": ({"P_bar": 1.0}, "quadratic", (0.92, 1.0), 19, 8),
+    "learned": ({}, "quadratic", (0.05, 0.95), 11, 8),
+    "n=1": ({"n": 1, "P_bar": 0.5}, "mild", (0.05, 0.95), 5, 6),
+    "n=5": ({"n": 5, "P_bar": 1.0}, "mild", (0.05, 0.95), 9, 6),
+    "N=3": ({"N": 3}, "quadratic", (0.0, 1.0), 20, 6),
 }
 
 
 @pytest.fixture(scope="module", params=[(name, tau) for tau in TAUS for name in sorted(SCENARIOS)],
                 ids=lambda p: f"{p[0]}-tau={p[1]:g}")
-def scenario(request, prices):
+def scenario(request, prices, mpc_of, ipopt_at):
     """Both back-ends' solutions and sensitivities of one scenario."""
     name, tau = request.param
     config = MPCConfig(tau=tau)
     system_kw, kind, (lo, hi), hour, days = SCENARIOS[name]
-    mpc = cached_mpc(**system_kw)
+    mpc = mpc_of(**system_kw)
     system = mpc.system
     rng = np.random.default_rng([SEED, sorted(SCENARIOS).index(name)])
     theta = (Theta.nominal(system) if kind == "nominal"
-             else random_theta(rng, system.n, quadratic=kind == "quadratic"))
+             else scenario_theta(rng, system.n, quadratic=kind == "quadratic"))
     soc0 = rng.uniform(lo, hi, (days, system.n))
     buy, sell = windows(prices, hour, system.N, days)
     batch = BatchSolver(mpc, config)
     ours = batch.solve_batch(soc0, buy, sell, theta)
-    ref = IpoptSolver(mpc, config).solve_batch(soc0, buy, sell, theta)
-    return dict(
-        name=name, tau=tau, mpc=mpc, batch=batch, ours=ours, ref=ref,
-        grad=batch.sensitivity(ours), grad_on_ref=batch.sensitivity(ref),
-        grad_ref=PolicySensitivity(mpc, config)(ref),
-    )
+    ref = ipopt_at(tau, on=mpc).solve_batch(soc0, buy, sell, theta)
+    return {
+        "name": name, "tau": tau, "mpc": mpc, "batch": batch, "ours": ours, "ref": ref,
+        "grad": batch.sensitivity(ours), "grad_on_ref": batch.sensitivity(ref),
+        "grad_ref": PolicySensitivity(mpc, config)(ref),
+    }
 
 
 def test_same_solution_as_ipopt(scenario):
@@ -257,14 +249,14 @@ def test_sensitivities_match_the_reference(scenario):
 
 
 @pytest.mark.parametrize("n, tau", [(1, 1e-5), (2, 1e-5), (3, 1e-4)])
-def test_sensitivity_is_exact_where_the_grid_binds(prices, n, tau):
+def test_sensitivity_is_exact_where_the_grid_binds(prices, n, tau, mpc_of):
     """Against a binding grid limit a battery's policy is nearly pinned and its adjoint is a
     small difference of large terms (the CasADi QR reference can lose several digits in
     small entries there); the refined adjoint matches one computed with extended-precision
     residuals to 1e-8 relative (entries above 1e-6 of their column's largest)."""
-    mpc = cached_mpc(n=n, P_bar=0.5)
+    mpc = mpc_of(n=n, P_bar=0.5)
     rng = np.random.default_rng(30 + n)
-    theta = random_theta(rng, n, quadratic=n == 2)
+    theta = scenario_theta(rng, n, quadratic=n == 2)
     buy, sell = windows(prices, 2 + 5 * n, mpc.N, 3)
     soc0 = rng.uniform(0.0, 0.5 if n == 2 else 1.0, (3, n))
     solver = BatchSolver(mpc, MPCConfig(tau=tau))
@@ -285,20 +277,20 @@ def test_sensitivity_is_exact_where_the_grid_binds(prices, n, tau):
         assert_sensitivities_match(sens.grad[d : d + 1], exact[None], rtol=1e-8)
 
 
-def test_structured_adjoint_for_many_agents(prices, monkeypatch):
+def test_structured_adjoint_for_many_agents(prices, monkeypatch, mpc_of):
     """The column-structured adjoint (used for many agents) agrees with the full one and,
     for n = 12, with the reference."""
-    mpc = cached_mpc(n=12, P_bar=6.0)
-    theta = random_theta(np.random.default_rng(12), 12)
+    mpc = mpc_of(n=12, P_bar=6.0)
+    theta = scenario_theta(np.random.default_rng(12), 12)
     rng = np.random.default_rng(13)
     soc0 = rng.uniform(0.05, 0.95, (2, 12))
     buy, sell = windows(prices, 8, mpc.N, 2)
     solver = BatchSolver(mpc, MPCConfig(tau=1e-4))
     sol = solver.solve_batch(soc0, buy, sell, theta)
     assert sol.success.all()
-    monkeypatch.setattr(bsm, "_FULL_ADJOINT_MAX", 1 << 40)
+    monkeypatch.setattr(adjoint, "_FULL_ADJOINT_MAX", 1 << 40)
     full = solver.sensitivity(sol)
-    monkeypatch.setattr(bsm, "_FULL_ADJOINT_MAX", 0)
+    monkeypatch.setattr(adjoint, "_FULL_ADJOINT_MAX", 0)
     structured = solver.sensitivity(sol)
     assert full.ok.all() and structured.ok.all()
     np.testing.assert_allclose(structured.cond, full.cond, rtol=1e-6)
@@ -309,8 +301,8 @@ def test_structured_adjoint_for_many_agents(prices, monkeypatch):
 
 
 # -- interface, warm starts and failures ------------------------------------------------------
-def test_single_solve_equals_batch_row(prices):
-    mpc = cached_mpc()
+def test_single_solve_equals_batch_row(prices, mpc_of):
+    mpc = mpc_of()
     solver = BatchSolver(mpc)
     theta = Theta.nominal(mpc.system)
     buy, sell = windows(prices, 4, mpc.N, 3)
@@ -324,20 +316,20 @@ def test_single_solve_equals_batch_row(prices):
     np.testing.assert_allclose(sens.grad[0], solver.sensitivity(batch).grad[1], atol=1e-12)
 
 
-def test_shift_drops_stage_zero_and_repeats_the_last():
-    mpc = cached_mpc()
+def test_shift_drops_stage_zero_and_repeats_the_last(mpc_of):
+    mpc = mpc_of()
     x = np.arange(2 * mpc.nx, dtype=float).reshape(2, mpc.nx)
     out = BatchSolver(mpc).shift(x)
     block = 5 * mpc.n
     np.testing.assert_array_equal(out[:, :-block], x[:, block:])
     np.testing.assert_array_equal(out[:, -block:], x[:, -block:])
     np.testing.assert_array_equal(out, mpc.shift(x))
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="multiple of 5 n = 15"):
         shift(np.zeros(7), 3)
 
 
-def test_warm_start_gives_the_cold_start_solution(prices):
-    mpc = cached_mpc()
+def test_warm_start_gives_the_cold_start_solution(prices, mpc_of):
+    mpc = mpc_of()
     solver = BatchSolver(mpc)
     theta = Theta.nominal(mpc.system)
     rng = np.random.default_rng(5)
@@ -358,8 +350,8 @@ def test_warm_start_gives_the_cold_start_solution(prices):
     np.testing.assert_array_equal(ignored.iterations, cold.iterations)
 
 
-def test_failure_is_reported_per_problem_with_the_fallback(prices):
-    mpc = cached_mpc()
+def test_failure_is_reported_per_problem_with_the_fallback(prices, mpc_of):
+    mpc = mpc_of()
     solver = BatchSolver(mpc, MPCConfig(max_iter=1))
     theta = Theta.nominal(mpc.system)
     buy, sell = windows(prices, 0, mpc.N, 4)
@@ -375,10 +367,28 @@ def test_failure_is_reported_per_problem_with_the_fallback(prices):
     assert all(r.startswith("solver failed") for r in sens.reason)
 
 
-def test_breakdown_is_a_failure_not_an_exception(prices):
+def test_failures_are_logged_once_per_call(prices, mpc_of, caplog):
+    """At tau = 1e-11 the scaled residual cannot reach the tolerance: every problem runs out
+    of iterations. The call says so in one warning instead of failing silently."""
+    mpc = mpc_of()
+    theta = Theta.nominal(mpc.system)
+    buy, sell = windows(prices, 0, mpc.N, 24)
+    soc0 = np.full((24, 3), 0.5)
+    with caplog.at_level(logging.WARNING, logger="mpcrl_lite"):
+        fine = BatchSolver(mpc).solve_batch(soc0, buy, sell, theta)
+        assert fine.failures == 0 and not caplog.records
+        sol = BatchSolver(mpc, MPCConfig(tau=1e-11)).solve_batch(soc0, buy, sell, theta)
+    assert sol.failures == 24 and set(sol.status) == {STATUS_MAX_ITER}
+    (record,) = caplog.records
+    assert record.levelno == logging.WARNING and record.name == "mpcrl_lite.batch_solver"
+    assert "batch back-end: 24 of 24 MPC problems failed (max_iter_reached: 24)" in (
+        record.getMessage())
+
+
+def test_breakdown_is_a_failure_not_an_exception(prices, mpc_of):
     """A non-convex theta (phi1 very negative) can break the factorisation; only the
     affected problems fail, nothing raises and no NaN leaks into the actions."""
-    mpc = cached_mpc()
+    mpc = mpc_of()
     theta = Theta.nominal(mpc.system).replace(phi1=np.full(3, -1e6))
     buy, sell = windows(prices, 12, mpc.N, 4)
     solver = BatchSolver(mpc)
@@ -390,9 +400,9 @@ def test_breakdown_is_a_failure_not_an_exception(prices):
     assert np.all(np.isfinite(sens.grad))
 
 
-def test_sensitivity_reports_unusable_solutions(prices):
+def test_sensitivity_reports_unusable_solutions(prices, mpc_of):
     """Failed problems and points that are not strictly interior are flagged, not raised."""
-    mpc = cached_mpc()
+    mpc = mpc_of()
     solver = BatchSolver(mpc)
     theta = Theta.nominal(mpc.system)
     buy, sell = windows(prices, 1, mpc.N, 2)
@@ -406,14 +416,14 @@ def test_sensitivity_reports_unusable_solutions(prices):
     assert "interior" in sens.reason[1]
 
 
-def test_sensitivity_of_mixed_thetas(prices):
+def test_sensitivity_of_mixed_thetas(prices, mpc_of):
     """Solutions for different thetas in one batch are handled group by group."""
-    mpc = cached_mpc()
+    mpc = mpc_of()
     solver = BatchSolver(mpc)
     rng = np.random.default_rng(9)
     buy, sell = windows(prices, 14, mpc.N, 2)
     sols = [solver.solve_batch(rng.uniform(0.2, 0.8, (2, 3)), buy, sell, th)
-            for th in (Theta.nominal(mpc.system), random_theta(rng, 3))]
+            for th in (Theta.nominal(mpc.system), scenario_theta(rng, 3))]
     mixed = BatchSolution.stack([sols[0][0], sols[1][0], sols[0][1]], 0.0, "batch")
     sens = solver.sensitivity(mixed)
     separate = [solver.sensitivity(s).grad for s in sols]
@@ -422,9 +432,9 @@ def test_sensitivity_of_mixed_thetas(prices):
     np.testing.assert_allclose(solver.residual(mixed), 0.0, atol=1e-13)
 
 
-def test_make_solver_batch_builds_without_compilation(prices):
+def test_make_solver_batch_builds_without_compilation(prices, mpc_of):
     """The 'batch' back-end builds in milliseconds (nothing is compiled) and solves at once."""
-    mpc = cached_mpc()
+    mpc = mpc_of()
     t0 = time.perf_counter()
     solver = make_solver(mpc, MPCConfig(backend="batch"))
     buy, sell = windows(prices, 0, mpc.N, 2)

@@ -1,0 +1,187 @@
+"""What every MPC solver back-end returns: solutions, policy sensitivities, the fallback.
+
+This module sits below all back-ends (:mod:`mpcrl_lite.ipopt_solver`,
+:mod:`mpcrl_lite.batch_solver`) and the sensitivity code, so none of them needs another:
+
+* :class:`MPCSolution` -- one solved MPC (paper eq. 9, as the barrier problem of
+  :mod:`mpcrl_lite.mpc`): the primal-dual point ``y = (x, lam, mu)`` and the policy
+  ``pi = b_0 - s_0``;
+* :class:`BatchSolution` -- the solutions of a batch of problems (the days of a month at one
+  hour), the same arrays with a leading ``days`` axis;
+* :class:`Sensitivity` -- ``grad_theta pi`` (paper eq. 21) for a batch, with a per-problem
+  flag and reason where it is unusable;
+* :class:`SolverBackend` -- the interface a back-end offers to the closed loop;
+* :data:`FALLBACK` -- what the policy does when a solve fails.
+
+Failures never raise mid-run and never leak NaN: a problem that did not converge is marked
+``success = False`` with the solver's status, and its ``action`` is the documented fallback
+:data:`FALLBACK` -- the battery idles for that hour (``b = s = 0``) and the low-level
+controller keeps soc inside [0, 1].
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from .config import MPCConfig
+from .mpc import MPC
+from .theta import Theta
+
+__all__ = ["FALLBACK", "BatchSolution", "MPCSolution", "Sensitivity", "SolverBackend"]
+
+#: Description of the action used when a solve fails.
+FALLBACK = "idle: b = s = 0 for every battery (the low-level controller still guards soc)"
+
+
+@dataclass(frozen=True)
+class MPCSolution:
+    """Solution of one MPC problem.
+
+    Attributes
+    ----------
+    action : (n,) the policy pi = b_0 - s_0 (the fallback zeros if ``success`` is False)
+    x : (nx,) primal solution; lam : (neq,) equality multipliers; mu : (nin,) inequality
+    multipliers (``mu * h = -tau`` at an exact solution)
+    cost : MPC cost f at x; success, status, iterations: what the solver reported
+    p : (np,) the parameters the problem was solved for
+    """
+
+    action: np.ndarray
+    x: np.ndarray
+    lam: np.ndarray
+    mu: np.ndarray
+    cost: float
+    success: bool
+    status: str
+    iterations: int
+    p: np.ndarray
+
+    @property
+    def y(self) -> np.ndarray:
+        """Primal-dual vector ``(x, lam, mu)``."""
+        return np.concatenate([self.x, self.lam, self.mu])
+
+
+@dataclass(frozen=True)
+class BatchSolution:
+    """Solutions of a batch of problems (e.g. the days of a month at one hour).
+
+    Arrays carry a leading axis of length ``days``: action (days, n), x (days, nx),
+    lam (days, neq), mu (days, nin), cost, success, iterations (days,), p (days, np);
+    ``status`` is a tuple of strings; ``solve_time`` the wall time of the whole call in s.
+    """
+
+    action: np.ndarray
+    x: np.ndarray
+    lam: np.ndarray
+    mu: np.ndarray
+    cost: np.ndarray
+    success: np.ndarray
+    status: tuple[str, ...]
+    iterations: np.ndarray
+    p: np.ndarray
+    solve_time: float = 0.0
+    backend: str = field(default="")
+
+    def __len__(self) -> int:
+        return self.action.shape[0]
+
+    def __getitem__(self, d: int) -> MPCSolution:
+        return MPCSolution(
+            action=self.action[d],
+            x=self.x[d],
+            lam=self.lam[d],
+            mu=self.mu[d],
+            cost=float(self.cost[d]),
+            success=bool(self.success[d]),
+            status=self.status[d],
+            iterations=int(self.iterations[d]),
+            p=self.p[d],
+        )
+
+    @property
+    def failures(self) -> int:
+        """Number of problems that did not converge."""
+        return int(np.count_nonzero(~self.success))
+
+    def failure_summary(self) -> str:
+        """One line for a log: how many problems failed and with which statuses, e.g.
+        ``"batch back-end: 3 of 24 MPC problems failed (max_iter_reached: 3); their batteries
+        idle (the fallback action)"``; the empty string when none failed."""
+        if not self.failures:
+            return ""
+        counts = Counter(s for s, ok in zip(self.status, self.success, strict=True) if not ok)
+        statuses = ", ".join(f"{status}: {count}" for status, count in counts.most_common())
+        backend = f"{self.backend} back-end: " if self.backend else ""
+        return (f"{backend}{self.failures} of {len(self)} MPC problems failed ({statuses}); "
+                "their batteries idle (the fallback action)")
+
+    @staticmethod
+    def stack(solutions: list[MPCSolution], solve_time: float, backend: str) -> BatchSolution:
+        """Gather single solutions into a batch."""
+        return BatchSolution(
+            action=np.stack([s.action for s in solutions]),
+            x=np.stack([s.x for s in solutions]),
+            lam=np.stack([s.lam for s in solutions]),
+            mu=np.stack([s.mu for s in solutions]),
+            cost=np.array([s.cost for s in solutions]),
+            success=np.array([s.success for s in solutions]),
+            status=tuple(s.status for s in solutions),
+            iterations=np.array([s.iterations for s in solutions]),
+            p=np.stack([s.p for s in solutions]),
+            solve_time=solve_time,
+            backend=backend,
+        )
+
+
+@dataclass(frozen=True)
+class Sensitivity:
+    """grad_theta pi for a batch of solutions.
+
+    grad : (days, n_theta, n) -- zeros where ``ok`` is False
+    ok : (days,) -- False where the problem failed or its KKT system was unusable
+    cond : (days,) -- the conditioning proxy ``||K||_max ||Z||_max``
+    reason : tuple of str, '' where ok
+    """
+
+    grad: np.ndarray
+    ok: np.ndarray
+    cond: np.ndarray
+    reason: tuple[str, ...]
+
+    @property
+    def skipped(self) -> int:
+        """How many problems gave no usable sensitivity."""
+        return int(np.count_nonzero(~self.ok))
+
+
+class SolverBackend(Protocol):
+    """What the closed loop needs from an MPC back-end (built by
+    :func:`mpcrl_lite.solvers.make_solver`).
+
+    ``name`` is the back-end's key in :data:`mpcrl_lite.config.BACKENDS`; ``solve`` takes
+    soc0 (n,), buy and sell (N,) and an optional primal guess x0 (nx,); ``solve_batch`` the
+    same with a leading ``days`` axis and one shared theta; ``sensitivity`` gives
+    ``grad_theta pi`` at any solution of ``mpc``. None of them raises because a problem
+    failed: failures are reported in the returned objects.
+    """
+
+    name: str
+    mpc: MPC
+    config: MPCConfig
+
+    def solve(
+        self, soc0: np.ndarray, buy: np.ndarray, sell: np.ndarray, theta: Theta,
+        x0: np.ndarray | None = None,
+    ) -> MPCSolution: ...
+
+    def solve_batch(
+        self, soc0: np.ndarray, buy: np.ndarray, sell: np.ndarray, theta: Theta,
+        x0: np.ndarray | None = None,
+    ) -> BatchSolution: ...
+
+    def sensitivity(self, solution: MPCSolution | BatchSolution) -> Sensitivity: ...
