@@ -1,19 +1,22 @@
-"""Tests of the MPC formulation (mpcrl_lite.mpc) and the reference IPOPT back-end
-(mpcrl_lite.solvers): layout, QP data, the barrier solution's optimality conditions,
-economic behaviour, warm starts, failures and batches."""
+"""Tests of the MPC formulation (mpcrl_lite.mpc), the reference IPOPT back-end
+(mpcrl_lite.ipopt_solver): layout, QP data, the barrier solution's optimality conditions,
+economic behaviour, warm starts, failures (never raised, logged once per batch) and batches."""
 
 from __future__ import annotations
 
 import dataclasses
 import itertools
+import logging
 
 import numpy as np
 import pytest
+from conftest import random_theta, window
 from scipy.optimize import linprog
 
 from mpcrl_lite.config import MPCConfig, SystemConfig
-from mpcrl_lite.mpc import MPC, Plan, QPData
-from mpcrl_lite.solvers import BatchSolution, IpoptSolver, MPCSolution, make_solver
+from mpcrl_lite.ipopt_solver import IpoptSolver
+from mpcrl_lite.mpc import GRID_INEQUALITIES, INEQUALITIES, MPC, Plan, QPData, shift
+from mpcrl_lite.solution import BatchSolution, MPCSolution
 from mpcrl_lite.theta import PARTS, Theta
 
 SUCCESS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
@@ -21,32 +24,6 @@ VARIABLES = ("b", "s", "soc", "sigma_hi", "sigma_lo")
 
 
 # -- helpers ----------------------------------------------------------------------------------
-def window(prices: np.ndarray, day: int, hour: int, N: int) -> np.ndarray:
-    """The N buying prices from (day, hour) on, running past midnight (the month repeats)."""
-    flat = np.asarray(prices).ravel()
-    return flat[(day * prices.shape[1] + hour + np.arange(N)) % flat.size]
-
-
-def random_convex_theta(rng: np.random.Generator, system: SystemConfig) -> Theta:
-    """A theta far from theta0 for which the MPC stays a convex QP (phi1, T1 >= 0)."""
-    n = system.n
-    target = rng.uniform(0.3, 0.7, (2, n))
-    phi1 = rng.uniform(0.0, 1500.0, n)
-    T1 = rng.uniform(0.0, 1500.0, n)
-    return Theta(
-        alpha=rng.uniform(0.06, 0.11, n),
-        delta=rng.uniform(-0.01, 0.01, n),
-        b=rng.uniform(-5.0, 5.0, n),
-        s=rng.uniform(-5.0, 5.0, n),
-        phi1=phi1,
-        phi2=-2.0 * phi1 * target[0],
-        phi3=rng.uniform(-10.0, 10.0, n),
-        T1=T1,
-        T2=-2.0 * T1 * target[1],
-        T3=rng.uniform(-10.0, 10.0, n),
-    )
-
-
 def reference_fgh(
     system: SystemConfig, x: np.ndarray, soc0: np.ndarray, buy: np.ndarray, sell: np.ndarray,
     th: Theta,
@@ -121,7 +98,7 @@ def test_policy_selector_picks_b0_minus_s0(mpc):
 def test_parameters_layout_and_broadcasting(mpc, system, month_prices):
     n, N = mpc.n, mpc.N
     rng = np.random.default_rng(1)
-    theta = random_convex_theta(rng, system)
+    theta = random_theta(rng, system.n)
     soc0 = np.array([0.2, 0.5, 0.8])
     buy = window(month_prices, 3, 20, N)
     sell = 0.5 * buy
@@ -181,11 +158,54 @@ def test_plan_shapes_and_content(mpc):
     np.testing.assert_array_equal(plan.action[0], mpc.policy_selector @ x)
 
 
+def test_inequality_index_names_the_rows_of_h(mpc, system):
+    n, N = mpc.n, mpc.N
+    rng = np.random.default_rng(11)
+    x = rng.uniform(-0.5, 1.5, mpc.nx)
+    p = mpc.parameters(np.full(n, 0.5), np.full(N, 50.0), np.full(N, 25.0),
+                       Theta.nominal(system))
+    h = mpc.evaluate(x, p)[2]
+    b, s, soc = (x[mpc.index(v)] for v in ("b", "s", "soc"))
+    shi, slo = x[mpc.index("sigma_hi")], x[mpc.index("sigma_lo")]
+    U, P = system.U_bar, system.P_bar
+    expected = {
+        "b_min": -b, "b_max": b - U, "s_min": -s, "s_max": s - U,
+        "grid_b": b.sum(axis=1) - P, "grid_s": s.sum(axis=1) - P,
+        "soc_max": soc - system.soc_high - shi, "soc_min": system.soc_low - soc - slo,
+        "sigma_hi_min": -shi, "sigma_lo_min": -slo,
+    }
+    assert tuple(expected) == tuple(INEQUALITIES)
+    rows = []
+    for name, value in expected.items():
+        idx = mpc.inequality_index(name)
+        assert idx.shape == ((N,) if name in GRID_INEQUALITIES else (N, n))
+        np.testing.assert_allclose(h[idx], value, rtol=0, atol=1e-14)
+        np.testing.assert_array_equal(mpc.inequality_index(name, 3), idx[3])
+        rows.append(idx.ravel())
+    # every row of h belongs to exactly one group
+    np.testing.assert_array_equal(np.sort(np.concatenate(rows)), np.arange(mpc.nin))
+    with pytest.raises(ValueError, match="unknown inequality group 'grid'"):
+        mpc.inequality_index("grid")
+
+
+def test_shift_drops_stage_zero_and_repeats_the_last(mpc):
+    x = np.arange(3 * mpc.nx, dtype=float).reshape(3, mpc.nx)
+    out = mpc.shift(x)
+    block = 5 * mpc.n
+    assert out.shape == x.shape
+    np.testing.assert_array_equal(out[:, :-block], x[:, block:])
+    np.testing.assert_array_equal(out[:, -block:], x[:, -block:])
+    np.testing.assert_array_equal(mpc.shift(x[0]), out[0])
+    np.testing.assert_array_equal(shift(x, mpc.n), out)
+    with pytest.raises(ValueError, match=r"expected \(\.\.\., nx=180\)"):
+        mpc.shift(x[:, :-1])
+
+
 # -- formulation and QP data ------------------------------------------------------------------
 def _random_problems(system, month_prices, count, seed):
     rng = np.random.default_rng(seed)
     for k in range(count):
-        theta = Theta.nominal(system) if k == 0 else random_convex_theta(rng, system)
+        theta = Theta.nominal(system) if k == 0 else random_theta(rng, system.n)
         if k == count - 1:  # a non-convex theta: the QP data must still be exact
             theta = theta.replace(phi1=-theta.phi1, T1=-np.abs(theta.T1) - 1.0)
         soc0 = rng.uniform(-0.1, 1.1, system.n)  # also outside [0.1, 0.9]: constant slacks
@@ -249,7 +269,7 @@ def _solution_cases(system, month_prices):
     ]
     for k in range(3):
         soc0 = rng.uniform(0.05, 0.95, system.n)
-        cases.append((f"random convex theta {k}", random_convex_theta(rng, system), soc0,
+        cases.append((f"random convex theta {k}", random_theta(rng, system.n), soc0,
                       (int(rng.integers(30)), int(rng.integers(24)))))
     out = []
     for name, theta, soc0, (day, hour) in cases:
@@ -305,20 +325,19 @@ def test_ipopt_solution_satisfies_the_barrier_kkt_conditions(mpc, ipopt, system,
         assert np.max(np.abs(r)) <= 1e-10
 
 
-def test_ipopt_solution_at_tau_1e_3(mpc, system, month_prices):
-    solver = IpoptSolver(mpc, MPCConfig(tau=1e-3, backend="ipopt"))
+def test_ipopt_solution_at_tau_1e_3(mpc, ipopt_at, system, month_prices):
+    solver = ipopt_at(1e-3)
     for name, theta, soc0, buy, sell in _solution_cases(system, month_prices)[::2]:
         sol = solver.solve(soc0, buy, sell, theta)
         check_barrier_solution(mpc, sol, soc0, buy, sell, theta, 1e-3)
 
 
 @pytest.fixture(scope="module")
-def tight_grid():
+def tight_grid(mpc_of, ipopt_at):
     """A grid that takes at most 0.6 of the three batteries' 3.0, solved nearly exactly
     (tau = 1e-4), so that the barrier keeps the grid power within 1e-3 of its limit."""
-    system = SystemConfig(P_bar=0.6)
-    mpc = MPC(system)
-    return system, mpc, IpoptSolver(mpc, MPCConfig(tau=1e-4))
+    mpc = mpc_of(P_bar=0.6)
+    return mpc.system, mpc, ipopt_at(1e-4, on=mpc)
 
 
 @pytest.mark.parametrize(
@@ -366,7 +385,7 @@ def test_sells_expensive_first(mpc, ipopt, system):
     assert np.all(plan.action[:4] < -0.1)
 
 
-def test_barrier_solution_tends_to_the_exact_lp_solution(mpc, system):
+def test_barrier_solution_tends_to_the_exact_lp_solution(mpc, ipopt_at, system):
     # Asymmetric agents, so that the LP (phi1 = T1 = 0) has a unique solution.
     theta = Theta.nominal(system).replace(
         alpha=np.array([0.08, 0.09, 0.075]), b=np.array([0.0, 3.0, -2.0]),
@@ -384,7 +403,7 @@ def test_barrier_solution_tends_to_the_exact_lp_solution(mpc, system):
     f_star = lp.fun + qp.c
     distances, policy_gaps = [], []
     for tau in (1e-2, 1e-3, 1e-4, 1e-5):
-        sol = IpoptSolver(mpc, MPCConfig(tau=tau, backend="ipopt")).solve(soc0, buy, sell, theta)
+        sol = ipopt_at(tau).solve(soc0, buy, sell, theta)
         assert sol.success
         # on the central path of an LP the duality gap is exactly nin * tau
         assert -1e-9 <= sol.cost - f_star <= mpc.nin * tau + 1e-9
@@ -397,14 +416,13 @@ def test_barrier_solution_tends_to_the_exact_lp_solution(mpc, system):
 
 # -- warm start, failures, batches ------------------------------------------------------------
 def test_warm_start_gives_the_cold_start_solution(mpc, ipopt, system, month_prices):
-    theta = random_convex_theta(np.random.default_rng(6), system)
+    theta = random_theta(np.random.default_rng(6), system.n)
     soc0 = np.array([0.25, 0.5, 0.75])
     buy = window(month_prices, 10, 6, system.N)
     cold = ipopt.solve(soc0, buy, 0.5 * buy, theta)
     previous_hour = ipopt.solve(soc0 + 0.02, window(month_prices, 10, 5, system.N),
                                 0.5 * window(month_prices, 10, 5, system.N), theta)
-    shifted = np.roll(previous_hour.x, -5 * system.n)  # drop stage 0, repeat the last
-    shifted[-5 * system.n :] = previous_hour.x[-5 * system.n :]
+    shifted = mpc.shift(previous_hour.x)
     for guess in (cold.x, shifted, 0.7 * ipopt.default_guess()):
         warm = ipopt.solve(soc0, buy, 0.5 * buy, theta, x0=guess)
         assert warm.success
@@ -419,7 +437,7 @@ def test_warm_started_solutions_are_polished_to_rounding_level(mpc, ipopt, syste
     rng = np.random.default_rng(1)
     worst = 0.0
     for _ in range(30):
-        theta = random_convex_theta(rng, system)
+        theta = random_theta(rng, system.n)
         soc0 = rng.uniform(0.05, 0.95, system.n)
         buy = window(month_prices, rng.integers(30), rng.integers(24), system.N)
         first = ipopt.solve(soc0, buy, 0.5 * buy, theta)
@@ -445,6 +463,22 @@ def test_failure_is_reported_with_the_fallback_action(mpc, system, month_prices)
     np.testing.assert_array_equal(batch.action, np.zeros((3, system.n)))
 
 
+def test_ipopt_gets_every_inequality_once(mpc, ipopt, system):
+    """The rows IPOPT takes as general constraints plus its simple bounds on x are exactly
+    the inequalities of the formulation, each once."""
+    x = np.random.default_rng(12).uniform(-0.5, 1.5, mpc.nx)
+    p = mpc.parameters(np.full(system.n, 0.5), np.full(system.N, 50.0),
+                       np.full(system.N, 25.0), Theta.nominal(system))
+    h = mpc.evaluate(x, p)[2]
+    general = ipopt._general_rows
+    assert np.all(np.diff(general) > 0)
+    bounds = np.concatenate([(ipopt._lbx - x)[np.isfinite(ipopt._lbx)],
+                             (x - ipopt._ubx)[np.isfinite(ipopt._ubx)]])
+    rest = np.delete(h, general)
+    assert rest.size == bounds.size == mpc.nin - general.size
+    np.testing.assert_allclose(np.sort(rest), np.sort(bounds), rtol=0, atol=1e-15)
+
+
 def test_invalid_guess_is_a_failure_not_an_exception(mpc, ipopt, system):
     guess = ipopt.default_guess()
     guess[7] = np.nan
@@ -456,7 +490,7 @@ def test_invalid_guess_is_a_failure_not_an_exception(mpc, ipopt, system):
 
 def test_solve_batch_equals_single_solves(mpc, ipopt, system, month_prices):
     rng = np.random.default_rng(7)
-    theta = random_convex_theta(rng, system)
+    theta = random_theta(rng, system.n)
     days = [0, 9, 17, 29]
     socs = rng.uniform(0.1, 0.9, (len(days), system.n))
     buys = np.stack([window(month_prices, d, 21, system.N) for d in days])
@@ -481,9 +515,6 @@ def test_solve_batch_equals_single_solves(mpc, ipopt, system, month_prices):
         ipopt.solve_batch(socs[0], buys[0], 0.5 * buys[0], theta)
 
 
-def test_make_solver_ipopt(mpc):
-    solver = make_solver(mpc, MPCConfig(backend="ipopt"))
-    assert isinstance(solver, IpoptSolver) and solver.name == "ipopt"
 
 
 def test_solution_is_a_frozen_record(ipopt, system):
@@ -492,3 +523,64 @@ def test_solution_is_a_frozen_record(ipopt, system):
     with pytest.raises(dataclasses.FrozenInstanceError):
         sol.success = False  # type: ignore[misc]
     np.testing.assert_array_equal(sol.y, np.concatenate([sol.x, sol.lam, sol.mu]))
+
+
+# -- robustness: failures are reported, never raised ------------------------------------------
+#: Buying prices of the first 12 hours of the default price month. With soc0 = 0.6, theta0 and
+#: tau = 1e-11 IPOPT converges, but the barrier KKT matrix at its point is numerically singular
+#: and CasADi's QR cannot evaluate the Newton step of the polish.
+POLISH_FAILS_BUY = np.array([47.870433399999996, 41.523979, 37.1952832, 36.45563, 39.3950808,
+                             47.128864, 52.9330338, 64.4359824, 70.8169284, 74.0533902,
+                             77.3262598, 77.93369519999999])
+
+
+def test_tiny_tau_never_raises_from_the_polish(mpc, system):
+    solver = IpoptSolver(mpc, MPCConfig(tau=1e-11, backend="ipopt"))
+    soc0 = np.full(system.n, 0.6)
+    sol = solver.solve(soc0, POLISH_FAILS_BUY, 0.5 * POLISH_FAILS_BUY, Theta.nominal(system))
+    assert np.all(np.isfinite(sol.action))
+    if sol.success:  # a platform whose QR copes must have polished to the rounding level
+        r = np.array(mpc.kkt.residual(sol.y, sol.p, 1e-11)).ravel()
+        assert np.max(np.abs(r)) <= 1e-6 * (1 + np.max(np.abs(sol.p)))
+    else:
+        assert sol.status and sol.status not in SUCCESS
+        np.testing.assert_array_equal(sol.action, np.zeros(system.n))
+
+
+def test_polish_error_marks_the_solve_failed(mpc, system, monkeypatch, caplog):
+    solver = IpoptSolver(mpc, MPCConfig(backend="ipopt"))
+
+    def newton_fails(*args):
+        raise RuntimeError("Error in Function::call for 'kkt_newton' [MXFunction] at .../"
+                           "function.cpp:514:\n.../function_internal.hpp:1766: Evaluation failed")
+
+    monkeypatch.setattr(mpc.kkt, "newton", newton_fails)
+    buy = np.full(system.N, 50.0)
+    sol = solver.solve(np.full(system.n, 0.5), buy, 0.5 * buy, Theta.nominal(system))
+    assert sol.success is False
+    assert sol.status == "kkt_polish_failed: Newton step failed (Evaluation failed)"
+    np.testing.assert_array_equal(sol.action, np.zeros(system.n))
+    assert np.all(np.isfinite(sol.x)) and np.isfinite(sol.cost)
+    with caplog.at_level(logging.WARNING, logger="mpcrl_lite"):
+        batch = solver.solve_batch(np.full((2, system.n), 0.5), np.stack([buy] * 2),
+                                   np.stack([0.5 * buy] * 2), Theta.nominal(system))
+    assert batch.failures == 2
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "2 of 2 MPC problems failed" in warnings[0]
+
+
+def test_a_batch_with_failures_logs_one_warning(mpc, system, month_prices, caplog):
+    buy = np.stack([window(month_prices, d, 12, system.N) for d in range(3)])
+    socs = np.full((3, system.n), 0.5)
+    with caplog.at_level(logging.WARNING, logger="mpcrl_lite"):
+        IpoptSolver(mpc, MPCConfig(backend="ipopt")).solve_batch(socs, buy, 0.5 * buy,
+                                                                 Theta.nominal(system))
+        assert not caplog.records  # all solved: nothing to say
+        failed = IpoptSolver(mpc, MPCConfig(max_iter=1, backend="ipopt")).solve_batch(
+            socs, buy, 0.5 * buy, Theta.nominal(system))
+    assert failed.failures == 3
+    (record,) = caplog.records
+    assert record.levelno == logging.WARNING and record.name == "mpcrl_lite.ipopt_solver"
+    message = record.getMessage()
+    assert "ipopt back-end: 3 of 3 MPC problems failed" in message
+    assert f"{failed.status[0]}: 3" in message and "idle" in message

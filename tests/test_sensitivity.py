@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pytest
+from conftest import random_theta, window
 
 from mpcrl_lite.config import MPCConfig, SystemConfig
 from mpcrl_lite.mpc import MPC
@@ -36,33 +37,6 @@ SMALLEST = 1e-6  # entries at or below this magnitude are compared in absolute t
 
 
 # -- helpers ----------------------------------------------------------------------------------
-def window(prices: np.ndarray, day: int, hour: int, N: int) -> np.ndarray:
-    """The N buying prices from (day, hour) on, running past midnight (the month repeats)."""
-    flat = np.asarray(prices).ravel()
-    return flat[(day * prices.shape[1] + hour + np.arange(N)) % flat.size]
-
-
-def random_theta(seed: int, n: int, curvature: tuple[float, float]) -> Theta:
-    """A random theta with convex quadratic stage and terminal costs pulling soc towards
-    random targets (larger ``curvature`` gives interior, non-bang-bang actions)."""
-    rng = np.random.default_rng(seed)
-    target = rng.uniform(0.3, 0.7, (2, n))
-    phi1 = rng.uniform(*curvature, n)
-    T1 = rng.uniform(*curvature, n)
-    return Theta(
-        alpha=rng.uniform(0.06, 0.11, n),
-        delta=rng.uniform(-0.01, 0.01, n),
-        b=rng.uniform(-5.0, 5.0, n),
-        s=rng.uniform(-5.0, 5.0, n),
-        phi1=phi1,
-        phi2=-2.0 * phi1 * target[0],
-        phi3=rng.uniform(-10.0, 10.0, n),
-        T1=T1,
-        T2=-2.0 * T1 * target[1],
-        T3=rng.uniform(-10.0, 10.0, n),
-    )
-
-
 def fd_column(policy, theta: np.ndarray, k: int, noise: np.ndarray, top: int = 5,
               bottom: int = 25):
     """d policy / d theta_k by adaptive central differences.
@@ -129,7 +103,7 @@ class Case:
             return Theta.nominal(system)
         kind, seed = self.theta.split(":")
         curvature = {"convex": (0.0, 1500.0), "quadratic": (2000.0, 5000.0)}[kind]
-        return random_theta(int(seed), system.n, curvature)
+        return random_theta(np.random.default_rng(int(seed)), system.n, curvature)
 
 
 CASES = [
@@ -156,13 +130,10 @@ NOISE_FLOOR_CASE = Case("soft bound, theta0, cross-agent entries at the rounding
 
 
 @pytest.fixture(scope="module")
-def solvers(mpc):
+def solvers(mpc, ipopt_at):
     """(solver, sensitivity) per barrier parameter."""
-    out = {}
-    for tau in (1e-4, 1e-3):
-        config = MPCConfig(tau=tau, backend="ipopt")
-        out[tau] = (IpoptSolver(mpc, config), PolicySensitivity(mpc, config))
-    return out
+    return {tau: (ipopt_at(tau), PolicySensitivity(mpc, ipopt_at(tau).config))
+            for tau in (1e-4, 1e-3)}
 
 
 def regime_of(mpc: MPC, solution, soc0: np.ndarray) -> str:
@@ -260,7 +231,8 @@ def test_constant_parts_have_exactly_zero_gradient(mpc, solvers, system, month_p
     solver, sensitivity = solvers[1e-4]
     rng = np.random.default_rng(8)
     for seed in range(4):
-        theta = Theta.nominal(system) if seed == 0 else random_theta(seed, system.n, (0, 1500))
+        theta = (Theta.nominal(system) if seed == 0
+                 else random_theta(np.random.default_rng(seed), system.n))
         buy = window(month_prices, 3 * seed, 5 * seed, system.N)
         sol = solver.solve(rng.uniform(0.05, 0.95, system.n), buy, 0.5 * buy, theta)
         sens = sensitivity(sol)
@@ -273,7 +245,7 @@ def test_constant_parts_have_exactly_zero_gradient(mpc, solvers, system, month_p
 
 def test_batch_shapes_and_agreement_with_single_problems(mpc, solvers, system, month_prices):
     solver, sensitivity = solvers[1e-4]
-    theta = random_theta(11, system.n, (0.0, 1500.0))
+    theta = random_theta(np.random.default_rng(11), system.n)
     days = [1, 8, 22]
     socs = np.array([[0.3, 0.5, 0.7], [0.12, 0.2, 0.85], [0.6, 0.6, 0.6]])
     buys = np.stack([window(month_prices, d, 16, system.N) for d in days])

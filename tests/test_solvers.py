@@ -1,0 +1,109 @@
+"""Tests of the solver layer around the back-ends: the solution types (mpcrl_lite.solution),
+the back-end registry and :func:`make_solver` (mpcrl_lite.solvers), the old import paths of
+moved names, and the import structure (solution types below the back-ends, back-ends never
+importing each other, nothing imported inside functions)."""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import mpcrl_lite.solvers as solvers_module
+from mpcrl_lite import batch_solver, ipopt_solver, sensitivity, solution
+from mpcrl_lite.batch_solver import BatchSolver
+from mpcrl_lite.config import BACKENDS, MPCConfig
+from mpcrl_lite.mpc import shift
+from mpcrl_lite.solvers import FALLBACK, BatchSolution, IpoptSolver, make_solver
+from mpcrl_lite.theta import Theta
+
+
+# -- solution types ---------------------------------------------------------------------------
+def test_failure_summary_counts_the_statuses(ipopt, system):
+    buy = np.full(system.N, 50.0)
+    good = ipopt.solve(np.full(system.n, 0.5), buy, 0.5 * buy, Theta.nominal(system))
+    assert good.success
+    bad = [dataclasses.replace(good, success=False, status=status)
+           for status in ("max_iter_reached", "non_finite", "max_iter_reached")]
+    batch = BatchSolution.stack([good, *bad], 0.0, "test")
+    assert batch.failures == 3
+    summary = batch.failure_summary()
+    assert summary.startswith("test back-end: 3 of 4 MPC problems failed")
+    assert "(max_iter_reached: 2, non_finite: 1)" in summary
+    assert BatchSolution.stack([good, good], 0.0, "test").failure_summary() == ""
+    assert "b = s = 0" in FALLBACK
+
+
+# -- the back-end registry and the import structure -------------------------------------------
+def test_registry_holds_every_configured_backend():
+    assert set(solvers_module.REGISTRY) == set(BACKENDS) - {solvers_module.AUTO}
+
+
+@pytest.mark.parametrize("name", sorted(solvers_module.REGISTRY))
+def test_make_solver_builds_the_named_backend(mpc, name):
+    solver = make_solver(mpc, MPCConfig(backend=name))
+    assert isinstance(solver, solvers_module.REGISTRY[name])
+    assert solver.name == name and solver.mpc is mpc and solver.config.backend == name
+
+
+def test_make_solver_auto_chooses_by_convexity(mpc, system, caplog):
+    theta0 = Theta.nominal(system)
+    concave = theta0.replace(phi1=np.full(system.n, -1.0))
+    with caplog.at_level(logging.INFO, logger="mpcrl_lite.solvers"):
+        assert isinstance(make_solver(mpc, MPCConfig(backend="auto"), theta0), BatchSolver)
+        assert isinstance(make_solver(mpc, MPCConfig(backend="auto"), concave), IpoptSolver)
+        assert make_solver(mpc, MPCConfig(backend="auto")).name == "batch"  # no theta
+    assert [r.getMessage() for r in caplog.records] == [
+        "MPC back-end 'auto' chose 'batch'", "MPC back-end 'auto' chose 'ipopt'",
+        "MPC back-end 'auto' chose 'batch'"]
+
+
+def test_make_solver_rejects_an_unregistered_backend(mpc, monkeypatch):
+    monkeypatch.delitem(solvers_module.REGISTRY, "batch")
+    with pytest.raises(ValueError, match=r"'batch' is not available; expected one of "
+                                         r"\('auto', 'ipopt'\)"):
+        make_solver(mpc, MPCConfig(backend="batch"))
+
+
+def test_moved_names_keep_their_old_import_paths():
+    assert solvers_module.MPCSolution is solution.MPCSolution
+    assert solvers_module.BatchSolution is solution.BatchSolution
+    assert solvers_module.FALLBACK is solution.FALLBACK
+    assert solvers_module.IpoptSolver is ipopt_solver.IpoptSolver
+    assert sensitivity.Sensitivity is solution.Sensitivity
+    assert batch_solver.shift is shift
+
+
+#: What each module of the solver layer may import from the package: the solution types sit
+#: below every back-end, back-ends never import each other, only the factory imports them.
+SOLVER_LAYER = {
+    "mpc": {"config", "theta"},
+    "solution": {"config", "mpc", "theta"},
+    "sensitivity": {"config", "mpc", "solution", "theta"},
+    "batch_linalg": set(),
+    "batch_kkt": {"batch_linalg", "config", "mpc", "solution", "theta"},
+    "batch_adjoint": {"batch_kkt", "batch_linalg", "config", "solution", "theta"},
+    "batch_solver": {"batch_adjoint", "batch_kkt", "batch_linalg", "config", "mpc", "solution",
+                     "theta"},
+    "ipopt_solver": {"config", "mpc", "sensitivity", "solution", "theta"},
+    "solvers": {"batch_solver", "config", "ipopt_solver", "mpc", "solution", "theta"},
+}
+
+
+@pytest.mark.parametrize("module", sorted(SOLVER_LAYER))
+def test_solver_layer_imports_only_downwards(module):
+    """Read from the source (ast), so an import hidden in a function counts too."""
+    tree = ast.parse((Path(solution.__file__).parent / f"{module}.py").read_text())
+    top_level = {id(node) for node in tree.body}
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.ImportFrom) or not node.level:
+            continue
+        assert id(node) in top_level, f"{module}: import inside a function, line {node.lineno}"
+        names = [node.module] if node.module else [alias.name for alias in node.names]
+        for name in names:
+            assert name.split(".")[0] in SOLVER_LAYER[module], (
+                f"{module} imports {name} (line {node.lineno})")
