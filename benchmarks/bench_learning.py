@@ -3,7 +3,7 @@ r"""Timings of mpcrl_lite's learning loop, the paper experiment, the cold start 
 Every figure is a wall-clock time on this machine (see benchmarks/README.md for how to
 read them under load).
 
-* **ms per learning step** -- :func:`mpcrl_lite.experiment.run_month` with sensitivities
+* **ms per learning step** -- :func:`mpcrl_lite.closed_loop.run_month` with sensitivities
   and exploration, 30 days x 24 h, default back-end (``MPCConfig()``, 'auto'), divided by
   the 720 day-hours it simulates, plus the month's LSTD fit and DPG update
   (:meth:`Experiment.learning_step` and :meth:`DPGUpdater.step`) divided by 720. Median over
@@ -38,10 +38,17 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import BENCH_DIR, median, python_env, run_json  # noqa: E402
+from _common import BENCH_DIR, median, python_env, run_json
 
-__all__ = ["learning_step", "paper_experiment", "cold_start", "scaling", "scaling_table",
-           "scaling_figure", "main"]
+__all__ = [
+    "cold_start",
+    "learning_step",
+    "main",
+    "paper_experiment",
+    "scaling",
+    "scaling_figure",
+    "scaling_table",
+]
 
 N_SIZES = (3, 10, 30, 100)
 HORIZONS = (12, 24, 48)
@@ -57,8 +64,9 @@ def learning_step(months: int = 2, warmup: int = 1, warm_start: bool = True) -> 
     """
     import numpy as np
 
+    from mpcrl_lite.closed_loop import run_month
     from mpcrl_lite.config import MPCConfig
-    from mpcrl_lite.experiment import Experiment, run_month
+    from mpcrl_lite.experiment import Experiment
 
     exp = Experiment(mpc_config=MPCConfig(warm_start=warm_start))
     H, D = exp.system.hours_per_day, exp.learning.days_per_month
@@ -183,47 +191,58 @@ def cold_start(trials: int = 3) -> dict:
 
 
 # -- scaling -------------------------------------------------------------------------------
+class _TimedSolver:
+    """A solver back-end that times its own ``solve_batch`` and ``sensitivity`` calls, so the
+    closed loop (:func:`mpcrl_lite.closed_loop.simulate`) runs unchanged around it."""
+
+    def __init__(self, solver) -> None:
+        self.solver, self.mpc = solver, solver.mpc
+        self.solve_s = self.sens_s = self.cpu_s = 0.0
+        self.iterations: list[float] = []
+        self.failures = self.sens_bad = 0
+
+    def solve_batch(self, *args, **kwargs):
+        import numpy as np
+
+        t0, c0 = time.perf_counter(), time.process_time()
+        sol = self.solver.solve_batch(*args, **kwargs)
+        self.solve_s += time.perf_counter() - t0
+        self.cpu_s += time.process_time() - c0
+        self.iterations.append(float(np.mean(sol.iterations)))
+        self.failures += sol.failures
+        return sol
+
+    def sensitivity(self, sol):
+        t0, c0 = time.perf_counter(), time.process_time()
+        sens = self.solver.sensitivity(sol)
+        self.sens_s += time.perf_counter() - t0
+        self.cpu_s += time.process_time() - c0
+        self.sens_bad += sens.skipped - sol.failures
+        return sens
+
+
 def _closed_loop_ms(solver, system, prices, theta, hours: int, seed: int = 0) -> dict:
     """ms per day-hour of ``solve_batch`` + ``sensitivity`` over ``hours`` closed-loop hours
-    of all days of ``prices`` (the loop of ``run_month``, timing the solver calls only)."""
+    of all days of ``prices`` (the loop of ``run_month`` with exploration 0.05, timing the
+    solver calls only)."""
     import numpy as np
 
-    from mpcrl_lite.model import project_action, sample_noise, step
+    from mpcrl_lite.closed_loop import GaussianExploration, MPCPolicy, simulate
 
-    mpc = solver.mpc
-    rng = np.random.default_rng(seed)
-    D, n, N = prices.days, system.n, system.N
-    soc = np.full((D, n), system.soc0)
-    x_prev = None
-    solve_s = sens_s = cpu_s = 0.0
-    iters, fails, sens_bad = [], 0, 0
-    for k in range(hours):
-        buy, sell = prices.window(k, N)
-        warm = None if x_prev is None else mpc.shift(x_prev)
-        t0, c0 = time.perf_counter(), time.process_time()
-        sol = solver.solve_batch(soc, buy, sell, theta, x0=warm)
-        t1 = time.perf_counter()
-        sens = solver.sensitivity(sol)
-        t2, c2 = time.perf_counter(), time.process_time()
-        solve_s += t1 - t0
-        sens_s += t2 - t1
-        cpu_s += c2 - c0
-        iters.append(float(np.mean(sol.iterations)))
-        fails += sol.failures
-        sens_bad += sens.skipped - sol.failures
-        x_prev = np.where(sol.success[:, None], sol.x, warm) if warm is not None else sol.x
-        a = project_action(sol.action + 0.05 * rng.standard_normal((D, n)), system)
-        soc = step(soc, a, sample_noise(rng, (D, n), system), buy[:, 0], sell[:, 0],
-                   system).soc_next
-    count = D * hours
+    timed = _TimedSolver(solver)
+    H = system.hours_per_day
+    simulate(MPCPolicy(timed, theta, prices, sensitivities=True), prices.buy[:, :H],
+             prices.sell[:, :H], system, rng=np.random.default_rng(seed),
+             explore=GaussianExploration(0.05, system), hours=hours)
+    count = prices.days * hours
     return {
-        "ms": 1e3 * (solve_s + sens_s) / count,
-        "cpu_ms": 1e3 * cpu_s / count,
-        "solve_ms": 1e3 * solve_s / count,
-        "sens_ms": 1e3 * sens_s / count,
-        "iterations": float(np.mean(iters)),
-        "failures": int(fails),
-        "sens_unusable": int(sens_bad),
+        "ms": 1e3 * (timed.solve_s + timed.sens_s) / count,
+        "cpu_ms": 1e3 * timed.cpu_s / count,
+        "solve_ms": 1e3 * timed.solve_s / count,
+        "sens_ms": 1e3 * timed.sens_s / count,
+        "iterations": float(np.mean(timed.iterations)),
+        "failures": int(timed.failures),
+        "sens_unusable": int(timed.sens_bad),
         "problems": count,
     }
 
@@ -311,9 +330,11 @@ def scaling_table(rows: list[dict]) -> str:
         return f"{r[f'{key}_ms']:.2f} ({r[f'{key}_cpu_ms']:.2f})"
 
     lines = [
-        "| n | N | P_bar | batch: ms/step (CPU) | solve | sens | iters | fails "
-        "| batch, no warm start: ms/step (CPU) | iters | fails "
-        "| IPOPT+KKT: ms/step (CPU) | batch speedup vs IPOPT |",
+        (
+            "| n | N | P_bar | batch: ms/step (CPU) | solve | sens | iters | fails "
+            "| batch, no warm start: ms/step (CPU) | iters | fails "
+            "| IPOPT+KKT: ms/step (CPU) | batch speedup vs IPOPT |"
+        ),
         "|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:

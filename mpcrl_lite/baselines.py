@@ -82,7 +82,7 @@ from __future__ import annotations
 import json
 import time
 import warnings
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -91,32 +91,29 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import linprog
 
+from .closed_loop import MPCPolicy, Policy, Projection, simulate
 from .config import LearningConfig, MPCConfig, SystemConfig
 from .history import History
-from .model import Trajectory, discounted_return, penalty, project_action, step
+from .model import penalty, project_action, sample_noise
 from .mpc import MPC
 from .prices import Prices
+from .record import Record
 from .solvers import make_solver
 from .theta import Theta
 
 __all__ = [
-    "Scenario",
-    "make_scenario",
-    "PolicyResult",
-    "evaluate_policy",
-    "MPCPolicy",
-    "RuleBasedPolicy",
     "ClairvoyantResult",
+    "MPCPolicy",
+    "PolicyResult",
+    "RuleBasedPolicy",
+    "Scenario",
     "clairvoyant",
     "clairvoyant_lp",
     "evaluate_baselines",
+    "evaluate_policy",
+    "make_scenario",
     "run_baselines_cli",
 ]
-
-#: ``policy(hour, soc)`` with ``soc`` of shape ``(days, n)`` returns commanded net powers
-#: of shape ``(days, n)`` (as :data:`mpcrl_lite.model.Policy`).
-Policy = Callable[[int, np.ndarray], np.ndarray]
-
 
 # -- the common scenario ----------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
@@ -145,10 +142,11 @@ class Scenario:
 
     def __post_init__(self) -> None:
         sysc = self.system
+        # bad input of any kind is a ValueError in this package, wrong types included
         if not isinstance(sysc, SystemConfig):
-            raise ValueError(f"system={sysc!r}: expected a SystemConfig")
+            raise ValueError(f"system={sysc!r}: expected a SystemConfig")  # noqa: TRY004
         if not isinstance(self.prices, Prices):
-            raise ValueError(f"prices={self.prices!r}: expected a Prices")
+            raise ValueError(f"prices={self.prices!r}: expected a Prices")  # noqa: TRY004
         shape = (sysc.hours_per_day, self.prices.days, sysc.n)
         noise = np.array(self.noise, dtype=float)
         if noise.shape != shape:
@@ -196,10 +194,10 @@ def make_scenario(
 ) -> Scenario:
     """Draw a scenario: ``days`` days of prices (default :meth:`Prices.month`) and noise.
 
-    The noise is ``numpy.random.default_rng(seed).normal(noise_mean, sqrt(noise_var),
-    (hours, days, n))``, which is the noise :func:`mpcrl_lite.experiment.run_month` draws
-    from a generator with that seed when there is no exploration (it draws ``(days, n)``
-    hour by hour from the same stream).
+    The noise is ``sample_noise(numpy.random.default_rng(seed), (hours, days, n))``
+    (:func:`mpcrl_lite.model.sample_noise`), which is the noise
+    :func:`mpcrl_lite.closed_loop.run_month` draws from a generator with that seed when there
+    is no exploration (it draws ``(days, n)`` hour by hour from the same stream).
 
     Parameters
     ----------
@@ -216,7 +214,7 @@ def make_scenario(
     Scenario
     """
     if not isinstance(system, SystemConfig):
-        raise ValueError(f"system={system!r}: expected a SystemConfig")
+        raise ValueError(f"system={system!r}: expected a SystemConfig")  # noqa: TRY004
     if isinstance(days, bool) or not isinstance(days, (int, np.integer)) or days < 1:
         raise ValueError(f"days={days!r}: expected an integer >= 1")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
@@ -225,22 +223,21 @@ def make_scenario(
         prices = Prices.month(system, int(days))
     elif prices.days != days:
         raise ValueError(f"prices have {prices.days} days; expected days={days}")
-    rng = np.random.default_rng(int(seed))
-    noise = rng.normal(system.noise_mean, system.noise_std,
-                       size=(system.hours_per_day, int(days), system.n))
+    noise = sample_noise(np.random.default_rng(int(seed)),
+                         (system.hours_per_day, int(days), system.n), system)
     return Scenario(system, prices, noise, np.full((int(days), system.n), system.soc0), int(seed))
 
 
 # -- closed-loop evaluation -------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)
 class PolicyResult:
-    """A policy's closed loop on a scenario.
+    """A policy's closed loop on a scenario, with its name and figures.
 
     Attributes
     ----------
     name : str
-    trajectory : Trajectory
-        Hours x days x batteries (:class:`~mpcrl_lite.model.Trajectory`).
+    trajectory : Record
+        Hours x days x batteries (:class:`~mpcrl_lite.record.Record`; also :attr:`record`).
     commanded_power : numpy.ndarray, shape ``(hours, days)``
         :math:`\\max(\\sum_i a_i^+, \\sum_i a_i^-)` of the commanded (projected) actions.
     solver_failures : int
@@ -251,11 +248,16 @@ class PolicyResult:
     """
 
     name: str
-    trajectory: Trajectory
+    trajectory: Record
     commanded_power: np.ndarray
     solver_failures: int = 0
     wall_time_s: float = 0.0
     info: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def record(self) -> Record:
+        """The closed loop's :class:`~mpcrl_lite.record.Record`."""
+        return self.trajectory
 
     @property
     def J(self) -> float:
@@ -270,7 +272,7 @@ class PolicyResult:
     @property
     def J_per_day(self) -> np.ndarray:
         """Discounted cost of each day, shape ``(days,)``."""
-        return discounted_return(self.trajectory.stage_cost, self.trajectory.system.gamma)
+        return self.trajectory.J_per_day()
 
     def summary(self) -> dict[str, Any]:
         """The figures of :func:`evaluate_baselines`, JSON-friendly."""
@@ -293,15 +295,17 @@ class PolicyResult:
 def evaluate_policy(policy: Policy, scenario: Scenario, name: str = "policy") -> PolicyResult:
     """Run ``policy`` in closed loop on the scenario's days, hour by hour.
 
-    At hour ``k``: ``a = project_action(policy(k, soc))`` (onto the input bounds and the grid
-    limit; a no-op for feasible commands such as the MPC's), then
-    :func:`mpcrl_lite.model.step` with the scenario's noise ``noise[k]`` and prices.
+    :func:`mpcrl_lite.closed_loop.simulate` with the scenario's noise (common random
+    numbers) and the command projected onto the input bounds and the grid limit
+    (:class:`~mpcrl_lite.closed_loop.Projection`; a no-op for feasible commands such as the
+    MPC's): at hour ``k``, ``a = project_action(policy(k, soc))``, then
+    :func:`mpcrl_lite.model.step` with ``noise[k]`` and the prices of the hour.
 
     Parameters
     ----------
     policy : callable ``(hour, soc (days, n)) -> a (days, n)``
-        An object with a ``failures`` attribute (like :class:`MPCPolicy`) reports failed
-        solves.
+        Or a policy with ``decide`` (:class:`~mpcrl_lite.closed_loop.MPCPolicy`), whose
+        failed solves are counted.
     scenario : Scenario
     name : str
 
@@ -310,65 +314,17 @@ def evaluate_policy(policy: Policy, scenario: Scenario, name: str = "policy") ->
     PolicyResult
     """
     if not callable(policy):
-        raise ValueError(f"policy={policy!r}: expected a callable policy(hour, soc) -> a")
+        raise ValueError(  # noqa: TRY004
+            f"policy={policy!r}: expected a callable policy(hour, soc) -> a"
+        )
     sysc = scenario.system
-    H, D, n = sysc.hours_per_day, scenario.days, sysc.n
     t0 = time.perf_counter()
-    soc = np.empty((H + 1, D, n))
-    soc[0] = scenario.soc0
-    per = {key: np.empty((H, D, n)) for key in ("a", "b", "s", "correction", "agent_cost")}
-    stage_cost, grid, commanded = np.empty((H, D)), np.empty((H, D)), np.empty((H, D))
-    buy, sell = scenario.buy, scenario.sell
-    for k in range(H):
-        raw = np.asarray(policy(k, soc[k].copy()), dtype=float)
-        if raw.shape != (D, n):
-            raise ValueError(f"at hour {k}: policy output has shape {raw.shape}: expected {(D, n)}")
-        a = project_action(raw, sysc)
-        res = step(soc[k], a, scenario.noise[k], buy[:, k], sell[:, k], sysc)
-        soc[k + 1] = res.soc_next
-        per["a"][k], per["b"][k], per["s"][k] = a, res.b, res.s
-        per["correction"][k], per["agent_cost"][k] = res.correction, res.agent_cost
-        stage_cost[k], grid[k] = res.stage_cost, res.grid_power
-        commanded[k] = np.maximum(np.maximum(a, 0).sum(1), np.maximum(-a, 0).sum(1))
-    trajectory = Trajectory(soc=soc, stage_cost=stage_cost, grid_power=grid,
-                            noise=np.array(scenario.noise), system=sysc, **per)
-    return PolicyResult(name, trajectory, commanded, int(getattr(policy, "failures", 0)),
-                        time.perf_counter() - t0)
-
-
-class MPCPolicy:
-    """The MPC at a fixed theta as a policy over a batch of days.
-
-    At hour ``k`` it solves the MPC of every day (``solver.solve_batch``) with the forecast
-    windows ``prices.window(k, N)``, warm-started from the previous hour's shifted solution,
-    and returns :math:`\\pi = \\hat b_0 - \\hat s_0` (the idle fallback where a solve failed,
-    counted in :attr:`failures`).
-
-    Parameters
-    ----------
-    solver
-        A back-end from :func:`mpcrl_lite.solvers.make_solver`.
-    theta : Theta
-    prices : Prices
-    """
-
-    def __init__(self, solver: Any, theta: Theta, prices: Prices) -> None:
-        if not isinstance(theta, Theta) or theta.n != solver.mpc.n:
-            raise ValueError(f"theta={theta!r}: expected a Theta with n={solver.mpc.n}")
-        self.solver, self.theta, self.prices = solver, theta, prices
-        self.failures = 0
-        self._x: np.ndarray | None = None
-        self._hour = -1
-
-    def __call__(self, hour: int, soc: np.ndarray) -> np.ndarray:
-        mpc = self.solver.mpc
-        buy, sell = self.prices.window(hour, mpc.N)
-        warm = None if self._x is None or hour != self._hour + 1 else mpc.shift(self._x)
-        sol = self.solver.solve_batch(soc, buy, sell, self.theta, x0=warm)
-        self.failures += sol.failures
-        self._x = sol.x if warm is None else np.where(sol.success[:, None], sol.x, warm)
-        self._hour = hour
-        return sol.action
+    record = simulate(policy, scenario.buy, scenario.sell, sysc, noise=scenario.noise,
+                      soc0=scenario.soc0, explore=Projection(sysc))
+    a = record.a
+    commanded = np.maximum(np.maximum(a, 0).sum(-1), np.maximum(-a, 0).sum(-1))
+    failures = int(np.count_nonzero(~record.solver_ok))
+    return PolicyResult(name, record, commanded, failures, time.perf_counter() - t0)
 
 
 class RuleBasedPolicy:
@@ -394,7 +350,7 @@ class RuleBasedPolicy:
 
     def __init__(self, prices: Prices, system: SystemConfig, soc_guard: bool = True) -> None:
         if not isinstance(soc_guard, bool):
-            raise ValueError(f"soc_guard={soc_guard!r}: expected True or False")
+            raise ValueError(f"soc_guard={soc_guard!r}: expected True or False")  # noqa: TRY004
         self.prices, self.system, self.soc_guard = prices, system, soc_guard
         self.median = np.median(prices.buy, axis=1)
 
@@ -544,8 +500,8 @@ def clairvoyant_lp(
 
 @dataclass(frozen=True, eq=False)
 class ClairvoyantResult(PolicyResult):
-    """The clairvoyant's plans as a :class:`PolicyResult`: ``trajectory.a`` holds the
-    commanded part ``ub - us``, ``trajectory.b``/``s`` the applied powers and
+    """The clairvoyant's plans as a :class:`PolicyResult`: ``trajectory.a`` (and
+    ``trajectory.policy``) holds the commanded part ``ub - us``, ``trajectory.b``/``s`` the applied powers and
     ``trajectory.correction`` the controller's extra ``eb - es``.
 
     Attributes
@@ -585,21 +541,23 @@ def clairvoyant(scenario: Scenario) -> ClairvoyantResult:
         if res.status != 0:
             raise RuntimeError(f"clairvoyant LP of day {d} failed: {res.message}")
         z = np.maximum(res.x, 0.0)  # remove -1e-12 rounding on non-negative variables
-        for key in parts:
-            parts[key][:, d] = z[lay.block(key)]
+        for key, part in parts.items():
+            part[:, d] = z[lay.block(key)]
         soc[1:, d] = np.clip(z[lay.block("soc")], 0.0, 1.0)
         statuses.add(res.message)
     b, s = parts["ub"] + parts["eb"], parts["us"] + parts["es"]
     buy, sell = scenario.buy.T[:, :, None], scenario.sell.T[:, :, None]  # (H, D, 1)
     agent_cost = buy * b - sell * s + penalty(soc[:-1], sysc)
     commanded = parts["ub"] - parts["us"]
-    trajectory = Trajectory(
-        soc=soc, a=commanded, b=b, s=s, correction=parts["eb"] - parts["es"],
-        agent_cost=agent_cost, stage_cost=agent_cost.sum(-1),
-        grid_power=np.maximum(b.sum(-1), s.sum(-1)), noise=np.array(scenario.noise),
-        system=sysc,
-    )
     power = np.maximum(parts["ub"].sum(-1), parts["us"].sum(-1))
+    # the plan is the policy: its commands are the actions, its grid power the planned one
+    trajectory = Record(
+        soc=soc, policy=commanded, a=commanded, b=b, s=s, correction=parts["eb"] - parts["es"],
+        agent_cost=agent_cost, stage_cost=agent_cost.sum(-1),
+        grid_power=np.maximum(b.sum(-1), s.sum(-1)), planned_power=power,
+        noise=np.array(scenario.noise), buy=np.array(scenario.buy.T),
+        solver_ok=np.ones((H, D), bool), sens_ok=np.zeros((H, D), bool), system=sysc,
+    )
     plan = b - s
     replayed = evaluate_policy(lambda hour, _soc: plan[hour], scenario, "clairvoyant replay").J
     info = {"lp_status": sorted(statuses), "J_replayed": replayed,

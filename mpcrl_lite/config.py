@@ -313,8 +313,8 @@ class MPCConfig(_Config):
 
 #: Names of the DPG update rules in :mod:`mpcrl_lite.dpg`.
 OPTIMIZERS = ("sgd", "adam")
-#: Feature sets of the critic's value baseline (see :mod:`mpcrl_lite.experiment`).
-VALUE_FEATURES = ("paper", "paper+hour")
+#: Feature sets of the critic's value baseline (see :data:`mpcrl_lite.lstd.FEATURE_SETS`).
+VALUE_FEATURES = ("paper", "paper+hour", "hour")
 
 
 @dataclass(frozen=True)
@@ -343,7 +343,8 @@ class LearningConfig(_Config):
     value_features: str = "paper+hour"
     """Features of the critic's value baseline: ``'paper'`` is the paper's
     ``[soc_i^2, soc_i, 1]``; ``'paper+hour'`` replaces the constant by one indicator per hour
-    of the day (the cost to go of a 24-hour day depends on the hour)."""
+    of the day (the cost to go of a 24-hour day depends on the hour); ``'hour'`` keeps only
+    the indicators."""
     learn_constants: bool = False
     """Also update phi3 and T3 (their policy gradient is always zero)."""
     optimizer: str = "adam"

@@ -129,10 +129,10 @@ from typing import Any
 import casadi as ca
 import numpy as np
 
+from .closed_loop import Decision, GaussianExploration, simulate
 from .config import ConfigWarning, LearningConfig, MPCConfig, SystemConfig
 from .dpg import DPGUpdater, policy_gradient
 from .experiment import (
-    ClosedLoop,
     Experiment,
     resolve_setup,
     run_months,
@@ -815,9 +815,9 @@ def run_month_decentralized(
 ) -> tuple[MonthRecord, DecentralizedMonth]:
     """One month in closed loop with the coordinated local MPCs.
 
-    The counterpart of :func:`mpcrl_lite.experiment.run_month`, with the same draws in the
-    same order (per hour: exploration ``(days, n)`` if ``exploration_std > 0``, then noise
-    ``(days, n)``).
+    The counterpart of :func:`mpcrl_lite.closed_loop.run_month` (the same loop,
+    :func:`~mpcrl_lite.closed_loop.simulate`), with the same draws in the same order (per
+    hour: exploration ``(days, n)`` if ``exploration_std > 0``, then noise ``(days, n)``).
 
     Parameters
     ----------
@@ -843,7 +843,6 @@ def run_month_decentralized(
     extra : DecentralizedMonth
     """
     D, H, n, N = prices.days, system.hours_per_day, system.n, system.N
-    loop = ClosedLoop(prices, system, soc0)
     solver_ok = np.zeros((H, D, n), bool)
     sens_ok = np.zeros((H, D, n), bool)
     grad_pi = np.zeros((H, D, n, 10)) if sensitivities else None
@@ -851,9 +850,10 @@ def run_month_decentralized(
     conv, proj = np.zeros((H, D), bool), np.zeros((H, D), bool)
     viol, pmax = np.zeros((H, D)), np.zeros((H, D))
     times = np.zeros(H)
-    for k in range(H):
+
+    def decide(k: int, soc: np.ndarray) -> Decision:
         buy_w, sell_w = prices.window(k, N)
-        sol = policy.solve(loop.soc, buy_w, sell_w, thetas)
+        sol = policy.solve(soc, buy_w, sell_w, thetas)
         solver_ok[k] = sol.success
         iters[k], conv[k], proj[k] = sol.iterations, sol.converged, sol.projected
         viol[k] = sol.violation
@@ -861,8 +861,12 @@ def run_month_decentralized(
         times[k] = sol.solve_time
         if sensitivities:
             grad_pi[k], sens_ok[k] = policy.sensitivity(sol)
-        loop.advance(k, sol.action, sol.planned_power, rng, exploration_std)
-    record = loop.record(solver_ok.all(-1), sens_ok.all(-1), None)
+        return Decision(sol.action, solver_ok[k].all(-1), sol.planned_power, sens_ok[k].all(-1))
+
+    explore = GaussianExploration(exploration_std, system) if exploration_std > 0 else None
+    record = MonthRecord.from_record(simulate(
+        decide, prices.buy[:, :H], prices.sell[:, :H], system, rng=rng, soc0=soc0, explore=explore
+    ))
     extra = DecentralizedMonth(grad_pi, sens_ok, solver_ok, iters, conv, proj, viol, pmax, times)
     return record, extra
 

@@ -7,7 +7,8 @@ Every month (paper, Section IV):
    sensitivities are computed at the solutions (:mod:`mpcrl_lite.sensitivity`), Gaussian
    exploration is added to the MPC action and projected onto the input bounds and the grid
    limit (:func:`mpcrl_lite.model.project_action`), and the true system takes a step
-   (:func:`mpcrl_lite.model.step`);
+   (:func:`mpcrl_lite.model.step`) -- the one closed loop,
+   :func:`mpcrl_lite.closed_loop.run_month`;
 2. LSTD fits the compatible action-value function on the month's transitions
    (:func:`mpcrl_lite.lstd.lstd_q`); each day is an episode, so the last hour of a day does
    not bootstrap (the next day restarts at ``soc0``). The value baseline uses
@@ -44,17 +45,20 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
+from .closed_loop import evaluate_mpc, run_month
 from .config import LearningConfig, MPCConfig, SystemConfig
 from .dpg import DPGUpdater, policy_gradient
-from .history import History, MonthRecord
-from .lstd import compatible_features, lstd_q, value_features
-from .model import project_action, sample_noise, step
+from .history import History
+from .lstd import compatible_features, lstd_q, value_baseline_features
 from .mpc import MPC
 from .prices import Prices
+from .record import MonthRecord
 from .solvers import make_solver
 from .theta import Theta
 
-__all__ = ["Experiment", "ClosedLoop", "run_month", "run_months", "value_baseline_features", "Callback"]
+# run_month (mpcrl_lite.closed_loop) and value_baseline_features (mpcrl_lite.lstd) stay
+# importable from here.
+__all__ = ["Callback", "Experiment", "run_month", "run_months", "value_baseline_features"]
 
 log = logging.getLogger(__name__)
 
@@ -62,154 +66,6 @@ log = logging.getLogger(__name__)
 Callback = Callable[[int, History, "Experiment"], None]
 
 CHECKPOINT = "checkpoint.json"
-
-
-
-class ClosedLoop:
-    """Bookkeeping of one month in closed loop, shared by every learner.
-
-    Holds the true state of the ``days`` days and the month's arrays; :meth:`advance` applies
-    one hour's policy (with projected exploration) to the true system and records it;
-    :meth:`record` returns the :class:`MonthRecord`. Random draws per hour: exploration
-    (if ``exploration_std > 0``), then noise, each of shape (days, n).
-    """
-
-    def __init__(self, prices: Prices, system: SystemConfig, soc0: float | np.ndarray | None = None) -> None:
-        D, H, n = prices.days, system.hours_per_day, system.n
-        self.prices, self.system = prices, system
-        self.soc = np.broadcast_to(
-            np.asarray(system.soc0 if soc0 is None else soc0, float), (D, n)
-        ).copy()
-        self.arrays = {k: np.zeros((H, D, n)) for k in
-                       ("policy", "a", "b", "s", "correction", "agent_cost", "noise")}
-        self.socs = np.zeros((H + 1, D, n))
-        self.socs[0] = self.soc
-        self.stage_cost, self.grid, self.planned, self.buy = (np.zeros((H, D)) for _ in range(4))
-
-    def advance(
-        self, k: int, pi: np.ndarray, planned: np.ndarray, rng: np.random.Generator,
-        exploration_std: float,
-    ) -> None:
-        """Hour ``k``: policy ``pi`` (days, n), the MPC's largest planned grid power
-        ``planned`` (days,); explore, step the true system, record."""
-        system = self.system
-        D, n = self.soc.shape
-        if exploration_std > 0:
-            a = project_action(pi + exploration_std * rng.standard_normal((D, n)), system)
-        else:
-            a = pi
-        noise = sample_noise(rng, (D, n), system)
-        buy, sell = self.prices.buy[:, k], self.prices.sell[:, k]
-        res = step(self.soc, a, noise, buy, sell, system)
-        out = self.arrays
-        out["policy"][k], out["a"][k], out["noise"][k] = pi, a, noise
-        out["b"][k], out["s"][k], out["correction"][k] = res.b, res.s, res.correction
-        out["agent_cost"][k] = res.agent_cost
-        self.stage_cost[k], self.grid[k], self.buy[k] = res.stage_cost, res.grid_power, buy
-        self.planned[k] = planned
-        self.soc = res.soc_next
-        self.socs[k + 1] = self.soc
-
-    def record(self, solver_ok: np.ndarray, sens_ok: np.ndarray,
-               grad_pi: np.ndarray | None) -> MonthRecord:
-        """The month as a :class:`MonthRecord`."""
-        return MonthRecord(
-            soc=self.socs, stage_cost=self.stage_cost, grid_power=self.grid,
-            planned_power=self.planned, buy=self.buy, solver_ok=solver_ok, sens_ok=sens_ok,
-            system=self.system, grad_pi=grad_pi, **self.arrays,
-        )
-
-def run_month(
-    theta: Theta,
-    solver: Any,
-    prices: Prices,
-    system: SystemConfig,
-    rng: np.random.Generator,
-    exploration_std: float = 0.0,
-    sensitivities: bool = True,
-    soc0: float | np.ndarray | None = None,
-) -> MonthRecord:
-    """One month in closed loop; every day of ``prices`` advances together.
-
-    Parameters
-    ----------
-    theta
-        MPC parameters used all month.
-    solver
-        A back-end from :func:`mpcrl_lite.solvers.make_solver` (``solve_batch`` and
-        ``sensitivity``).
-    prices
-        The month's prices, ``prices.days`` days.
-    system
-        The true system.
-    rng
-        Draws exploration (if ``exploration_std > 0``) then noise, each (days, n), per hour.
-    exploration_std
-        Std of the Gaussian exploration added to the MPC action.
-    sensitivities
-        Compute grad_theta pi at every solution (needed for learning).
-    soc0
-        Start of day soc (default ``system.soc0``), scalar, (n,) or (days, n).
-
-    Returns
-    -------
-    MonthRecord
-    """
-    mpc = solver.mpc
-    D, H, n, N = prices.days, system.hours_per_day, system.n, system.N
-    loop = ClosedLoop(prices, system, soc0)
-    solver_ok = np.zeros((H, D), dtype=bool)
-    sens_ok = np.zeros((H, D), dtype=bool)
-    grad_pi = np.zeros((H, D, mpc.n_theta, n)) if sensitivities else None
-    ib, is_ = mpc.index("b"), mpc.index("s")
-    x_prev = None
-    for k in range(H):
-        buy_w, sell_w = prices.window(k, N)
-        warm = None if x_prev is None else mpc.shift(x_prev)
-        sol = solver.solve_batch(loop.soc, buy_w, sell_w, theta, x0=warm)
-        x_prev = np.where(sol.success[:, None], sol.x, warm) if warm is not None else sol.x
-        solver_ok[k] = sol.success
-        if sensitivities:
-            sens = solver.sensitivity(sol)
-            grad_pi[k] = sens.grad
-            sens_ok[k] = sens.ok
-        planned = np.maximum(sol.x[:, ib].sum(axis=2), sol.x[:, is_].sum(axis=2)).max(axis=1)
-        loop.advance(k, sol.action, planned, rng, exploration_std)
-    return loop.record(solver_ok, sens_ok, grad_pi)
-
-
-def value_baseline_features(soc: np.ndarray, kind: str = "paper+hour") -> np.ndarray:
-    r"""Features :math:`\Phi` of the critic's value baseline for every state of a month.
-
-    Parameters
-    ----------
-    soc : array, shape ``(H + 1, D, n)``
-        States of charge of a month, row ``k`` at hour ``k`` of the day (row ``H`` the end of
-        the day).
-    kind : {'paper', 'paper+hour'}
-        ``'paper'``: the paper's :math:`[soc_i^2, soc_i, 1]`
-        (:func:`mpcrl_lite.lstd.value_features`). ``'paper+hour'``: the same with the
-        constant replaced by one indicator per hour of the day, :math:`[soc_i^2, soc_i,
-        e_k]`; the row of the end of the day has no indicator set (it is never bootstrapped
-        from: the day is an episode).
-
-    Returns
-    -------
-    array, shape ``(H + 1, D, 2 n + 1)`` or ``(H + 1, D, 2 n + H)``
-    """
-    soc = np.asarray(soc, dtype=float)
-    if soc.ndim != 3:
-        raise ValueError(f"soc has shape {soc.shape}; expected (H + 1, D, n)")
-    paper = value_features(soc)
-    if kind == "paper":
-        return paper
-    if kind != "paper+hour":
-        raise ValueError(f"kind={kind!r}: expected 'paper' or 'paper+hour'")
-    hours = soc.shape[0] - 1
-    onehot = np.eye(hours + 1, hours)[:, None, :]  # row k: hour k; row H: all zeros
-    onehot = np.broadcast_to(onehot, soc.shape[:2] + (hours,))
-    return np.concatenate([paper[..., :-1], onehot], axis=-1)
-
 
 
 def run_months(
@@ -356,9 +212,8 @@ class Experiment:
         """
         theta = self.theta if theta is None else theta
         self._check_solver(theta)
-        rng = np.random.default_rng(self.learning.eval_seed)
-        return run_month(theta, self.solver, self.prices, self.system, rng,
-                         exploration_std=0.0, sensitivities=False)
+        return evaluate_mpc(theta, self.solver, self.prices, self.system,
+                            self.learning.eval_seed)
 
     def evaluation_due(self, month: int) -> bool:
         """True when month ``month`` (counted from 0) is evaluated: every

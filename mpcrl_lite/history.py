@@ -20,115 +20,11 @@ from typing import Any
 import numpy as np
 
 from .config import LearningConfig, MPCConfig, SystemConfig
-from .model import Trajectory, discounted_return
+from .record import MONTH_ARRAYS, MonthRecord, Record
 from .theta import Theta
 
-__all__ = ["MonthRecord", "History", "MONTH_ARRAYS"]
-
-#: The arrays of a :class:`MonthRecord`, with their shapes (H hours, D days, n agents).
-MONTH_ARRAYS = {
-    "soc": "(H+1, D, n) state of charge, soc_0 .. soc_H",
-    "policy": "(H, D, n) MPC action pi(s) before exploration",
-    "a": "(H, D, n) commanded action (pi plus projected exploration)",
-    "b": "(H, D, n) power bought (after the low-level controller)",
-    "s": "(H, D, n) power sold (after the low-level controller)",
-    "correction": "(H, D, n) extra net power of the low-level controller",
-    "agent_cost": "(H, D, n) per-agent stage cost L~_i",
-    "stage_cost": "(H, D) stage cost L~",
-    "grid_power": "(H, D) applied grid power P_k",
-    "planned_power": "(H, D) largest planned sum b or sum s over the MPC horizon",
-    "noise": "(H, D, n) production-demand noise Delta",
-    "buy": "(H, D) buying price of the hour",
-    "solver_ok": "(H, D) the MPC converged",
-    "sens_ok": "(H, D) the sensitivity was usable (False also where none was computed)",
-}
-
-
-@dataclass(eq=False)
-class MonthRecord:
-    """One month in closed loop: all days advance together, hour by hour.
-
-    Arrays are described in :data:`MONTH_ARRAYS`; ``grad_pi`` (H, D, n_theta, n) holds the
-    policy sensitivities when they were computed (kept in memory, not saved).
-    """
-
-    soc: np.ndarray
-    policy: np.ndarray
-    a: np.ndarray
-    b: np.ndarray
-    s: np.ndarray
-    correction: np.ndarray
-    agent_cost: np.ndarray
-    stage_cost: np.ndarray
-    grid_power: np.ndarray
-    planned_power: np.ndarray
-    noise: np.ndarray
-    buy: np.ndarray
-    solver_ok: np.ndarray
-    sens_ok: np.ndarray
-    system: SystemConfig
-    grad_pi: np.ndarray | None = None
-
-    # -- figures of the month -------------------------------------------------------------
-    @property
-    def trajectory(self) -> Trajectory:
-        """The month as a :class:`~mpcrl_lite.model.Trajectory` (days as the batch)."""
-        return Trajectory(
-            soc=self.soc, a=self.a, b=self.b, s=self.s, correction=self.correction,
-            agent_cost=self.agent_cost, stage_cost=self.stage_cost,
-            grid_power=self.grid_power, noise=self.noise, system=self.system,
-        )
-
-    def J(self) -> float:
-        """Mean over days of the discounted daily sum of L~."""
-        return float(discounted_return(self.stage_cost, self.system.gamma).mean())
-
-    def J_per_agent(self) -> np.ndarray:
-        """Per-agent J^i, shape (n,)."""
-        return discounted_return(self.agent_cost, self.system.gamma).mean(axis=0)
-
-    def bound_share(self, tol: float = 0.05) -> float:
-        """Share of the MPC's actions (agent-hours) within ``tol`` of a constraint.
-
-        An action ``pi_i`` counts when ``|pi_i| >= U_bar - tol`` (buying or selling at the
-        battery's limit), ``|pi_i| <= tol`` (idle), or it takes part in a grid-limited group
-        (``pi_i > 0`` and ``sum_j max(pi_j, 0) >= P_bar - tol``, likewise for selling). A
-        bang-bang policy has a share of 1. Hours whose MPC failed are left out.
-        """
-        if not (np.isfinite(tol) and tol >= 0):
-            raise ValueError(f"tol={tol!r}: expected a finite value >= 0")
-        sysc = self.system
-        a = self.policy
-        at_bound = (np.abs(a) >= sysc.U_bar - tol) | (np.abs(a) <= tol)
-        buy = np.clip(a, 0.0, None).sum(axis=-1, keepdims=True)
-        sell = np.clip(-a, 0.0, None).sum(axis=-1, keepdims=True)
-        grid = ((a > 0) & (buy >= sysc.P_bar - tol)) | ((a < 0) & (sell >= sysc.P_bar - tol))
-        hit = (at_bound | grid)[self.solver_ok]
-        return float(hit.mean()) if hit.size else float("nan")
-
-    def summary(self) -> dict[str, Any]:
-        """The month's key figures as JSON-friendly values."""
-        t = self.trajectory
-        return {
-            "J": self.J(),
-            "J_per_agent": self.J_per_agent().tolist(),
-            "hours_soc_below_0_1": t.hours_soc_below(),
-            "hours_soc_above_0_9": t.hours_soc_above(),
-            "max_P_mpc": float(np.max(self.planned_power, initial=0.0, where=self.solver_ok)),
-            "max_P_applied": float(np.max(self.grid_power)),
-            "solver_failures": int(np.count_nonzero(~self.solver_ok)),
-            "low_level_interventions": int(np.count_nonzero(np.abs(self.correction) > 1e-12)),
-        }
-
-    # -- storage --------------------------------------------------------------------------
-    def arrays(self, prefix: str) -> dict[str, np.ndarray]:
-        """The saved arrays, keys prefixed (e.g. ``first_soc``)."""
-        return {f"{prefix}_{k}": getattr(self, k) for k in MONTH_ARRAYS}
-
-    @classmethod
-    def from_arrays(cls, data: Any, prefix: str, system: SystemConfig) -> "MonthRecord":
-        """Inverse of :meth:`arrays`."""
-        return cls(**{k: np.asarray(data[f"{prefix}_{k}"]) for k in MONTH_ARRAYS}, system=system)
+# MonthRecord and MONTH_ARRAYS live in mpcrl_lite.record; they stay importable from here.
+__all__ = ["MONTH_ARRAYS", "History", "MonthRecord"]
 
 
 @dataclass(eq=False)
@@ -170,8 +66,8 @@ class History:
     eval_hours_soc_below_0_1: list[int] = field(default_factory=list)
     eval_max_P_mpc: list[float] = field(default_factory=list)
     eval_bound_share: list[float] = field(default_factory=list)
-    first_month: MonthRecord | None = None
-    last_month: MonthRecord | None = None
+    first_month: Record | None = None
+    last_month: Record | None = None
     backend: str = ""
 
     SERIES = (
@@ -191,7 +87,7 @@ class History:
         return len(self.J)
 
     def append(
-        self, record: MonthRecord, theta: Theta, grad: np.ndarray, skipped: int,
+        self, record: Record, theta: Theta, grad: np.ndarray, skipped: int,
         wall_time: float, info: dict[str, Any],
     ) -> None:
         """Record one month (``theta`` is the parameter vector used during the month)."""
@@ -213,7 +109,7 @@ class History:
             self.first_month = record
         self.last_month = record
 
-    def append_evaluation(self, month: int, record: MonthRecord) -> None:
+    def append_evaluation(self, month: int, record: Record) -> None:
         """Record the evaluation of month ``month``'s parameters (a month on the fixed
         evaluation draw, without exploration)."""
         if isinstance(month, bool) or not isinstance(month, (int, np.integer)) or month < 0:
@@ -291,7 +187,7 @@ class History:
         return directory
 
     @classmethod
-    def load(cls, directory: str | Path) -> "History":
+    def load(cls, directory: str | Path) -> History:
         """Read a History written by :meth:`save`."""
         directory = Path(directory)
         path = directory / "history.json"

@@ -45,6 +45,15 @@ Numerics
 * **Solve.** :func:`numpy.linalg.lstsq` on the scaled system: a unique solution when the
   system is regular, the minimum-norm least-squares solution (in scaled coordinates) when it
   is singular. ``condition`` and ``rank_deficient`` say which case occurred.
+
+Value features
+--------------
+The state features :math:`\Phi` of the baseline :math:`V^v(s) = \Phi(s)^\top v` live here,
+one set per name of :data:`mpcrl_lite.config.VALUE_FEATURES` (:data:`FEATURE_SETS`): the
+paper's :math:`[soc_i^2, soc_i, 1]` (:func:`value_features`), the same with the constant
+replaced by one indicator per hour of the day, and the hour indicators alone
+(:func:`state_features` for states with given hours, :func:`value_baseline_features` for the
+``(H + 1, D, n)`` states of a recorded period).
 """
 
 from __future__ import annotations
@@ -53,14 +62,28 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .config import VALUE_FEATURES
+
 __all__ = [
+    "FEATURE_SETS",
     "LSTDResult",
-    "value_features",
     "compatible_features",
     "lstd_q",
     "lstd_v",
     "monte_carlo_returns",
+    "state_features",
+    "value_baseline_features",
+    "value_features",
 ]
+
+_DESCRIPTIONS = {
+    "paper": "the paper's [soc_i^2, soc_i, 1]",
+    "paper+hour": "soc_i^2, soc_i and one indicator per hour",
+    "hour": "one indicator per hour of the day",
+}
+#: The value-feature sets by name (the names of :data:`mpcrl_lite.config.VALUE_FEATURES`),
+#: with a short description.
+FEATURE_SETS: dict[str, str] = {name: _DESCRIPTIONS[name] for name in VALUE_FEATURES}
 
 
 # -- features ------------------------------------------------------------------------------
@@ -83,6 +106,71 @@ def value_features(soc: np.ndarray) -> np.ndarray:
         raise ValueError(f"soc has shape {soc.shape}; expected (..., n) with n >= 1")
     ones = np.ones(soc.shape[:-1] + (1,))
     return np.concatenate([soc**2, soc, ones], axis=-1)
+
+
+def state_features(
+    soc: np.ndarray, hour: np.ndarray, kind: str = "paper", hours_per_day: int = 24
+) -> np.ndarray:
+    r"""Features :math:`\Phi(s)` of a set of :data:`FEATURE_SETS` for states at known hours.
+
+    Parameters
+    ----------
+    soc : array, shape ``(..., n)``
+    hour : int array, broadcastable to ``soc.shape[:-1]``
+        Hour of the day of each state; an hour outside ``[0, hours_per_day)`` (e.g. the end
+        of the day, which is never bootstrapped from) has no indicator set.
+    kind : str
+        ``'paper'``: :func:`value_features`; ``'paper+hour'``: :math:`[soc_i^2, soc_i, e_k]`,
+        the paper's constant replaced by the indicator :math:`e_k` of the hour;
+        ``'hour'``: :math:`e_k` alone (a table over the hours).
+    hours_per_day : int, default 24
+        Number of hour indicators.
+
+    Returns
+    -------
+    array, shape ``(..., 2 n + 1)``, ``(..., 2 n + hours_per_day)`` or
+    ``(..., hours_per_day)``
+    """
+    if kind not in FEATURE_SETS:
+        raise ValueError(f"kind={kind!r}: expected one of {list(FEATURE_SETS)}")
+    paper = value_features(soc)
+    if kind == "paper":
+        return paper
+    batch = paper.shape[:-1]
+    hour = np.asarray(hour)
+    try:
+        hour = np.broadcast_to(hour, batch)
+    except ValueError:
+        raise ValueError(
+            f"hour has shape {hour.shape}: expected a shape broadcastable to {batch}"
+        ) from None
+    onehot = (hour[..., None] == np.arange(hours_per_day)).astype(float)
+    if kind == "hour":
+        return onehot
+    return np.concatenate([paper[..., :-1], onehot], axis=-1)
+
+
+def value_baseline_features(soc: np.ndarray, kind: str = "paper+hour") -> np.ndarray:
+    r"""Features :math:`\Phi` of the critic's value baseline for every state of a period.
+
+    Parameters
+    ----------
+    soc : array, shape ``(H + 1, D, n)``
+        States of charge of a recorded period, row ``k`` at hour ``k`` of the day (row ``H``
+        the end of the day, which has no hour indicator: the day is an episode).
+    kind : str
+        A name of :data:`FEATURE_SETS` (``LearningConfig.value_features``); see
+        :func:`state_features`.
+
+    Returns
+    -------
+    array, shape ``(H + 1, D, m)``
+    """
+    soc = np.asarray(soc, dtype=float)
+    if soc.ndim != 3:
+        raise ValueError(f"soc has shape {soc.shape}; expected (H + 1, D, n)")
+    hours = soc.shape[0] - 1
+    return state_features(soc, np.arange(hours + 1)[:, None], kind, hours_per_day=hours)
 
 
 def compatible_features(grad_pi: np.ndarray, a: np.ndarray, pi: np.ndarray) -> np.ndarray:
@@ -402,12 +490,12 @@ def _solve(
     x[keep] = solution / scale
     td = cost + (gamma * not_done) * (z_next @ x) - z @ x
     smallest = singular[-1] if singular.size else 0.0
-    info = dict(
-        condition=float(singular[0] / smallest) if smallest > 0 else float("inf"),
-        rank_deficient=bool(rank < zs.shape[1]),
-        n_samples=int(n_samples),
-        dropped_w=~keep[: blocks[0]],
-        dropped_v=~keep[blocks[0] :],
-        td_rms=float(np.sqrt(np.mean(td**2))),
-    )
+    info = {
+        "condition": float(singular[0] / smallest) if smallest > 0 else float("inf"),
+        "rank_deficient": bool(rank < zs.shape[1]),
+        "n_samples": int(n_samples),
+        "dropped_w": ~keep[: blocks[0]],
+        "dropped_v": ~keep[blocks[0] :],
+        "td_rms": float(np.sqrt(np.mean(td**2))),
+    }
     return x, info

@@ -5,7 +5,8 @@ arrays are laid out as
 
 * ``(days, n)`` -- one entry per day of the batch and per battery (agent);
 * ``(days,)``   -- one entry per day (prices at the current hour, totals over agents);
-* ``(hours, days, ...)`` -- a whole day, hour by hour (see :func:`rollout`).
+* ``(hours, days, ...)`` -- a whole day, hour by hour (the closed loop of
+  :mod:`mpcrl_lite.closed_loop` runs a policy on this system and records every hour).
 
 The equations (paper, Section II and the low-level control)
 ------------------------------------------------------------
@@ -30,12 +31,11 @@ and the power exchanged with the main grid at the connection point::
     P_k = max(sum_i b_i, sum_i s_i).
 
 The closed-loop performance of a day is ``J = E[sum_k gamma^k L~(s_k, a_k)]``
-(:func:`discounted_return`, :meth:`Trajectory.J`).
+(:func:`discounted_return`, :meth:`mpcrl_lite.record.Record.J`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -44,25 +44,17 @@ import numpy as np
 from .config import SystemConfig
 
 __all__ = [
-    "Policy",
     "StepResult",
-    "Trajectory",
     "agent_costs",
     "discounted_return",
     "grid_power",
     "low_level_control",
     "penalty",
     "project_action",
-    "rollout",
     "sample_noise",
     "split_action",
     "step",
 ]
-
-#: A policy for :func:`rollout`: ``policy(hour, soc)`` with ``soc`` of shape ``(days, n)``
-#: returns the commanded net powers ``a`` of shape ``(days, n)``.
-Policy = Callable[[int, np.ndarray], np.ndarray]
-
 
 # -- input checks ---------------------------------------------------------------------------
 def _as_float_array(name: str, value: Any) -> np.ndarray:
@@ -127,8 +119,9 @@ def _day_prices(name: str, value: Any, days: int) -> np.ndarray:
 
 
 def _check_system(system: Any) -> None:
+    # bad input of any kind is a ValueError in this package, wrong types included
     if not isinstance(system, SystemConfig):
-        raise ValueError(f"system={system!r}: expected a SystemConfig")
+        raise ValueError(f"system={system!r}: expected a SystemConfig")  # noqa: TRY004
 
 
 # -- noise and inputs -----------------------------------------------------------------------
@@ -155,7 +148,9 @@ def sample_noise(
         Noise of the given shape.
     """
     if not isinstance(rng, np.random.Generator):
-        raise ValueError(f"rng={rng!r}: expected a numpy.random.Generator (np.random.default_rng)")
+        raise ValueError(  # noqa: TRY004
+            f"rng={rng!r}: expected a numpy.random.Generator (np.random.default_rng)"
+        )
     _check_system(system)
     dims = (shape,) if isinstance(shape, (int, np.integer)) else tuple(shape)
     for d in dims:
@@ -504,187 +499,8 @@ def discounted_return(stage_costs: Any, gamma: float) -> np.ndarray:
     if costs.ndim < 1:
         raise ValueError(f"stage_costs has shape {costs.shape}: expected (hours, ...)")
     if isinstance(gamma, bool) or not isinstance(gamma, (int, float, np.floating, np.integer)):
-        raise ValueError(f"gamma={gamma!r}: expected a real number in (0, 1]")
+        raise ValueError(f"gamma={gamma!r}: expected a real number in (0, 1]")  # noqa: TRY004
     if not (np.isfinite(gamma) and 0.0 < gamma <= 1.0):
         raise ValueError(f"gamma={gamma!r}: expected a value in (0, 1]")
     weights = float(gamma) ** np.arange(costs.shape[0])
     return np.tensordot(weights, costs, axes=(0, 0))
-
-
-@dataclass(frozen=True, eq=False)
-class Trajectory:
-    """One simulated day for a batch of days (see :func:`rollout`).
-
-    Attributes
-    ----------
-    soc : numpy.ndarray, shape ``(hours + 1, days, n)``
-        ``soc_0 .. soc_hours``.
-    a : numpy.ndarray, shape ``(hours, days, n)``
-        Commanded net powers (the policy's output).
-    b, s : numpy.ndarray, shape ``(hours, days, n)``
-        Applied powers bought and sold.
-    correction : numpy.ndarray, shape ``(hours, days, n)``
-        Low-level controller's change of the net power.
-    agent_cost : numpy.ndarray, shape ``(hours, days, n)``
-        ``L~_i`` of every hour.
-    stage_cost : numpy.ndarray, shape ``(hours, days)``
-        ``L~(s_k, a_k)``.
-    grid_power : numpy.ndarray, shape ``(hours, days)``
-        ``P_k`` of the applied powers.
-    noise : numpy.ndarray, shape ``(hours, days, n)``
-        ``Delta_k`` as drawn.
-    system : SystemConfig
-        The system simulated (provides ``gamma`` and the soc band).
-    """
-
-    soc: np.ndarray
-    a: np.ndarray
-    b: np.ndarray
-    s: np.ndarray
-    correction: np.ndarray
-    agent_cost: np.ndarray
-    stage_cost: np.ndarray
-    grid_power: np.ndarray
-    noise: np.ndarray
-    system: SystemConfig
-
-    @property
-    def hours(self) -> int:
-        """Number of simulated hours."""
-        return self.a.shape[0]
-
-    @property
-    def days(self) -> int:
-        """Number of days in the batch."""
-        return self.a.shape[1]
-
-    @property
-    def n(self) -> int:
-        """Number of agents."""
-        return self.a.shape[2]
-
-    def J(self) -> float:
-        """Closed-loop performance estimate: ``mean_days sum_k gamma^k L~(s_k, a_k)``."""
-        return float(discounted_return(self.stage_cost, self.system.gamma).mean())
-
-    def J_per_agent(self) -> np.ndarray:
-        """Per-agent performance ``J^i``: ``mean_days sum_k gamma^k L~_i``, shape ``(n,)``."""
-        return discounted_return(self.agent_cost, self.system.gamma).mean(axis=0)
-
-    def hours_soc_below(self, level: float | None = None) -> int:
-        """Number of (hour, day, agent) triples with ``soc_k < level``, ``k = 0..hours-1``.
-
-        ``level`` defaults to ``soc_low``. The final state ``soc_hours`` is not counted, as
-        in the cost, which charges ``soc_k`` for ``k < hours``.
-        """
-        level = self.system.soc_low if level is None else _level("level", level)
-        return int(np.count_nonzero(self.soc[:-1] < level))
-
-    def hours_soc_above(self, level: float | None = None) -> int:
-        """Number of (hour, day, agent) triples with ``soc_k > level``, ``k = 0..hours-1``
-        (``level`` defaults to ``soc_high``)."""
-        level = self.system.soc_high if level is None else _level("level", level)
-        return int(np.count_nonzero(self.soc[:-1] > level))
-
-
-def _level(name: str, value: Any) -> float:
-    arr = _as_float_array(name, value)
-    if arr.ndim != 0:
-        raise ValueError(f"{name} has shape {arr.shape}: expected a single number")
-    return float(arr)
-
-
-def rollout(
-    policy: Policy,
-    buy: Any,
-    sell: Any,
-    system: SystemConfig,
-    rng: np.random.Generator,
-    soc0: Any = None,
-) -> Trajectory:
-    """Simulate ``hours_per_day`` hours of the true system in closed loop with ``policy``.
-
-    For ``k = 0, ..., hours_per_day - 1``, in this order:
-
-    1. ``a_k = policy(k, soc_k)`` (``soc_k`` is passed as a copy, shape ``(days, n)``);
-    2. ``Delta_k = sample_noise(rng, (days, n), system)``;
-    3. :func:`step` with the prices ``buy[:, k]``, ``sell[:, k]``.
-
-    The noise is thus drawn hour by hour, each draw after the policy has acted. When the
-    policy does not use ``rng`` itself, the noise equals one draw
-    ``rng.normal(noise_mean, sqrt(noise_var), (hours, days, n))`` (numpy fills it in the
-    same order), so a seeded generator reproduces the day exactly.
-
-    Parameters
-    ----------
-    policy : callable ``(hour: int, soc: (days, n)) -> a: (days, n)``
-        The commanded net powers; the low-level controller is applied on top of them.
-    buy, sell : array_like, shape ``(days, hours_per_day)``
-        Buying and selling prices of each day and hour.
-    system : SystemConfig
-    rng : numpy.random.Generator
-        Source of the noise.
-    soc0 : float or array_like of shape ``(n,)`` or ``(days, n)``, optional
-        Initial state; defaults to ``system.soc0`` for every battery and day.
-
-    Returns
-    -------
-    Trajectory
-    """
-    _check_system(system)
-    if not callable(policy):
-        raise ValueError(f"policy={policy!r}: expected a callable policy(hour, soc) -> a")
-    if not isinstance(rng, np.random.Generator):
-        raise ValueError(f"rng={rng!r}: expected a numpy.random.Generator (np.random.default_rng)")
-    hours, n = system.hours_per_day, system.n
-    buy = _as_float_array("buy", buy)
-    sell = _as_float_array("sell", sell)
-    if buy.ndim != 2 or buy.shape[1] != hours:
-        raise ValueError(
-            f"buy has shape {buy.shape}: expected (days, hours_per_day) = (days, {hours})"
-        )
-    _same_shape("sell", sell, "buy", buy)
-    days = buy.shape[0]
-    if days < 1:
-        raise ValueError(f"buy has shape {buy.shape}: expected at least one day")
-
-    start = system.soc0 if soc0 is None else soc0
-    start = _as_float_array("soc0", start)
-    try:
-        start = np.broadcast_to(start, (days, n)).copy()
-    except ValueError:
-        raise ValueError(
-            f"soc0 has shape {start.shape}: expected a scalar, (n,) = ({n},) or "
-            f"(days, n) = ({days}, {n})"
-        ) from None
-    _soc_in_range("soc0", start)
-
-    soc = np.empty((hours + 1, days, n))
-    soc[0] = start
-    names = ("a", "b", "s", "correction", "agent_cost", "noise")
-    per_agent = {name: np.empty((hours, days, n)) for name in names}
-    stage_cost = np.empty((hours, days))
-    power = np.empty((hours, days))
-    for k in range(hours):
-        try:
-            a = _batch("policy output", policy(k, soc[k].copy()), n)
-        except ValueError as exc:
-            raise ValueError(f"at hour {k}: {exc}") from None
-        if a.shape[0] != days:
-            raise ValueError(
-                f"at hour {k}: policy output has shape {a.shape}: expected ({days}, {n})"
-            )
-        noise = sample_noise(rng, (days, n), system)
-        result = _step_checked(soc[k], a, noise, buy[:, k], sell[:, k], system)
-        soc[k + 1] = result.soc_next
-        per_agent["a"][k] = a
-        per_agent["b"][k] = result.b
-        per_agent["s"][k] = result.s
-        per_agent["correction"][k] = result.correction
-        per_agent["agent_cost"][k] = result.agent_cost
-        per_agent["noise"][k] = noise
-        stage_cost[k] = result.stage_cost
-        power[k] = result.grid_power
-    return Trajectory(
-        soc=soc, stage_cost=stage_cost, grid_power=power, system=system, **per_agent
-    )

@@ -6,7 +6,7 @@ and driven from code, so it is testable without a running kernel:
 * ``explorer.controls`` -- ``{name: widget}``; set ``explorer.controls['P_bar'].value = 1.0``
   and the explorer recomputes (synchronously) as if the slider had been released;
 * ``explorer.result`` -- the data of the latest update (a
-  :class:`~mpcrl_lite.history.MonthRecord`, a :class:`~mpcrl_lite.model.Trajectory` or a
+  :class:`~mpcrl_lite.history.MonthRecord`, a :class:`~mpcrl_lite.record.Record` or a
   dict of arrays);
 * ``explorer.figure`` -- the :class:`matplotlib.figure.Figure` it drew, shown through
   ``explorer.image`` (PNG bytes in an :class:`ipywidgets.Image`);
@@ -49,13 +49,13 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from .closed_loop import Policy, rollout, run_month
 from .config import PRICE_UNIT, ConfigWarning, MPCConfig, SystemConfig
-from .experiment import run_month
-from .history import MonthRecord
-from .lstd import LSTDResult, lstd_v, monte_carlo_returns, value_features
-from .model import Policy, Trajectory, project_action, rollout
+from .lstd import FEATURE_SETS, LSTDResult, lstd_v, monte_carlo_returns, state_features
+from .model import project_action
 from .mpc import MPC
 from .prices import HOURS_PER_DAY, Prices
+from .record import MonthRecord, Trajectory
 from .solvers import make_solver
 from .theta import Theta
 
@@ -382,44 +382,6 @@ def policy_curve(
         "x": x, "policy": actions, "success": success, "variable": variable, "tau": float(tau),
         "label": POLICY_VARIABLES[variable],
     }
-
-
-#: Feature sets of :func:`state_features`.
-FEATURE_SETS: dict[str, str] = {
-    "paper": "the paper's [soc_i^2, soc_i, 1]",
-    "hour": "one indicator per hour of the day",
-    "paper+hour": "soc_i^2, soc_i and one indicator per hour",
-}
-
-
-def state_features(soc: np.ndarray, hour: np.ndarray, kind: str = "paper") -> np.ndarray:
-    """Features of states for a linear value function ``V(s) = features(s)' v``.
-
-    Parameters
-    ----------
-    soc : array, shape ``(..., n)``
-    hour : int array, shape ``(...)``
-        Hour of the day of each state, in ``[0, H)``.
-    kind : {'paper', 'hour', 'paper+hour'}
-        See :data:`FEATURE_SETS`. ``'paper'`` is :func:`mpcrl_lite.lstd.value_features`;
-        ``'hour'`` ignores soc (a table over the hours); ``'paper+hour'`` replaces the
-        constant of the paper's features by the hour indicators.
-
-    Returns
-    -------
-    array, shape ``(..., m)``
-    """
-    if kind not in FEATURE_SETS:
-        raise ValueError(f"kind={kind!r}: expected one of {list(FEATURE_SETS)}")
-    soc = np.asarray(soc, dtype=float)
-    hour = np.asarray(hour)
-    paper = value_features(soc)
-    onehot = (hour[..., None] == np.arange(HOURS_PER_DAY)).astype(float)
-    if kind == "paper":
-        return paper
-    if kind == "hour":
-        return onehot
-    return np.concatenate([paper[..., :-1], onehot], axis=-1)
 
 
 def value_fit(record: MonthRecord, features: str = "paper", days: int | None = None,
@@ -1047,7 +1009,7 @@ def rule_explorer(system: SystemConfig | None = None, prices: Prices | None = No
 
     Controls: ``buy_below``, ``sell_above`` (NOK/MWh), ``soc_min``, ``soc_max``,
     ``noise_var``, ``day``, ``seed``.
-    ``result`` is the :class:`~mpcrl_lite.model.Trajectory` of the day.
+    ``result`` is the :class:`~mpcrl_lite.record.Record` of the day.
     """
     system = SystemConfig() if system is None else system
     return RuleExplorer(system, prices, day, seed, buy_below, sell_above, soc_min, soc_max,

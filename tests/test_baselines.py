@@ -74,7 +74,7 @@ def lp_point(result, scenario: Scenario, day: int) -> np.ndarray:
 
 def check_lp_point(scenario: Scenario, day: int, z: np.ndarray, tol: float = 1e-8) -> float:
     """Assert ``z`` is feasible for the day's LP; return its cost (constant included)."""
-    c, A_ub, b_ub, A_eq, b_eq, bounds, lay = clairvoyant_lp(scenario, day)
+    c, A_ub, b_ub, A_eq, b_eq, bounds, _ = clairvoyant_lp(scenario, day)
     lower, upper = np.array(bounds).T
     assert np.all(z >= lower - tol) and np.all(z <= upper + tol)
     np.testing.assert_allclose(A_eq @ z, b_eq, atol=tol)
@@ -109,6 +109,10 @@ def test_nominal_evaluation_matches_run_month(solver):
     np.testing.assert_array_equal(record.noise, scenario.noise)
     assert mine.J == pytest.approx(record.J(), rel=1e-10)
     np.testing.assert_allclose(mine.trajectory.soc, record.soc, atol=1e-10)
+    # one loop, one record: the MPC's own figures are recorded the same way
+    np.testing.assert_allclose(mine.record.policy, record.policy, atol=1e-10)
+    np.testing.assert_allclose(mine.record.planned_power, record.planned_power, atol=1e-10)
+    assert mine.record.solver_ok.all() and mine.solver_failures == 0
 
 
 # -- the clairvoyant bound --------------------------------------------------------------------
@@ -149,7 +153,7 @@ def test_clairvoyant_solution_satisfies_its_constraints():
     assert np.all(extra_sell <= np.maximum(scenario.noise, 0) * t.soc[1:] + 1e-7)
     # the reported cost is the LP objective
     for day in range(scenario.days):
-        c, *_, lay = clairvoyant_lp(scenario, day)
+        *_, lay = clairvoyant_lp(scenario, day)
         z = np.zeros(lay.size)
         for key in ("ub", "us"):
             z[lay.block(key)] = result.parts[key][:, day]

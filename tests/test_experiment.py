@@ -150,8 +150,10 @@ def test_value_baseline_features():
     # one indicator per hour of the day; the end of the day (row 24) has none
     np.testing.assert_array_equal(hourly[:24, 2, 6:], np.eye(24))
     assert np.all(hourly[24, :, 6:] == 0)
-    with pytest.raises(ValueError, match="kind='hour'"):
-        value_baseline_features(soc, "hour")
+    # the indicators alone: a table over the hours of the day
+    np.testing.assert_array_equal(value_baseline_features(soc, "hour"), hourly[..., 6:])
+    with pytest.raises(ValueError, match="kind='cubic'"):
+        value_baseline_features(soc, "cubic")
     with pytest.raises(ValueError, match="expected \\(H \\+ 1, D, n\\)"):
         value_baseline_features(soc[0], "paper")
     with pytest.raises(ValueError, match="value_features='x'"):
@@ -165,7 +167,7 @@ def test_learning_step_uses_the_configured_features():
     exp = small_experiment(value_features="paper")
     rec = run_month(exp.theta, exp.solver, exp.prices, exp.system, np.random.default_rng(3),
                     exploration_std=0.2)
-    grad, skipped, _ = exp.learning_step(rec)
+    grad, _, _ = exp.learning_step(rec)
     use = rec.sens_ok & rec.solver_ok
     H = exp.system.hours_per_day
     done = np.broadcast_to((np.arange(H) == H - 1)[:, None], use.shape)
@@ -176,8 +178,11 @@ def test_learning_step_uses_the_configured_features():
     np.testing.assert_allclose(grad, policy_gradient(rec.grad_pi[use], fit.w), rtol=1e-12)
     hourly = small_experiment()
     assert hourly.learning.value_features == "paper+hour"
-    grad_h, _, info = hourly.learning_step(rec)
+    grad_h, _, _ = hourly.learning_step(rec)
     assert np.all(np.isfinite(grad_h)) and not np.allclose(grad_h, grad)
+    # the hour indicators alone (a table over the hours) are a baseline too
+    grad_t, _, info = small_experiment(value_features="hour").learning_step(rec)
+    assert np.all(np.isfinite(grad_t)) and info["samples"] == int(use.sum())
 
 
 # -- evaluation on fixed noise ----------------------------------------------------------------

@@ -21,16 +21,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mpcrl_lite.config import VALUE_FEATURES
 from mpcrl_lite.lstd import (
+    FEATURE_SETS,
     LSTDResult,
     compatible_features,
     lstd_q,
     lstd_v,
     monte_carlo_returns,
+    state_features,
+    value_baseline_features,
     value_features,
 )
 
-SYS = dict(a=0.9, c=0.5, q=1.0, r=0.5, s2=0.04, gamma=0.9)
+SYS = {"a": 0.9, "c": 0.5, "q": 1.0, "r": 0.5, "s2": 0.04, "gamma": 0.9}
 K, M = -0.6, 0.3  # policy u = K x + M
 
 
@@ -44,7 +48,7 @@ def closed_form(a, c, q, r, s2, gamma, k=K, m=M):
     g1 = 2 * r * k + 2 * gamma * P * c * (a + c * k)
     g0 = 2 * r * m + gamma * (2 * P * c * c * m + p * c)
     h = r + gamma * P * c**2
-    return dict(P=P, p=p, C=C, g1=g1, g0=g0, h=h)
+    return {"P": P, "p": p, "C": C, "g1": g1, "g0": g0, "h": h}
 
 
 def scalar_features(x):
@@ -66,6 +70,27 @@ def test_value_features_shape_and_order():
     np.testing.assert_allclose(phi[0, 0], [0.04, 0.25, 0.81, 0.2, 0.5, 0.9, 1.0])
     with pytest.raises(ValueError, match="soc has shape"):
         value_features(np.float64(0.5))
+
+
+def test_feature_sets_are_the_configs_and_agree_with_each_other():
+    assert tuple(FEATURE_SETS) == VALUE_FEATURES
+    soc = np.random.default_rng(1).uniform(size=(6, 2, 3))  # a 5-hour day, 2 days
+    hour = np.array([0, 1, 2, 3, 4, 5])[:, None]           # 5 is the end of the day
+    for kind in FEATURE_SETS:
+        # states at given hours and the states of a recorded period give the same features
+        np.testing.assert_array_equal(
+            state_features(soc, hour, kind, hours_per_day=5), value_baseline_features(soc, kind)
+        )
+    both = state_features(soc, hour, "paper+hour", hours_per_day=5)
+    np.testing.assert_array_equal(both[..., :6], value_features(soc)[..., :6])
+    np.testing.assert_array_equal(both[..., 6:], state_features(soc, hour, "hour", 5))
+    np.testing.assert_array_equal(both[:5, 1, 6:], np.eye(5))
+    assert np.all(both[5, :, 6:] == 0)  # no indicator at the end of the day
+    assert state_features(soc, hour, "hour").shape == (6, 2, 24)  # 24 hours by default
+    with pytest.raises(ValueError, match="kind='cubic'"):
+        state_features(soc, hour, "cubic")
+    with pytest.raises(ValueError, match=r"hour has shape \(3,\)"):
+        state_features(soc, np.arange(3), "hour")
 
 
 def test_compatible_features_matches_definition():
@@ -172,7 +197,7 @@ def test_episodic_termination_acts_as_extra_discount():
     u = K * x + M
     cost = system["q"] * x**2 + system["r"] * u**2
     x_next = system["a"] * x + system["c"] * u
-    twice = lambda v: np.concatenate([v, v])  # noqa: E731
+    twice = lambda v: np.concatenate([v, v])
     done = np.concatenate([np.ones(21, bool), np.zeros(21, bool)])
     episodic = lstd_v(
         scalar_features(twice(x)), twice(cost), scalar_features(twice(x_next)), gamma, done=done

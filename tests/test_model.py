@@ -14,14 +14,12 @@ from scipy.optimize import minimize
 from mpcrl_lite.config import ConfigWarning, SystemConfig
 from mpcrl_lite.model import (
     StepResult,
-    Trajectory,
     agent_costs,
     discounted_return,
     grid_power,
     low_level_control,
     penalty,
     project_action,
-    rollout,
     sample_noise,
     split_action,
     step,
@@ -33,7 +31,10 @@ SMALL = SystemConfig(n=2, alpha=0.1, U_bar=1.0, P_bar=1.5, p=1000.0)
 finite = st.floats(allow_nan=False, allow_infinity=False)
 
 
-def batch(elements, days=st.integers(1, 4), n=3):
+DAYS = st.integers(1, 4)
+
+
+def batch(elements, days=DAYS, n=3):
     return days.flatmap(lambda d: hnp.arrays(float, (d, n), elements=elements))
 
 
@@ -139,7 +140,7 @@ def test_llc_lower_edge_sells_less_first_then_buys_extra():
 
 def test_llc_extra_power_is_not_bounded_by_U_bar_or_P_bar():
     # a surplus of 30 (per hour) at a full battery must all be sold: 30 > U_bar, P_bar
-    b, s, corr = _llc([1.0, 1.0], [0.0, 0.0], [30.0, 30.0])
+    b, s, _ = _llc([1.0, 1.0], [0.0, 0.0], [30.0, 30.0])
     np.testing.assert_allclose(s, [[30.0, 30.0]])
     assert grid_power(b, s)[0] == pytest.approx(60.0)
 
@@ -307,96 +308,6 @@ def test_discounted_return_constant_costs_geometric_series():
     np.testing.assert_allclose(discounted_return(costs, 1.0), c * hours)
 
 
-def _two_hour_system():
-    return SystemConfig(
-        n=2, alpha=0.1, noise_mean=0.2, noise_var=0.0, U_bar=1.0, P_bar=1.5,
-        p=1000.0, gamma=0.9, hours_per_day=2,
-    )
-
-
-def test_rollout_reproduces_hand_computed_two_hour_day():
-    system = _two_hour_system()
-    plan = {0: [1.0, -1.0], 1: [-0.5, -1.0]}  # the rule: a fixed schedule per hour
-    calls = []
-
-    def policy(hour, soc):
-        calls.append((hour, soc.copy()))
-        return np.array([plan[hour]])
-
-    buy = np.array([[100.0, 200.0]])
-    sell = np.array([[50.0, 100.0]])
-    traj = rollout(policy, buy, sell, system, np.random.default_rng(0), soc0=[0.95, 0.15])
-
-    assert isinstance(traj, Trajectory)
-    assert (traj.hours, traj.days, traj.n) == (2, 1, 2)
-    # hour 0: agent 1 raw 0.95 + 0.1 (0.2 + 1) = 1.07 -> buys only 0.3, soc 1;
-    #         agent 2 raw 0.15 + 0.1 (0.2 - 1) = 0.07, untouched
-    # hour 1: agent 1 raw 1 + 0.1 (0.2 - 0.5) = 0.97, untouched;
-    #         agent 2 raw 0.07 + 0.1 (0.2 - 1) = -0.01 -> sells only 0.9, soc 0
-    np.testing.assert_allclose(
-        traj.soc[:, 0, :], [[0.95, 0.15], [1.0, 0.07], [0.97, 0.0]], atol=1e-12
-    )
-    np.testing.assert_allclose(traj.a[:, 0, :], [[1.0, -1.0], [-0.5, -1.0]])
-    np.testing.assert_allclose(traj.b[:, 0, :], [[0.3, 0.0], [0.0, 0.0]], atol=1e-12)
-    np.testing.assert_allclose(traj.s[:, 0, :], [[0.0, 1.0], [0.5, 0.9]], atol=1e-12)
-    np.testing.assert_allclose(traj.correction[:, 0, :], [[-0.7, 0.0], [0.0, 0.1]], atol=1e-12)
-    np.testing.assert_allclose(traj.noise, 0.2)
-    # costs: hour 0: 100*0.3 + 50 (soc 0.95) and -50*1; hour 1: -100*0.5 + 100 (soc 1.0)
-    # and -100*0.9 + 30 (soc 0.07)
-    np.testing.assert_allclose(
-        traj.agent_cost[:, 0, :], [[80.0, -50.0], [50.0, -60.0]], atol=1e-9
-    )
-    np.testing.assert_allclose(traj.stage_cost[:, 0], [30.0, -10.0], atol=1e-9)
-    np.testing.assert_allclose(traj.grid_power[:, 0], [1.0, 1.4], atol=1e-12)
-    assert traj.J() == pytest.approx(30.0 + 0.9 * -10.0)
-    np.testing.assert_allclose(traj.J_per_agent(), [80 + 0.9 * 50, -50 + 0.9 * -60])
-    assert traj.hours_soc_below() == 1  # 0.07 at hour 1 (the final 0.0 is not counted)
-    assert traj.hours_soc_above() == 2  # 0.95 and 1.0
-    assert traj.hours_soc_below(0.2) == 2
-    assert traj.hours_soc_above(0.99) == 1
-    assert [h for h, _ in calls] == [0, 1]
-    np.testing.assert_allclose(calls[1][1], [[1.0, 0.07]], atol=1e-12)
-
-
-def test_rollout_noise_is_drawn_hour_by_hour_and_reproducible():
-    system = SystemConfig(hours_per_day=5)
-    days = 4
-    buy = np.full((days, 5), 100.0)
-    sell = 0.5 * buy
-
-    def policy(hour, soc):
-        return np.where(soc < 0.5, 0.5, -0.5)
-
-    t1 = rollout(policy, buy, sell, system, np.random.default_rng(7))
-    t2 = rollout(policy, buy, sell, system, np.random.default_rng(7))
-    np.testing.assert_array_equal(t1.soc, t2.soc)
-    expected = np.random.default_rng(7).normal(0.0, np.sqrt(0.5), size=(5, days, 3))
-    np.testing.assert_array_equal(t1.noise, expected)
-    np.testing.assert_allclose(t1.soc[0], 0.6)
-    assert np.all((t1.soc >= 0) & (t1.soc <= 1))
-    # the trajectory's arrays are consistent with one another
-    np.testing.assert_allclose(t1.stage_cost, t1.agent_cost.sum(-1))
-    np.testing.assert_allclose(t1.b - t1.s, t1.a + t1.correction, atol=1e-12)
-    np.testing.assert_allclose(
-        t1.soc[1:], t1.soc[:-1] + system.alpha * (t1.noise + t1.b - t1.s), atol=1e-12
-    )
-    np.testing.assert_allclose(
-        t1.J(), discounted_return(t1.stage_cost, system.gamma).mean()
-    )
-    np.testing.assert_allclose(t1.J_per_agent().sum(), t1.J())
-
-
-def test_rollout_soc0_broadcasts():
-    system = _two_hour_system()
-    buy = np.ones((3, 2))
-    zero = lambda hour, soc: np.zeros_like(soc)  # noqa: E731
-    for soc0 in (0.3, [0.3, 0.4], np.full((3, 2), 0.3)):
-        traj = rollout(zero, buy, buy, system, np.random.default_rng(0), soc0=soc0)
-        assert traj.soc.shape == (3, 3, 2)
-    traj = rollout(zero, buy, buy, system.replace(soc0=0.5), np.random.default_rng(0))
-    np.testing.assert_array_equal(traj.soc[0], 0.5)
-
-
 # -- bad inputs ----------------------------------------------------------------------------
 def _zeros(days=1, n=3):
     return np.zeros((days, n))
@@ -473,29 +384,3 @@ def _half(days=1, n=3):
 def test_bad_inputs_raise_value_error_naming_the_value(call, match):
     with pytest.raises(ValueError, match=match):
         call()
-
-
-def test_rollout_bad_inputs():
-    system = _two_hour_system()
-    rng = np.random.default_rng(0)
-    ok = lambda hour, soc: np.zeros_like(soc)  # noqa: E731
-    buy = np.ones((3, 2))
-    with pytest.raises(ValueError, match=r"buy has shape \(3, 5\).*\(days, 2\)"):
-        rollout(ok, np.ones((3, 5)), np.ones((3, 5)), system, rng)
-    with pytest.raises(ValueError, match=r"sell has shape \(2, 2\)"):
-        rollout(ok, buy, np.ones((2, 2)), system, rng)
-    with pytest.raises(ValueError, match=r"soc0 has shape \(4,\)"):
-        rollout(ok, buy, buy, system, rng, soc0=np.zeros(4))
-    with pytest.raises(ValueError, match=r"soc0\[0, 1\]=.*1\.2"):
-        rollout(ok, buy, buy, system, rng, soc0=[0.5, 1.2])
-    with pytest.raises(ValueError, match=r"at hour 0: policy output has shape \(3, 3\)"):
-        rollout(lambda h, soc: np.zeros((3, 3)), buy, buy, system, rng)
-    nan_at_1 = lambda h, soc: np.full_like(soc, np.nan if h == 1 else 0.0)  # noqa: E731
-    with pytest.raises(ValueError, match=r"at hour 1: policy output\[0, 0\]=.*nan"):
-        rollout(nan_at_1, buy, buy, system, rng)
-    with pytest.raises(ValueError, match=r"at hour 0: policy output has shape \(1, 2\).*\(3, 2\)"):
-        rollout(lambda h, soc: np.zeros((1, 2)), buy, buy, system, rng)
-    with pytest.raises(ValueError, match=r"policy=3"):
-        rollout(3, buy, buy, system, rng)
-    with pytest.raises(ValueError, match=r"rng=0"):
-        rollout(ok, buy, buy, system, 0)
