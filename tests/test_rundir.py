@@ -1,0 +1,242 @@
+"""The run directory format: one commit point, verified reads, strict JSON, output checks."""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mpcrl_lite import rundir
+from mpcrl_lite.rundir import RunDirError, RunDirMissing, RunWriteError
+
+FILES = {"history.json": b'{"a": 1}', "history.npz": b"\x00binary\xff", "checkpoint.json": b"{}"}
+
+
+def commit(directory: Path, files=FILES, months: int = 1) -> dict:
+    return rundir.commit(directory, files, kind="centralized", months_done=months,
+                         configs_hash="0" * 64)
+
+
+def test_commit_writes_visible_files_and_one_manifest(tmp_path):
+    manifest = commit(tmp_path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([*FILES, "manifest.json"])
+    for name, data in FILES.items():
+        assert (tmp_path / name).read_bytes() == data
+        entry = manifest["files"][name]
+        assert entry["sha256"] == hashlib.sha256(data).hexdigest()
+        assert entry["size"] == len(data)
+    on_disk = json.loads((tmp_path / "manifest.json").read_text())
+    assert on_disk == manifest
+    assert set(on_disk) == {"format", "kind", "months_done", "config_sha256", "files"}
+    assert on_disk["format"] == rundir.FORMAT and on_disk["months_done"] == 1
+    run = rundir.read(tmp_path, list(FILES))
+    assert run.files == FILES and run.kind == "centralized" and run.months_done == 1
+    # the next commit replaces everything; nothing of the first is left
+    new = {k: v + b" " for k, v in FILES.items()}
+    commit(tmp_path, new, months=2)
+    assert rundir.read(tmp_path, list(FILES)).files == new
+    assert not (tmp_path / rundir.STAGING).exists()
+
+
+def test_a_changed_file_is_refused_in_one_line(tmp_path):
+    commit(tmp_path)
+    (tmp_path / "history.json").write_bytes(b'{"a": 2}')
+    with pytest.raises(RunDirError, match=r"history.json does not match its sha256") as err:
+        rundir.read(tmp_path, list(FILES))
+    assert "\n" not in str(err.value) and "--force" in str(err.value)
+    (tmp_path / "history.npz").unlink()
+    with pytest.raises(RunDirError, match=r"history.npz is missing"):
+        rundir.read(tmp_path, ["history.npz"])
+
+
+def test_commit_interrupted_after_the_manifest_reads_the_staged_files(tmp_path, monkeypatch):
+    commit(tmp_path)
+    new = {k: v + b"!" for k, v in FILES.items()}
+
+    def no_publish(*args, **kwargs):  # the process dies right after the commit
+        return None
+
+    monkeypatch.setattr(rundir, "_publish", no_publish)
+    commit(tmp_path, new, months=2)
+    monkeypatch.undo()
+    # the visible names still hold month 1, the manifest names month 2: the staged files win
+    assert (tmp_path / "history.json").read_bytes() == FILES["history.json"]
+    run = rundir.read(tmp_path, list(FILES))
+    assert run.files == new and run.months_done == 2
+    assert (tmp_path / "history.json").read_bytes() == FILES["history.json"]  # read-only
+    rundir.read(tmp_path, list(FILES), repair=True)
+    assert (tmp_path / "history.json").read_bytes() == new["history.json"]
+    assert not (tmp_path / rundir.STAGING).exists()
+
+
+@pytest.mark.parametrize("failing", ["fsync", "replace", "link"])
+def test_a_full_disk_at_any_write_keeps_a_whole_commit(tmp_path, monkeypatch, failing):
+    """ENOSPC at the i-th call: before the commit the write fails and month 1 stays; after
+    it month 2 is committed (the visible names are fixed by the next reader or writer)."""
+    real = getattr(os, failing)
+    new = {k: v + b"?" for k, v in FILES.items()}
+    outcomes = set()
+    for i in range(1, 12):
+        directory = tmp_path / str(i)
+        commit(directory)
+        calls = []
+
+        def full(*args, _i=i, _calls=calls):
+            _calls.append(args)
+            if len(_calls) == _i:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            return real(*args)
+
+        monkeypatch.setattr(os, failing, full)
+        try:
+            commit(directory, new, months=2)
+            outcome = "committed"
+        except RunWriteError as err:
+            assert "No space left on device" in str(err)
+            assert "previous commit is kept" in str(err)
+            outcome = "kept"
+        monkeypatch.undo()
+        run = rundir.read(directory, list(FILES), repair=True)
+        assert run.files == (new if outcome == "committed" else FILES), (failing, i)
+        assert run.months_done == (2 if outcome == "committed" else 1)
+        assert not (directory / rundir.STAGING).exists()
+        assert sorted(p.name for p in directory.iterdir()) == sorted([*FILES, "manifest.json"])
+        outcomes.add(outcome)
+    assert outcomes == ({"committed"} if failing == "link" else {"kept", "committed"})
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        (b"{not json", "cannot be read"),
+        (b"[1, 2]", "holds a list"),
+        (json.dumps({"format": "other/1"}).encode(), "format 'other/1'"),
+    ],
+)
+def test_a_damaged_manifest_is_refused(tmp_path, content, message):
+    commit(tmp_path)
+    (tmp_path / "manifest.json").write_bytes(content)
+    with pytest.raises(RunDirError, match=message) as err:
+        rundir.read(tmp_path, list(FILES))
+    assert "\n" not in str(err.value)
+
+
+def test_manifest_fields_are_checked(tmp_path):
+    manifest = commit(tmp_path)
+    for key, value, message in [
+        ("months_done", -1, "months_done -1"),
+        ("kind", "mine", "kind 'mine'"),
+        ("files", {"history.json": {"sha256": "x"}}, "malformed"),
+        ("files", {"history.json": {**manifest["files"]["history.json"],
+                                    "staged": "../../etc/passwd"}}, "malformed"),
+    ]:
+        (tmp_path / "manifest.json").write_text(json.dumps({**manifest, key: value}))
+        with pytest.raises(RunDirError, match=message):
+            rundir.read(tmp_path, ["history.json"])
+
+
+def test_legacy_directories_are_read_as_they_are(tmp_path):
+    with pytest.raises(RunDirMissing, match="history.json not found"):
+        rundir.read(tmp_path, ["history.json"])
+    with pytest.raises(FileNotFoundError):
+        rundir.read(tmp_path / "nowhere", ["history.json"])
+    (tmp_path / "history.json").write_text("{}")
+    run = rundir.read(tmp_path, ["history.json", "history.npz"], optional=["history.npz"])
+    assert run.legacy and run.kind is None and run.files == {"history.json": b"{}"}
+    with pytest.raises(RunDirError, match="history.npz is missing next to"):
+        rundir.read(tmp_path, ["history.json", "history.npz"])
+
+
+def test_clear_removes_the_manifest_and_the_run(tmp_path):
+    commit(tmp_path)
+    (tmp_path / "summary.json").write_text("{}")
+    (tmp_path / "mine.txt").write_text("kept")
+    rundir.clear(tmp_path, others=["summary.json"])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mine.txt"]
+    assert not rundir.inspect(tmp_path).holds_run
+
+
+def test_dumps_writes_strict_json():
+    data = {"x": float("nan"), "y": [np.float64(np.inf), -np.inf, 1.5], "z": np.arange(2),
+            "w": np.int64(3)}
+    text = rundir.dumps(data).decode()
+
+    def no_constants(name):
+        raise AssertionError(f"{name} is not JSON")
+
+    assert json.loads(text, parse_constant=no_constants) == {
+        "x": None, "y": [None, None, 1.5], "z": [0, 1], "w": 3}
+    assert rundir.plain({"a": (1, np.float32(0.5))}) == {"a": [1, 0.5]}
+    with pytest.raises(TypeError, match="cannot store object"):
+        rundir.dumps({"a": object()})
+
+
+def test_config_hash_ignores_key_order():
+    a = rundir.config_sha256({"system": {"n": 3, "P_bar": 1.5}, "mpc": {"tau": 0.1}})
+    b = rundir.config_sha256({"mpc": {"tau": 0.1}, "system": {"P_bar": 1.5, "n": 3}})
+    c = rundir.config_sha256({"mpc": {"tau": 0.2}, "system": {"P_bar": 1.5, "n": 3}})
+    assert a == b != c and len(a) == 64
+
+
+def test_write_atomic_replaces_whole_files(tmp_path):
+    target = tmp_path / "summary.json"
+    rundir.write_atomic(target, b"one")
+    rundir.write_atomic(target, b"two")
+    assert target.read_bytes() == b"two"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["summary.json"]
+
+
+def test_check_output_dir(tmp_path):
+    with pytest.raises(RunDirError, match=r"--out '': expected a directory path"):
+        rundir.check_output_dir("")
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    with pytest.raises(RunDirError, match="is an existing file; expected a directory"):
+        rundir.check_output_dir(afile)
+    with pytest.raises(RunDirError, match="cannot write there"):
+        rundir.check_output_dir(afile / "below")
+    made = rundir.check_output_dir(tmp_path / "a" / "b")
+    assert made.is_dir() and list(made.iterdir()) == []
+
+
+def test_check_output_dir_refuses_a_read_only_directory():
+    """In a child process without privileges (root may write anywhere: the child becomes
+    'nobody' when started as root)."""
+    base = Path(tempfile.mkdtemp())  # pytest's tmp_path is closed to other users
+    base.chmod(0o755)
+    locked = base / "locked"
+    locked.mkdir()
+    locked.chmod(0o555)
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: report the message through the pipe, never return to pytest
+        code = 0
+        try:
+            os.close(read)
+            if os.geteuid() == 0:
+                os.setgid(65534)
+                os.setuid(65534)
+            rundir.check_output_dir(locked / "run")
+        except RunDirError as err:
+            os.write(write, str(err).encode())
+            code = 3
+        except BaseException:  # noqa: BLE001 (anything else is a failure of the check)
+            code = 4
+        os._exit(code)
+    os.close(write)
+    with os.fdopen(read) as pipe:
+        message = pipe.read()
+    _, status = os.waitpid(pid, 0)
+    locked.chmod(0o755)
+    left = list(locked.iterdir())
+    shutil.rmtree(base)
+    assert os.WEXITSTATUS(status) == 3, message
+    assert "cannot write there (Permission denied); expected a writable directory" in message
+    assert left == []
