@@ -665,11 +665,11 @@ def run_baselines_cli(
                 "(pass --n to match)"
             )
         if history.system != system:
-            warnings.warn(
-                f"history in {history_dir} was learned on a different system "
-                f"({history.system}); evaluating it on {system}",
-                UserWarning, stacklevel=2,
-            )
+            learned, here = history.system.to_dict(), system.to_dict()
+            changed = "; ".join(f"{k}={learned[k]!r} there, {here[k]!r} here"
+                                for k in here if learned[k] != here[k])
+            warnings.warn(f"history in {history_dir} was learned on a different system "
+                          f"({changed}); evaluating it on this one", UserWarning, stacklevel=2)
         if not history.theta_final:
             raise ValueError(f"history in {history_dir} has no final theta (no month finished)")
         thetas["learned"] = history.final_theta()

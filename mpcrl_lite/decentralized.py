@@ -115,7 +115,6 @@ Example
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import numbers
@@ -123,7 +122,6 @@ import time
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
-from pathlib import Path
 from typing import Any
 
 import casadi as ca
@@ -131,24 +129,20 @@ import numpy as np
 
 from .closed_loop import Decision, GaussianExploration, simulate
 from .config import ConfigWarning, LearningConfig, MPCConfig, SystemConfig
-from .dpg import DPGUpdater, policy_gradient
-from .experiment import (
-    Experiment,
-    resolve_setup,
-    run_months,
-    value_baseline_features,
-    write_checkpoint,
-)
+from .dpg import DPGUpdater
+from .experiment import Experiment
 from .history import History, MonthRecord
-from .lstd import compatible_features, lstd_q
+from .learner import Learner, lstd_policy_gradient, parse_theta, resolve_setup
 from .model import project_action
 from .mpc import MPC
 from .prices import Prices
+from .rundir import CHECKPOINT, RunDirError, plain
 from .sensitivity import PolicySensitivity
 from .solvers import BatchSolution, IpoptSolver
 from .theta import PARTS, Theta
 
 __all__ = [
+    "CHECKPOINT",
     "CoordinationConfig",
     "CoordinatedSolution",
     "CoordinatedMPC",
@@ -163,7 +157,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-CHECKPOINT = "checkpoint.json"
 _FORMAT = "mpcrl_lite.DecentralizedCheckpoint/1"
 
 
@@ -845,7 +838,7 @@ def run_month_decentralized(
     D, H, n, N = prices.days, system.hours_per_day, system.n, system.N
     solver_ok = np.zeros((H, D, n), bool)
     sens_ok = np.zeros((H, D, n), bool)
-    grad_pi = np.zeros((H, D, n, 10)) if sensitivities else None
+    grad_pi = np.zeros((H, D, n, len(PARTS))) if sensitivities else None
     iters = np.zeros((H, D), int)
     conv, proj = np.zeros((H, D), bool), np.zeros((H, D), bool)
     viol, pmax = np.zeros((H, D)), np.zeros((H, D))
@@ -872,7 +865,7 @@ def run_month_decentralized(
 
 
 # -- the learning experiment ------------------------------------------------------------------
-class DecentralizedExperiment:
+class DecentralizedExperiment(Learner):
     """Decentralized learning run with the interface of :class:`~mpcrl_lite.experiment.Experiment`.
 
     Every month all batteries act with their coordinated local MPCs; at the month's end each
@@ -896,6 +889,10 @@ class DecentralizedExperiment:
     callbacks : sequence of callables ``callback(month, history, experiment)``
     """
 
+    KIND = "decentralized"
+    FORMAT = _FORMAT
+    DESC = "learning (decentralized)"
+
     def __init__(
         self,
         system: SystemConfig | None = None,
@@ -904,7 +901,7 @@ class DecentralizedExperiment:
         prices: Prices | None = None,
         theta0: Theta | None = None,
         coordination: CoordinationConfig | None = None,
-        callbacks: Sequence[Callable[[int, History, "DecentralizedExperiment"], None]] = (),
+        callbacks: Sequence[Callable[[int, History, DecentralizedExperiment], None]] = (),
     ) -> None:
         self.system, self.mpc_config, self.learning, self.prices, theta0 = resolve_setup(
             system, mpc_config, learning, prices, theta0
@@ -929,39 +926,30 @@ class DecentralizedExperiment:
         """The batteries' current parameters stacked into one :class:`Theta`."""
         return join_theta(self.thetas)
 
+    def configs(self) -> dict[str, Any]:
+        """The configurations a checkpoint must match (the coordination's too)."""
+        return {**super().configs(), "coordination": self.coordination}
+
     # -- one learning step ----------------------------------------------------------------
     def learning_step(
         self, record: MonthRecord, extra: DecentralizedMonth
     ) -> tuple[list[np.ndarray], int, list[dict[str, Any]]]:
-        """Each battery's LSTD fit and policy gradient; returns ``(grads, skipped, infos)``
-        with ``grads[i]`` of shape ``(10,)``."""
-        sysc = self.system
-        H = sysc.hours_per_day
-        done = np.broadcast_to((np.arange(H) == H - 1)[:, None], record.stage_cost.shape)
+        """Each battery's LSTD fit and policy gradient on its own cost and soc
+        (:func:`mpcrl_lite.learner.lstd_policy_gradient`); returns ``(grads, skipped,
+        infos)`` with ``grads[i]`` of shape ``(len(PARTS),)``."""
         grads, infos = [], []
         any_skipped = np.zeros(record.stage_cost.shape, bool)
-        for i in range(sysc.n):
+        for i in range(self.system.n):
             use = extra.sens_ok[..., i] & extra.solver_ok[..., i]
             any_skipped |= ~use
-            if not use.any():
-                grads.append(np.zeros(10))
-                infos.append({"lstd": "no usable samples"})
-                continue
-            features = value_baseline_features(record.soc[..., i : i + 1], self.learning.value_features)
-            phi, phi_next = features[:-1], features[1:]
-            g_pi = extra.grad_pi[:, :, i, :, None]  # (H, D, 10, 1)
-            psi = compatible_features(g_pi, record.a[..., i : i + 1], record.policy[..., i : i + 1])
-            fit = lstd_q(
-                phi[use], psi[use], record.agent_cost[..., i][use], phi_next[use], sysc.gamma,
-                done=done[use], ridge=self.learning.ridge,
+            mine = slice(i, i + 1)
+            grad, info = lstd_policy_gradient(
+                record.soc[..., mine], record.a[..., mine], record.policy[..., mine],
+                extra.grad_pi[:, :, i, :, None], record.agent_cost[..., i], use,
+                self.learning, self.system.gamma,
             )
-            grads.append(policy_gradient(g_pi[use], fit.w))
-            infos.append({
-                "lstd_condition": float(fit.condition),
-                "lstd_rank_deficient": bool(fit.rank_deficient),
-                "td_rms": float(fit.td_rms),
-                "samples": int(fit.n_samples),
-            })
+            grads.append(grad)
+            infos.append(info)
         return grads, int(np.count_nonzero(any_skipped)), infos
 
     def run_one_month(self) -> MonthRecord:
@@ -974,81 +962,47 @@ class DecentralizedExperiment:
         )
         grads, skipped, infos = self.learning_step(record, extra)
         n = self.system.n
-        full_grad = np.zeros(10 * n)
+        full_grad = np.zeros(len(PARTS) * n)
         for i in range(n):
             self.thetas[i] = self.updaters[i].step(used[i], grads[i])
             infos[i].update(self.updaters[i].last_info)
             full_grad[i::n] = grads[i]  # part-major order of Theta.to_vector
         info = {"coordination": extra.summary(self.coordination.tol), "agents": infos}
-        info = json.loads(json.dumps(info, default=_jsonable))
+        info = plain(info)  # as it reads back from history.json (no NaN: null)
         self.history.append(record, join_theta(used), full_grad, skipped,
                             time.perf_counter() - t0, info)
         self.history.theta_final = self.theta.to_vector().tolist()
         return record
 
-    def run(
-        self,
-        months: int | None = None,
-        out: str | Path | None = None,
-        resume: bool = False,
-        progress: bool = True,
-    ) -> History:
-        """Run until ``months`` months are recorded (default ``learning.months``); with
-        ``out`` a checkpoint is written after every month, with ``resume`` a run found in
-        ``out`` continues where it stopped (same results as an uninterrupted run)."""
-        return run_months(self, months, out, resume, progress, desc="learning (decentralized)")
-
     # -- checkpoints ----------------------------------------------------------------------
-    def save_checkpoint(self, directory: str | Path) -> None:
-        """History plus everything needed to continue (thetas, optimizers, RNG state)."""
-        directory = Path(directory)
-        self.history.save(directory)
-        state = {
-            "format": _FORMAT,
-            "months_done": self.history.months,
-            "theta": self.theta.to_vector().tolist(),
-            "updaters": [u.state_dict() for u in self.updaters],
-            "rng": self.rng.bit_generator.state,
-            "system": self.system.to_dict(),
-            "mpc": self.mpc_config.to_dict(),
-            "learning": self.learning.to_dict(),
-            "coordination": self.coordination.to_dict(),
-        }
-        write_checkpoint(directory, state)
+    def learner_state(self) -> dict[str, Any]:
+        """The stacked theta and every battery's optimizer state (part of
+        ``checkpoint.json``)."""
+        return {"theta": self.theta.to_vector().tolist(),
+                "updaters": [u.state_dict() for u in self.updaters]}
 
-    def load_checkpoint(self, directory: str | Path) -> None:
-        """Continue from :meth:`save_checkpoint`'s files; the configs must match."""
-        directory = Path(directory)
-        state = json.loads((directory / CHECKPOINT).read_text())
-        if state.get("format") != _FORMAT:
-            raise ValueError(
-                f"{directory / CHECKPOINT}: format {state.get('format')!r}, expected {_FORMAT!r} "
-                "(a centralized run? use Experiment to resume it)"
-            )
-        pairs = (("system", self.system), ("mpc", self.mpc_config), ("learning", self.learning),
-                 ("coordination", self.coordination))
-        for key, cfg in pairs:
-            saved = type(cfg).from_dict(state[key])
-            mine = cfg if key != "learning" else cfg.replace(months=saved.months)
-            if saved != mine:
-                raise ValueError(
-                    f"checkpoint in {directory} was written with a different {key} config: "
-                    f"{saved} vs {cfg}"
-                )
-        self.history = History.load(directory)
-        self.thetas = split_theta(Theta.from_vector(np.asarray(state["theta"]), self.system.n))
-        for updater, s in zip(self.updaters, state["updaters"]):
-            updater.load_state_dict(s)
-        self.rng.bit_generator.state = state["rng"]
-        self.history.backend = self.backend
+    def restore_learner_state(self, state: dict[str, Any], where: str) -> Callable[[], None]:
+        """Check the thetas and optimizer states of a checkpoint; return their application."""
+        thetas = split_theta(parse_theta(state["theta"], self.system.n, where))
+        saved = state["updaters"]
+        if not isinstance(saved, list) or len(saved) != self.system.n:
+            raise RunDirError(f"{where}: 'updaters' is not a list of {self.system.n} optimizer "
+                              "states; start over with --force")
+        local = self.policy.local_mpc.system
+        fresh = [DPGUpdater.from_configs(self.learning, local) for _ in saved]
+        try:
+            for updater, s in zip(fresh, saved):
+                updater.load_state_dict(s)
+        except (TypeError, ValueError, KeyError, AttributeError) as err:
+            raise RunDirError(f"{where}: bad 'updaters' ({err}); start over with --force") from None
 
+        def apply() -> None:
+            self.thetas = thetas
+            for updater, new in zip(self.updaters, fresh):
+                updater.load_state_dict(new.state_dict())
+            self.history.backend = self.backend
 
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"cannot store {type(value).__name__} in JSON")
+        return apply
 
 
 # -- centralized vs decentralized ----------------------------------------------------------

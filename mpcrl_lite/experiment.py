@@ -25,8 +25,10 @@ Random draws come from one ``numpy.random.Generator`` seeded with ``LearningConf
 in a fixed order (per hour: exploration, then noise), so a seed fixes a run; the evaluation
 draws from its own generator, created anew from ``eval_seed`` each time, so it never changes
 the learning run. After every
-month the run can be checkpointed (History, theta, the updater's state and the generator's
-state, all as JSON/npz) and resumed with identical results.
+month the run can be committed to a run directory (History, theta, the updater's state and
+the generator's state, all as JSON/npz, :mod:`mpcrl_lite.rundir`) and resumed with identical
+results; the month loop, the checkpoints and the learning step are shared with the
+decentralized learner (:mod:`mpcrl_lite.learner`).
 
 Hours whose MPC failed use the fallback action (idle) and, like hours whose KKT system was
 unusable, are left out of LSTD and of the gradient; :attr:`History.skipped_steps` counts
@@ -35,109 +37,38 @@ them.
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from .closed_loop import evaluate_mpc, run_month
 from .config import LearningConfig, MPCConfig, SystemConfig
-from .dpg import DPGUpdater, policy_gradient
+from .dpg import DPGUpdater
 from .history import History
-from .lstd import compatible_features, lstd_q, value_baseline_features
+from .learner import Learner, lstd_policy_gradient, parse_theta, resolve_setup, run_months
+from .lstd import value_baseline_features
 from .mpc import MPC
 from .prices import Prices
 from .record import MonthRecord
+from .rundir import CHECKPOINT, RunDirError, plain
 from .solvers import make_solver
 from .theta import Theta
 
-# run_month (mpcrl_lite.closed_loop) and value_baseline_features (mpcrl_lite.lstd) stay
-# importable from here.
-__all__ = ["Callback", "Experiment", "run_month", "run_months", "value_baseline_features"]
+# run_month (mpcrl_lite.closed_loop), value_baseline_features (mpcrl_lite.lstd), run_months
+# and resolve_setup (mpcrl_lite.learner) stay importable from here.
+__all__ = ["CHECKPOINT", "Callback", "Experiment", "resolve_setup", "run_month", "run_months",
+           "value_baseline_features"]
 
 log = logging.getLogger(__name__)
 
 #: ``callback(month_index, history, experiment)``, called after each month's update.
 Callback = Callable[[int, History, "Experiment"], None]
 
-CHECKPOINT = "checkpoint.json"
 
-
-def run_months(
-    learner: Any,
-    months: int | None,
-    out: str | Path | None,
-    resume: bool,
-    progress: bool,
-    desc: str = "learning",
-) -> History:
-    """The month loop shared by every learner (:class:`Experiment` and
-    :class:`~mpcrl_lite.decentralized.DecentralizedExperiment`).
-
-    ``learner`` provides ``learning``, ``history``, ``callbacks``, ``run_one_month()``,
-    ``save_checkpoint(dir)`` and ``load_checkpoint(dir)``. Runs until ``months`` months are
-    recorded (default ``learning.months``); with ``out`` a checkpoint is written after every
-    month, with ``resume`` a run found in ``out`` continues where it stopped.
-    """
-    months = learner.learning.months if months is None else months
-    if isinstance(months, bool) or not isinstance(months, int) or months < 1:
-        raise ValueError(f"months={months!r}: expected an integer >= 1")
-    out = Path(out) if out is not None else None
-    if resume:
-        if out is None:
-            raise ValueError("resume=True needs out=DIR (where the checkpoint is)")
-        if (out / CHECKPOINT).exists():
-            learner.load_checkpoint(out)
-    history = learner.history
-    bar = tqdm(total=months, initial=min(history.months, months), desc=desc, unit="month",
-               disable=not progress)
-    with bar:
-        while learner.history.months < months:
-            learner.run_one_month()
-            history = learner.history
-            m = history.months - 1
-            postfix = {"J": f"{history.J[-1]:.1f}"}
-            if history.J_eval:
-                postfix["J_eval"] = f"{history.J_eval[-1]:.1f}"
-            bar.set_postfix(postfix, refresh=False)
-            bar.update(1)
-            if out is not None:
-                learner.save_checkpoint(out)
-            for callback in learner.callbacks:
-                callback(m, history, learner)
-    return learner.history
-
-def resolve_setup(
-    system: SystemConfig | None,
-    mpc_config: MPCConfig | None,
-    learning: LearningConfig | None,
-    prices: Prices | None,
-    theta0: Theta | None,
-) -> tuple[SystemConfig, MPCConfig, LearningConfig, Prices, Theta]:
-    """Defaults and consistency checks shared by every learner: the paper's configs, the
-    shipped month cut to ``days_per_month`` days, theta0 = the nominal model; prices with
-    another number of days or a theta0 for another ``n`` are errors."""
-    system = system or SystemConfig()
-    mpc_config = mpc_config or MPCConfig()
-    learning = learning or LearningConfig()
-    if prices is None:
-        prices = Prices.month(system, learning.days_per_month)
-    if prices.days != learning.days_per_month:
-        raise ValueError(
-            f"prices have {prices.days} days; expected days_per_month={learning.days_per_month}"
-        )
-    theta0 = theta0 or Theta.nominal(system)
-    if theta0.n != system.n:
-        raise ValueError(f"theta0 has n={theta0.n}; expected n={system.n}")
-    return system, mpc_config, learning, prices, theta0
-
-
-class Experiment:
+class Experiment(Learner):
     """The paper's learning run: months x days, LSTD critic, DPG update at each month's end.
 
     With the default configurations (:mod:`mpcrl_lite.config`) every month's parameters are
@@ -156,6 +87,10 @@ class Experiment:
     callbacks
         Called after every month as ``callback(month, history, experiment)``.
     """
+
+    KIND = "centralized"
+    FORMAT = "mpcrl_lite.Checkpoint/1"
+    DESC = "learning"
 
     def __init__(
         self,
@@ -178,28 +113,14 @@ class Experiment:
 
     # -- one learning step ----------------------------------------------------------------
     def learning_step(self, record: MonthRecord) -> tuple[np.ndarray, int, dict[str, Any]]:
-        """LSTD + policy gradient from a month; returns ``(grad, skipped, info)``."""
-        sysc = self.system
-        H = sysc.hours_per_day
+        """LSTD + policy gradient from a month (:func:`mpcrl_lite.learner.lstd_policy_gradient`
+        on all batteries and the stage cost); returns ``(grad, skipped, info)``."""
         use = record.sens_ok & record.solver_ok
         skipped = int(use.size - np.count_nonzero(use))
-        if not use.any():
-            return np.zeros(self.mpc.n_theta), skipped, {"lstd": "no usable samples"}
-        features = value_baseline_features(record.soc, self.learning.value_features)
-        phi, phi_next = features[:-1], features[1:]
-        psi = compatible_features(record.grad_pi, record.a, record.policy)
-        done = np.broadcast_to((np.arange(H) == H - 1)[:, None], use.shape)
-        fit = lstd_q(
-            phi[use], psi[use], record.stage_cost[use], phi_next[use], sysc.gamma,
-            done=done[use], ridge=self.learning.ridge,
+        grad, info = lstd_policy_gradient(
+            record.soc, record.a, record.policy, record.grad_pi, record.stage_cost, use,
+            self.learning, self.system.gamma,
         )
-        grad = policy_gradient(record.grad_pi[use], fit.w)
-        info = {
-            "lstd_condition": float(fit.condition),
-            "lstd_rank_deficient": bool(fit.rank_deficient),
-            "td_rms": float(fit.td_rms),
-            "samples": int(fit.n_samples),
-        }
         return grad, skipped, info
 
     # -- evaluation -----------------------------------------------------------------------
@@ -241,7 +162,7 @@ class Experiment:
         grad, skipped, info = self.learning_step(record)
         self.theta = self.updater.step(theta_used, grad)
         info.update(self.updater.last_info)
-        info = json.loads(json.dumps(info, default=_jsonable))
+        info = plain(info)  # as it reads back from history.json (no NaN: null)
         record.grad_pi = None  # large; not kept in the history
         wall_time = time.perf_counter() - t0
         if self.evaluation_due(month):
@@ -252,69 +173,27 @@ class Experiment:
         self.history.theta_final = self.theta.to_vector().tolist()
         return record
 
-    # -- the run --------------------------------------------------------------------------
-    def run(
-        self,
-        months: int | None = None,
-        out: str | Path | None = None,
-        resume: bool = False,
-        progress: bool = True,
-    ) -> History:
-        """Run until ``months`` months are recorded (default ``learning.months``).
-
-        With ``out``, a checkpoint is written after every month; with ``resume`` a run
-        found in ``out`` continues where it stopped (same results as an uninterrupted run).
-        """
-        return run_months(self, months, out, resume, progress, desc="learning")
-
     # -- checkpoints ----------------------------------------------------------------------
-    def save_checkpoint(self, directory: str | Path) -> None:
-        """History plus everything needed to continue (theta, optimizer, RNG state)."""
-        directory = Path(directory)
-        self.history.save(directory)
-        state = {
-            "format": "mpcrl_lite.Checkpoint/1",
-            "months_done": self.history.months,
-            "theta": self.theta.to_vector().tolist(),
-            "updater": self.updater.state_dict(),
-            "rng": self.rng.bit_generator.state,
-            "system": self.system.to_dict(),
-            "mpc": self.mpc_config.to_dict(),
-            "learning": self.learning.to_dict(),
-        }
-        write_checkpoint(directory, state)
+    def learner_state(self) -> dict[str, Any]:
+        """theta and the optimizer's state (part of ``checkpoint.json``)."""
+        return {"theta": self.theta.to_vector().tolist(), "updater": self.updater.state_dict()}
 
-    def load_checkpoint(self, directory: str | Path) -> None:
-        """Continue from :meth:`save_checkpoint`'s files; the configs must match."""
-        directory = Path(directory)
-        state = json.loads((directory / CHECKPOINT).read_text())
-        for key, cfg in (("system", self.system), ("mpc", self.mpc_config), ("learning", self.learning)):
-            saved = type(cfg).from_dict(state[key])
-            mine = cfg if key != "learning" else cfg.replace(months=saved.months)
-            if saved != mine:
-                raise ValueError(
-                    f"checkpoint in {directory} was written with a different {key} config: "
-                    f"{saved} vs {cfg}"
-                )
-        self.history = History.load(directory)
-        self.theta = Theta.from_vector(np.asarray(state["theta"]), self.system.n)
-        self.updater.load_state_dict(state["updater"])
-        self.rng.bit_generator.state = state["rng"]
-        self._check_solver(self.theta)
-        self.history.backend = self.solver.name
+    def restore_learner_state(self, state: dict[str, Any], where: str) -> Callable[[], None]:
+        """Check theta and the optimizer state of a checkpoint; return their application."""
+        theta = parse_theta(state["theta"], self.system.n, where)
+        updater = DPGUpdater.from_configs(self.learning, self.system)
+        try:
+            updater.load_state_dict(state["updater"])
+        except (TypeError, ValueError, KeyError, AttributeError) as err:
+            raise RunDirError(f"{where}: bad 'updater' ({err}); start over with --force") from None
 
+        def apply() -> None:
+            self.theta = theta
+            self.updater.load_state_dict(updater.state_dict())
+            if self.history.backend == "ipopt" and self.mpc_config.backend == "auto":
+                # the run had switched to IPOPT (a non-convex theta): it stays there
+                self.solver = make_solver(self.mpc, self.mpc_config.replace(backend="ipopt"))
+            self._check_solver(self.theta)
+            self.history.backend = self.solver.name
 
-def write_checkpoint(directory: Path, state: dict[str, Any]) -> None:
-    """Write a learner's checkpoint state as ``directory/checkpoint.json`` atomically (a
-    temporary file renamed into place, so an interruption never leaves half a checkpoint)."""
-    tmp = directory / (CHECKPOINT + ".tmp")
-    tmp.write_text(json.dumps(state, indent=1, default=_jsonable))
-    tmp.replace(directory / CHECKPOINT)
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"cannot store {type(value).__name__} in JSON")
+        return apply

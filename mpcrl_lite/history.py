@@ -8,20 +8,32 @@ A :class:`History` is saved as two plain files, never as pickle:
   :meth:`mpcrl_lite.experiment.Experiment.evaluate`);
 * ``history.npz`` -- the arrays (theta per month, J per agent, and the full trajectories of
   the first and last month), loaded with ``allow_pickle=False``.
+
+A number that is not finite (e.g. ``eval_bound_share`` of a month whose every MPC solve
+failed) is written as ``null`` -- JSON has no NaN -- and read back as NaN.
+:meth:`History.load` checks that the files agree with each other (every series one entry per
+month, the arrays of the first and last month present) and refuses them otherwise.
 """
 
 from __future__ import annotations
 
+import io
 import json
+import math
+import zipfile
+from collections import Counter
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from . import rundir
 from .config import LearningConfig, MPCConfig, SystemConfig
-from .record import MONTH_ARRAYS, MonthRecord, Record
-from .theta import Theta
+from .record import MONTH_ARRAYS, RECORD_ARRAYS, MonthRecord, Record
+from .rundir import RECOVER, RunDirError
+from .theta import PARTS, Theta
 
 # MonthRecord and MONTH_ARRAYS live in mpcrl_lite.record; they stay importable from here.
 __all__ = ["MONTH_ARRAYS", "History", "MonthRecord"]
@@ -81,10 +93,23 @@ class History:
         "eval_max_P_mpc", "eval_bound_share",
     )
 
+    #: Series holding numbers (possibly nested in lists): ``null`` in the file is NaN here.
+    NUMBER_SERIES = (
+        "J", "J_per_agent", "grad_norm", "theta", "max_P_mpc", "max_P_applied", "wall_time_s",
+        "J_eval", "J_eval_per_agent", "eval_max_P_mpc", "eval_bound_share",
+    )
+    FORMAT = "mpcrl_lite.History/1"
+
     @property
     def months(self) -> int:
         """Number of months recorded."""
         return len(self.J)
+
+    def failed_solve_share(self) -> float:
+        """Share of the learning months' MPC solves (hours x days) that failed (0 without
+        months)."""
+        solves = self.months * self.system.hours_per_day * self.learning.days_per_month
+        return float(sum(self.solver_failures)) / solves if solves else 0.0
 
     def append(
         self, record: Record, theta: Theta, grad: np.ndarray, skipped: int,
@@ -94,7 +119,7 @@ class History:
         s = record.summary()
         self.J.append(s["J"])
         self.J_per_agent.append(s["J_per_agent"])
-        self.grad_norm.append(float(np.linalg.norm(grad)))
+        self.grad_norm.append(_norm(grad))
         self.theta.append(theta.to_vector().tolist())
         self.hours_soc_below_0_1.append(s["hours_soc_below_0_1"])
         self.hours_soc_above_0_9.append(s["hours_soc_above_0_9"])
@@ -160,15 +185,16 @@ class History:
         }
 
     # -- storage --------------------------------------------------------------------------
-    def save(self, directory: str | Path) -> Path:
-        """Write ``history.json`` and ``history.npz`` into ``directory`` (atomically)."""
-        directory = Path(directory)
-        directory.mkdir(parents=True, exist_ok=True)
+    def configs(self) -> dict[str, dict[str, Any]]:
+        """The configurations as plain dicts (``system``, ``mpc``, ``learning``)."""
+        return {"system": self.system.to_dict(), "mpc": self.mpc.to_dict(),
+                "learning": self.learning.to_dict()}
+
+    def to_files(self) -> dict[str, bytes]:
+        """The contents of ``history.json`` and ``history.npz``."""
         meta = {
-            "format": "mpcrl_lite.History/1",
-            "system": self.system.to_dict(),
-            "mpc": self.mpc.to_dict(),
-            "learning": self.learning.to_dict(),
+            "format": self.FORMAT,
+            **self.configs(),
             "theta_final": self.theta_final,
             "backend": self.backend,
             **{k: getattr(self, k) for k in self.SERIES + self.EVAL_SERIES},
@@ -178,39 +204,189 @@ class History:
             arrays.update(self.first_month.arrays("first"))
         if self.last_month is not None:
             arrays.update(self.last_month.arrays("last"))
-        tmp_json = directory / "history.json.tmp"
-        tmp_npz = directory / "history.tmp.npz"
-        tmp_json.write_text(json.dumps(meta, indent=1))
-        np.savez_compressed(tmp_npz, **arrays)
-        tmp_npz.replace(directory / "history.npz")
-        tmp_json.replace(directory / "history.json")
+        buffer = io.BytesIO()
+        np.savez_compressed(buffer, **arrays)
+        return {rundir.HISTORY_JSON: rundir.dumps(meta), rundir.HISTORY_NPZ: buffer.getvalue()}
+
+    def save(self, directory: str | Path) -> Path:
+        """Write ``history.json`` and ``history.npz`` into ``directory`` as one commit
+        (:func:`mpcrl_lite.rundir.commit`, kind ``"history"``); returns the directory.
+
+        A directory holding a learner's run is refused: the History would replace the one
+        its checkpoint belongs to.
+        """
+        directory = Path(directory)
+        found = rundir.inspect(directory)
+        if rundir.CHECKPOINT in found.run_files:
+            raise RunDirError(
+                f"{directory} holds a learning run (checkpoint.json); saving a History there "
+                "would detach the checkpoint: choose another directory"
+            )
+        learning = {k: v for k, v in self.learning.to_dict().items() if k != "months"}
+        rundir.commit(
+            directory, self.to_files(), kind="history", months_done=self.months,
+            configs_hash=rundir.config_sha256({**self.configs(), "learning": learning}),
+        )
         return directory
 
     @classmethod
     def load(cls, directory: str | Path) -> History:
-        """Read a History written by :meth:`save`."""
-        directory = Path(directory)
-        path = directory / "history.json"
-        if not path.exists():
-            raise FileNotFoundError(f"{path} not found: expected a directory written by History.save")
-        meta = json.loads(path.read_text())
-        if meta.get("format") != "mpcrl_lite.History/1":
-            raise ValueError(f"{path}: format {meta.get('format')!r}, expected 'mpcrl_lite.History/1'")
-        system = SystemConfig.from_dict(meta["system"])
-        hist = cls(
-            system=system,
-            mpc=MPCConfig.from_dict(meta["mpc"]),
-            learning=LearningConfig.from_dict(meta["learning"]),
-            theta_final=meta["theta_final"],
-            backend=meta.get("backend", ""),
-            **{k: meta[k] for k in cls.SERIES},
-            **{k: meta.get(k, []) for k in cls.EVAL_SERIES},
-        )
-        npz = directory / "history.npz"
-        if npz.exists():
-            with np.load(npz, allow_pickle=False) as data:
-                if "first_soc" in data:
-                    hist.first_month = MonthRecord.from_arrays(data, "first", system)
-                if "last_soc" in data:
-                    hist.last_month = MonthRecord.from_arrays(data, "last", system)
+        """Read a History written by :meth:`save` or by a learning run, verified.
+
+        Raises
+        ------
+        FileNotFoundError
+            No ``history.json`` (and no manifest) in ``directory``.
+        ValueError
+            (:class:`~mpcrl_lite.rundir.RunDirError`) a file that does not verify, or files
+            that disagree; the message names the file and the problem.
+        """
+        run = rundir.read(directory, [rundir.HISTORY_JSON, rundir.HISTORY_NPZ],
+                          optional=[rundir.HISTORY_NPZ])
+        history = cls.from_files(run.files, Path(directory))
+        if run.months_done is not None and run.months_done != history.months:
+            raise RunDirError(
+                f"{Path(directory) / rundir.MANIFEST} records {run.months_done} months but "
+                f"history.json {history.months}; {RECOVER}"
+            )
+        return history
+
+    @classmethod
+    def from_files(cls, files: Mapping[str, bytes], directory: Path | str = ".") -> History:
+        """Inverse of :meth:`to_files`, checked: a :class:`~mpcrl_lite.rundir.RunDirError`
+        names the first problem found (``directory`` only names the files in messages)."""
+        path = Path(directory) / rundir.HISTORY_JSON
+        try:
+            meta = json.loads(files[rundir.HISTORY_JSON])
+        except ValueError as err:
+            raise RunDirError(f"{path} is not valid JSON ({err}); {RECOVER}") from None
+        if not isinstance(meta, dict):
+            raise RunDirError(
+                f"{path} holds a {type(meta).__name__}, expected an object; {RECOVER}")
+        if meta.get("format") != cls.FORMAT:
+            raise RunDirError(f"{path}: format {meta.get('format')!r}, expected {cls.FORMAT!r}")
+        missing = [k for k in ("system", "mpc", "learning", "theta_final", *cls.SERIES)
+                   if k not in meta]
+        if missing:
+            raise RunDirError(f"{path} lacks {', '.join(map(repr, missing))}; {RECOVER}")
+        try:
+            system = SystemConfig.from_dict(meta["system"])
+            mpc = MPCConfig.from_dict(meta["mpc"])
+            learning = LearningConfig.from_dict(meta["learning"])
+        except (TypeError, ValueError, AttributeError) as err:
+            raise RunDirError(f"{path}: bad configuration ({err}); {RECOVER}") from None
+        series = {k: meta[k] for k in cls.SERIES}
+        series.update({k: meta.get(k, []) for k in cls.EVAL_SERIES})
+        _check_series(path, series, system.n)
+        theta_final = meta["theta_final"]
+        n_theta = len(PARTS) * system.n
+        if not _numbers(theta_final, (n_theta,) if series["J"] else None):
+            raise RunDirError(
+                f"{path}: theta_final has {_length(theta_final)} entries, expected {n_theta}; "
+                f"{RECOVER}")
+        for key in cls.NUMBER_SERIES:
+            series[key] = _nan_for_null(series[key])
+        hist = cls(system=system, mpc=mpc, learning=learning,
+                   theta_final=_nan_for_null(theta_final), backend=str(meta.get("backend", "")),
+                   **series)
+        hist._load_months(files.get(rundir.HISTORY_NPZ), Path(directory) / rundir.HISTORY_NPZ)
         return hist
+
+    def _load_months(self, data: bytes | None, path: Path) -> None:
+        if data is None:
+            if self.months:
+                raise RunDirError(
+                    f"{path} is missing but history.json records {self.months} months (the "
+                    f"first and last month's trajectories are lost); {RECOVER}")
+            return
+        try:
+            with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+                arrays = {k: npz[k] for k in npz.files}
+        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
+            raise RunDirError(f"{path} cannot be read ({err}); {RECOVER}") from None
+        H, D, n = self.system.hours_per_day, self.learning.days_per_month, self.system.n
+        for prefix in ("first", "last"):
+            names = [f"{prefix}_{k}" for k in RECORD_ARRAYS]
+            present = [k for k in names if k in arrays]
+            if not present:
+                if self.months:
+                    raise RunDirError(
+                        f"{path} lacks the {prefix} month's arrays but history.json records "
+                        f"{self.months} months; {RECOVER}")
+                continue
+            if len(present) < len(names) or arrays[f"{prefix}_soc"].shape != (H + 1, D, n):
+                raise RunDirError(
+                    f"{path}: the {prefix} month's arrays are incomplete or not of shape "
+                    f"({H + 1}, {D}, {n}); {RECOVER}")
+            record = MonthRecord.from_arrays(arrays, prefix, self.system)
+            setattr(self, f"{prefix}_month", record)
+
+
+def _norm(grad: np.ndarray) -> float:
+    """Euclidean norm that does not overflow for entries beyond ~1e154 (the plain one
+    squares them); equal to :func:`numpy.linalg.norm` wherever that one is finite."""
+    grad = np.asarray(grad, dtype=float)
+    with np.errstate(over="ignore"):
+        value = float(np.linalg.norm(grad))
+    if math.isinf(value) and np.all(np.isfinite(grad)):
+        top = float(np.max(np.abs(grad)))
+        value = top * float(np.linalg.norm(grad / top))
+    return value
+
+
+def _length(value: Any) -> Any:
+    return len(value) if isinstance(value, list) else type(value).__name__
+
+
+def _numbers(value: Any, shape: tuple[int, ...] | None) -> bool:
+    """``value`` is a (nested) list of numbers or nulls of ``shape`` (any length if None)."""
+    if shape is None:
+        return isinstance(value, list)
+    if not isinstance(value, list) or len(value) != shape[0]:
+        return False
+    if len(shape) == 1:
+        return all(v is None or (isinstance(v, (int, float)) and not isinstance(v, bool))
+                   for v in value)
+    return all(_numbers(v, shape[1:]) for v in value)
+
+
+def _check_series(path: Path, series: dict[str, Any], n: int) -> None:
+    """Every series one entry per month (and per evaluation), entries of the right size."""
+    def usual_length(keys: tuple[str, ...]) -> int:
+        """The length most series share (a damaged one stands out against it)."""
+        lengths = Counter(len(series[k]) for k in keys if isinstance(series[k], list))
+        return lengths.most_common(1)[0][0] if lengths else -1
+
+    months = usual_length(History.SERIES)
+    evals = usual_length(History.EVAL_SERIES)
+    n_theta = len(PARTS) * n
+    shapes = {"J_per_agent": (n,), "theta": (n_theta,), "J_eval_per_agent": (n,)}
+    for key, value in series.items():
+        count = evals if key in History.EVAL_SERIES else months
+        if not isinstance(value, list) or count < 0 or len(value) != count:
+            raise RunDirError(
+                f"{path}: series {key!r} has {_length(value)} entries, expected {count} "
+                f"like the other series; {RECOVER}")
+        if key in shapes:
+            good = all(_numbers(v, shapes[key]) for v in value)
+        elif key == "update_info":
+            good = all(isinstance(v, dict) for v in value)
+        else:
+            good = _numbers(value, (count,))
+        if not good:
+            shape = f"lists of {shapes[key][0]} numbers" if key in shapes else (
+                "objects" if key == "update_info" else "numbers")
+            raise RunDirError(
+                f"{path}: series {key!r} has entries that are not {shape}; {RECOVER}")
+    eval_month = series["eval_month"]
+    if any(isinstance(m, bool) or not isinstance(m, int) or not 0 <= m < months
+           for m in eval_month):
+        raise RunDirError(f"{path}: eval_month holds months outside 0..{months - 1}; {RECOVER}")
+
+
+def _nan_for_null(value: Any) -> Any:
+    if value is None:
+        return math.nan
+    if isinstance(value, list):
+        return [_nan_for_null(v) for v in value]
+    return value

@@ -20,6 +20,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from .rundir import jsonable as _jsonable
+
 __all__ = [
     "NOTEBOOK_DIR",
     "CI_PARAMETERS",
@@ -190,12 +192,3 @@ def run_report(
         (out / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary
 
-
-def _jsonable(value: Any) -> Any:
-    import numpy as np
-
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"cannot show {type(value).__name__} in a summary")

@@ -108,6 +108,22 @@ def test_history_roundtrip(tmp_path):
                                            "T1", "T2", "T3"}
 
 
+def test_history_save_is_one_commit_and_never_detaches_a_checkpoint(tmp_path):
+    h = small_experiment(months=1).run(out=tmp_path / "run", progress=False)
+    with pytest.raises(ValueError, match="holds a learning run"):
+        h.save(tmp_path / "run")
+    h.save(tmp_path / "copy")
+    manifest = json.loads((tmp_path / "copy" / "manifest.json").read_text())
+    assert manifest["kind"] == "history" and manifest["months_done"] == 1
+    assert sorted(manifest["files"]) == ["history.json", "history.npz"]
+    assert History.load(tmp_path / "copy").J == h.J
+    # a run directory is not replaced by accident, only with force=True
+    with pytest.raises(ValueError, match="already holds a run"):
+        small_experiment(months=1).run(out=tmp_path / "run", progress=False)
+    again = small_experiment(months=1).run(out=tmp_path / "run", force=True, progress=False)
+    assert again.J == h.J
+
+
 def test_history_load_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match="history.json"):
         History.load(tmp_path)
@@ -232,7 +248,8 @@ def test_history_roundtrip_keeps_the_evaluation_and_reads_older_files(tmp_path):
     for key in History.EVAL_SERIES:
         assert getattr(back, key) == getattr(h, key), key
     assert back.summary()["J_eval"] == h.J_eval
-    # a history written before the evaluation series existed still loads
+    # a history written before the evaluation series (and the manifest) existed still loads
+    (tmp_path / "manifest.json").unlink()
     meta = json.loads((tmp_path / "history.json").read_text())
     for key in History.EVAL_SERIES:
         del meta[key]
