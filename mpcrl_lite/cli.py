@@ -91,9 +91,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("learn", help="the learning experiment")
     p.add_argument("--months", type=_positive_int, required=True, help="learning steps (months)")
-    p.add_argument("--out", type=Path, required=True, help="output directory (checkpoints too)")
+    p.add_argument("--out", type=str, required=True,
+                   help="run directory (committed after every month; see mpcrl_lite.rundir)")
     p.add_argument("--days", type=_positive_int, default=None, help="days per month (default 30)")
     p.add_argument("--resume", action="store_true", help="continue the run found in --out")
+    p.add_argument("--force", action="store_true",
+                   help="replace the results found in --out (they are refused otherwise)")
     p.add_argument("--step-size", type=_float, default=None, help="DPG step size")
     p.add_argument("--optimizer", choices=("sgd", "adam"), default=None)
     p.add_argument("--exploration-std", type=_float, default=None)
@@ -203,16 +206,42 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
 
 def cmd_learn(args: argparse.Namespace) -> int:
-    from .experiment import Experiment
-
+    """The ``learn`` command. Everything about ``--out`` is checked before any month runs:
+    a directory holding results (a run, a History, a summary or figures of ``learn``) is
+    continued with ``--resume``, replaced with ``--force`` and refused otherwise; a run that
+    does not verify is refused (one line: what is wrong, how to recover)."""
     system, mpc_config, learning = _configs(
         args, months=args.months, days_per_month=args.days, step_size=args.step_size,
         optimizer=args.optimizer, exploration_std=args.exploration_std,
     )
-    out: Path = args.out
-    if out.exists() and (out / "checkpoint.json").exists() and not args.resume:
-        raise UsageError(f"{out} already holds a run; pass --resume to continue it or choose another --out")
-    out.mkdir(parents=True, exist_ok=True)
+    from . import rundir
+
+    if args.resume and args.force:
+        raise UsageError("--resume and --force exclude each other: --resume continues the run "
+                         "in --out, --force replaces it")
+    try:
+        out = rundir.check_output_dir(args.out)
+    except rundir.RunDirError as err:
+        raise UsageError(str(err)) from None
+    from .experiment import Experiment
+    from .learner import MAX_FAILED_SOLVE_SHARE
+    from .plots import PAPER_FIGURES
+
+    outputs = (rundir.SUMMARY, *PAPER_FIGURES)
+    found = rundir.inspect(out, others=outputs)
+    if args.force:
+        rundir.clear(out, others=outputs)
+    elif args.resume and not found.holds_run and found.others:
+        raise UsageError(
+            f"--out {args.out}: nothing to resume (no run) but it holds "
+            f"{', '.join(found.others)}: use --force to replace them or choose another --out")
+    elif args.resume and not found.holds_run:
+        print(f"mpcrl_lite learn: no run in {args.out} to resume: starting a new one",
+              file=sys.stderr)
+    elif not args.resume and found.names:
+        raise UsageError(
+            f"--out {args.out} already holds results ({', '.join(found.names)}): pass "
+            "--resume to continue the run, --force to replace it, or choose another --out")
     if args.decentralized:
         from .decentralized import DecentralizedExperiment
 
@@ -220,16 +249,21 @@ def cmd_learn(args: argparse.Namespace) -> int:
     else:
         exp = Experiment(system, mpc_config, learning)
     try:
-        history = exp.run(months=args.months, out=out, resume=args.resume, progress=not args.quiet)
-    except ValueError as err:
+        # a run found in --out is verified before any month runs
+        history = exp.run(months=args.months, out=out, resume=args.resume,
+                          progress=not args.quiet)
+    except (ValueError, OSError) as err:  # RunDirError, RunWriteError
         raise UsageError(str(err)) from None
     summary = history.summary()
-    _write_json(out / "summary.json", summary)
+    try:
+        rundir.write_atomic(out / rundir.SUMMARY, rundir.dumps(summary))
+    except OSError as err:
+        raise UsageError(str(err)) from None
     if not args.no_figures:
         from .plots import save_paper_figures
 
         save_paper_figures(history, out, prices=exp.prices)
-    print(json.dumps({
+    print(json.dumps(rundir.plain({
         "months": history.months,
         "J_first": history.J[0],
         "J_last": history.J[-1],
@@ -240,7 +274,14 @@ def cmd_learn(args: argparse.Namespace) -> int:
         "max_P_mpc": max(history.max_P_mpc),
         "skipped_steps": int(sum(history.skipped_steps)),
         "wall_time_s": float(sum(history.wall_time_s)),
-    }))
+    })))
+    share = history.failed_solve_share()
+    if share > MAX_FAILED_SOLVE_SHARE:
+        raise UsageError(
+            f"{100 * share:.0f} % of the MPC solves failed (solver_failures in "
+            f"{out / rundir.SUMMARY}); expected at most {100 * MAX_FAILED_SOLVE_SHARE:.0f} % "
+            "(MAX_FAILED_SOLVE_SHARE): the results are kept but the learning is not "
+            "trustworthy; check --tau, --backend and the system")
     return 0
 
 

@@ -50,7 +50,9 @@ def test_learn_writes_history_summary_and_figures(tmp_path):
     assert (out / "history.json").exists() and (out / "history.npz").exists()
     assert len(list(out.glob("fig*.png"))) == 7
     # a second call without --resume refuses to overwrite; with --resume it extends the run
+    before = (out / "history.json").read_bytes()
     assert main(args) == 2
+    assert (out / "history.json").read_bytes() == before
     assert main(["learn", "--months", "3", "--days", "2", "--out", str(out), "--quiet",
                  "--resume", "--no-figures"]) == 0
     assert len(json.loads((out / "summary.json").read_text())["J"]) == 3
@@ -65,14 +67,21 @@ def test_learn_writes_history_summary_and_figures(tmp_path):
         (["simulate", "--days", "2", "--out", "x", "--noise-var", "-0.5"], "noise_var=-0.5"),
         (["learn", "--months", "1", "--out", "x", "--step-size", "-1"], "step_size=-1.0"),
         (["learn", "--out", "x"], "--months"),
+        (["learn", "--months", "1", "--out", ""], "--out '': expected a directory path"),
+        (["learn", "--months", "1", "--out", "x", "--resume", "--force"],
+         "--resume and --force exclude each other"),
+        (["learn", "--months", "1", "--out", "x/afile"], "is an existing file; expected a directory"),
     ],
 )
 def test_bad_arguments_give_one_line(argv, message, tmp_path):
-    argv = [a if a != "x" else str(tmp_path / "x") for a in argv]
+    argv = [a.replace("x", str(tmp_path / "x"), 1) if a.startswith("x") else a for a in argv]
+    (tmp_path / "x").mkdir()
+    (tmp_path / "x" / "afile").write_text("mine")
     proc = subprocess.run([sys.executable, "-m", "mpcrl_lite", *argv],
-                          capture_output=True, text=True, timeout=120)
+                          capture_output=True, text=True, timeout=120, check=False)
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1, proc.stderr
     assert message in lines[0]
     assert "Traceback" not in proc.stderr
+    assert sorted(p.name for p in (tmp_path / "x").iterdir()) == ["afile"]  # nothing written
