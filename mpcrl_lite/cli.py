@@ -107,7 +107,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("learn", help="the learning experiment")
     p.add_argument("--months", type=_positive_int, required=True, help="learning steps (months)")
     p.add_argument("--out", type=Path, required=True, help="output directory (checkpoints too)")
-    p.add_argument("--days", type=_positive_int, default=None, help=f"days per month (default {_LEARNING.days_per_month})")
+    p.add_argument("--days", type=_positive_int, default=None,
+                   help=f"days per month (default {_LEARNING.days_per_month})")
     p.add_argument("--resume", action="store_true", help="continue the run found in --out")
     p.add_argument("--step-size", type=_float, default=None, help="DPG step size")
     p.add_argument("--optimizer", choices=OPTIMIZERS, default=None,
@@ -131,7 +132,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="output directory")
     p.add_argument("--history", type=Path, default=None,
                    help="a learn output directory whose final theta is evaluated too")
-    p.add_argument("--days", type=_positive_int, default=None, help=f"days (default {_LEARNING.days_per_month})")
+    p.add_argument("--days", type=_positive_int, default=None,
+                   help=f"days (default {_LEARNING.days_per_month})")
     _add_system_args(p)
 
     p = sub.add_parser("sweep", help="a grid of learning runs on Dask")

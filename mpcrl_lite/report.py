@@ -149,7 +149,8 @@ def check_parameters(namespace: dict[str, Any], notebook: str) -> dict[str, Any]
     allowed = notebook_parameters(notebook)
     candidates = {
         k for k, v in namespace.items()
-        if k.isupper() and not k.startswith("_") and not callable(v) and not isinstance(v, type(json))
+        if k.isupper() and not k.startswith("_") and not callable(v)
+        and not isinstance(v, type(json))
     }
     candidates |= {k for k in _injected_names(namespace) if k in namespace}
     values = {k: namespace[k] for k in candidates}

@@ -509,9 +509,11 @@ def malformed_exports(draw):
         if m == "drop_cell":
             del cells[draw(st.integers(0, len(cells) - 1))]
         elif m == "add_cell":
-            cells.insert(draw(st.integers(0, len(cells))), draw(st.text("0123456789,.- x", max_size=6)))
+            extra = draw(st.text("0123456789,.- x", max_size=6))
+            cells.insert(draw(st.integers(0, len(cells))), extra)
         elif m == "not_a_price" and area_col < len(cells):
-            cells[area_col] = draw(st.sampled_from(_NOT_A_PRICE) | st.text(max_size=8).map("x".__add__))
+            garbage = st.sampled_from(_NOT_A_PRICE) | st.text(max_size=8).map("x".__add__)
+            cells[area_col] = draw(garbage)
         elif m == "empty_price" and area_col < len(cells):
             cells[area_col] = ""
         elif m == "bad_date":
