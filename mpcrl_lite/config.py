@@ -460,7 +460,7 @@ class MPCConfig(_Config):
         return cls(**{"tau": PAPER_TAU, **changes})
 
 
-#: Names of the DPG update rules in :mod:`mpcrl_lite.dpg`.
+#: Names of the DPG update rules (:data:`mpcrl_lite.update_rules.UPDATE_RULES`).
 OPTIMIZERS = ("sgd", "adam")
 #: Feature sets of the critic's value baseline (see :mod:`mpcrl_lite.experiment`).
 VALUE_FEATURES = ("paper", "paper+hour")
