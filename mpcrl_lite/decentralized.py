@@ -117,12 +117,10 @@ from __future__ import annotations
 
 import json
 import logging
-import math
-import numbers
 import time
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -130,7 +128,14 @@ import casadi as ca
 import numpy as np
 
 from .closed_loop import Decision, GaussianExploration, simulate
-from .config import ConfigWarning, LearningConfig, MPCConfig, SystemConfig
+from .config import (
+    ConfigWarning,
+    CoordinationConfig,
+    LearningConfig,
+    MPCConfig,
+    SystemConfig,
+    check_int,
+)
 from .dpg import DPGUpdater, policy_gradient
 from .experiment import (
     Experiment,
@@ -165,58 +170,6 @@ log = logging.getLogger(__name__)
 
 CHECKPOINT = "checkpoint.json"
 _FORMAT = "mpcrl_lite.DecentralizedCheckpoint/1"
-
-
-# -- configuration ----------------------------------------------------------------------------
-@dataclass(frozen=True)
-class CoordinationConfig:
-    """How the grid limit is coordinated (see the module docstring).
-
-    Attributes
-    ----------
-    tol : float
-        Stop when every KKT residual is at most ``tol * (1 + max |q|)`` (``q``: local linear
-        costs, i.e. prices and slack weights).
-    max_iter : int
-        Coordination rounds per hour before the fallback (local IPOPT + projection).
-    local_grid_factor : float
-        The local MPC is the paper's MPC with ``n = 1`` and its grid row ``b <= P_loc`` made
-        inert by ``P_loc = local_grid_factor * max(U_bar, P_bar)``; that row's barrier moves
-        the solution by ~1e-10 (the real limit is priced, not constrained per battery).
-    """
-
-    tol: float = 1e-11
-    max_iter: int = 60
-    local_grid_factor: float = 1e4
-
-    def __post_init__(self) -> None:
-        _real("tol", self.tol, 0.0, 1e-2, low_open=True)
-        _integer("max_iter", self.max_iter, 1)
-        _real("local_grid_factor", self.local_grid_factor, 10.0)
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain JSON-friendly dict."""
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "CoordinationConfig":
-        """Inverse of :meth:`to_dict`."""
-        return cls(**data)
-
-
-def _real(name: str, value: Any, low: float, high: float | None = None,
-          low_open: bool = False) -> None:
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
-        raise ValueError(f"{name}={value!r}: expected a finite real number")
-    if value < low or (low_open and value == low) or (high is not None and value > high):
-        left = "(" if low_open else "["
-        right = "inf)" if high is None else f"{high:g}]"
-        raise ValueError(f"{name}={value!r}: expected a value in {left}{low:g}, {right}")
-
-
-def _integer(name: str, value: Any, low: int) -> None:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
-        raise ValueError(f"{name}={value!r}: expected an integer >= {low}")
 
 
 # -- theta per battery ------------------------------------------------------------------------
@@ -1082,7 +1035,7 @@ def compare_learners(
     mpc_config = mpc_config or MPCConfig()
     learning = learning or LearningConfig()
     coordination = coordination or CoordinationConfig()
-    _integer("months", months, 1)
+    check_int("months", months, 1)
     learning = learning.replace(months=months)
     runs = {
         "centralized": Experiment(system, mpc_config, learning),

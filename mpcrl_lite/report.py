@@ -3,8 +3,9 @@
 Conventions the notebooks follow (see ``notebooks/``):
 
 * one cell tagged ``parameters`` holds literals in UPPER_CASE names;
-* the cell after it calls :func:`check_parameters`, so a name injected by papermill that the
-  notebook does not know is an error, not a silent no-op (papermill itself only warns);
+* the cell after it calls :func:`check_parameters`, so a name injected by papermill that is
+  not exactly one of the notebook's parameters (``-p months 5``, ``-p P_Bar 1.0``) is an
+  error naming the closest one, not a silent no-op (papermill itself only warns);
 * one cell tagged ``summary`` calls :func:`show_summary` with the notebook's key numbers; the
   report runner collects them into ``summary.json``.
 
@@ -15,22 +16,26 @@ parameter set of ``notebooks/ci_parameters.yaml`` (``profile='ci'``).
 
 from __future__ import annotations
 
+import ast
+import difflib
 import json
 import time
 from pathlib import Path
 from typing import Any
 
+from .config import InputTypeError, check_choice
+
 __all__ = [
-    "NOTEBOOK_DIR",
     "CI_PARAMETERS",
-    "notebook_paths",
-    "notebook_parameters",
+    "NOTEBOOK_DIR",
     "check_parameters",
-    "show_summary",
-    "read_summary",
     "execute_notebook",
-    "run_report",
+    "notebook_parameters",
+    "notebook_paths",
     "profile_parameters",
+    "read_summary",
+    "run_report",
+    "show_summary",
 ]
 
 #: The project's notebooks (resolved through the package, not the working directory).
@@ -38,6 +43,8 @@ NOTEBOOK_DIR = Path(__file__).resolve().parent.parent / "notebooks"
 #: The small CI profile: ``{notebook stem: {PARAMETER: value}}``.
 CI_PARAMETERS = NOTEBOOK_DIR / "ci_parameters.yaml"
 SUMMARY_MIME = "application/json"
+#: Parameter profiles of :func:`run_report`: the notebooks' defaults, or the CI profile.
+PROFILES = ("full", "ci")
 
 
 def notebook_paths(names: list[str] | None = None) -> list[Path]:
@@ -72,12 +79,25 @@ def notebook_parameters(path: str | Path) -> dict[str, dict[str, Any]]:
 
 _TYPES = {"int": (int,), "float": (int, float), "bool": (bool,), "str": (str,)}
 
+#: First line of the cell papermill injects with the parameters it is given.
+_INJECTED_HEADER = "# Parameters"
+
+
+def _closest(name: str, allowed: dict[str, Any]) -> str:
+    """The parameter whose name is most like ``name`` (ignoring case)."""
+    by_upper = {a.upper(): a for a in allowed}
+    match = difflib.get_close_matches(name.upper(), list(by_upper), n=1, cutoff=0.0)
+    return by_upper[match[0]]
+
 
 def _check_values(notebook: str, values: dict[str, Any], allowed: dict[str, dict[str, Any]]) -> None:
     unknown = sorted(set(values) - set(allowed))
     if unknown:
+        hints = ", ".join(f"{_closest(n, allowed)!r} for {n!r}" for n in unknown) if allowed else ""
         raise ValueError(
-            f"{notebook}: unknown parameter(s) {unknown}; this notebook takes {sorted(allowed)}"
+            f"{notebook}: unknown parameter(s) {unknown}"
+            + (f"; did you mean {hints}?" if hints else "")
+            + f" Names must match exactly; this notebook takes {sorted(allowed)}"
         )
     for name, value in values.items():
         types = _TYPES.get(str(allowed[name]["type"]))
@@ -91,17 +111,49 @@ def _check_values(notebook: str, values: dict[str, Any], allowed: dict[str, dict
             )
 
 
+def _injected_names(namespace: dict[str, Any]) -> set[str]:
+    """Names assigned in the cells papermill injected, read from the kernel's input history.
+
+    papermill runs its parameters as a cell starting with ``# Parameters``; IPython keeps the
+    source of every executed cell in ``In``. Without that history (a plain dict) there is
+    nothing to read.
+    """
+    history = namespace.get("In")
+    if not isinstance(history, list):
+        return set()
+    names: set[str] = set()
+    for source in history:
+        if not isinstance(source, str) or not source.lstrip().startswith(_INJECTED_HEADER):
+            continue
+        try:
+            tree = ast.parse(source)
+        except SyntaxError:
+            continue
+        for node in tree.body:
+            targets = node.targets if isinstance(node, ast.Assign) else (
+                [node.target] if isinstance(node, ast.AnnAssign) else [])
+            names.update(t.id for t in targets if isinstance(t, ast.Name))
+    return names
+
+
 def check_parameters(namespace: dict[str, Any], notebook: str) -> dict[str, Any]:
-    """Reject UPPER_CASE names in ``namespace`` that are not parameters of ``notebook``.
+    """Reject names given to ``notebook`` that are not exactly its parameters.
 
     Called in the cell right after the parameters cell with ``globals()``; returns the
-    parameter values (for the summary). Wrong types (e.g. a string for a float) are errors.
+    parameter values (for the summary). Checked are every name papermill injected (read from
+    the kernel's input history, so ``-p months 5`` or ``-p P_Bar 1.0`` is caught although the
+    parameters are ``MONTHS`` and ``P_BAR``) and every UPPER_CASE global. An unknown name is
+    an error naming the closest parameter; a wrong type (e.g. a string for a float) is an
+    error too.
     """
     allowed = notebook_parameters(notebook)
-    values = {
-        k: v for k, v in namespace.items()
-        if k.isupper() and not k.startswith("_") and not callable(v) and not isinstance(v, type(json))
+    candidates = {
+        k for k, v in namespace.items()
+        if k.isupper() and not k.startswith("_") and not callable(v)
+        and not isinstance(v, type(json))
     }
+    candidates |= {k for k in _injected_names(namespace) if k in namespace}
+    values = {k: namespace[k] for k in candidates}
     _check_values(notebook, values, allowed)
     return {k: values[k] for k in allowed if k in values}
 
@@ -128,15 +180,16 @@ def read_summary(notebook: Any) -> dict[str, Any]:
 
 def profile_parameters(profile: str) -> dict[str, dict[str, Any]]:
     """Parameters per notebook stem for ``'full'`` (none: the defaults) or ``'ci'``."""
-    if profile == "full":
+    if check_choice("profile", profile, PROFILES) == "full":
         return {}
-    if profile != "ci":
-        raise ValueError(f"profile={profile!r}: expected 'full' or 'ci'")
     import yaml
 
     data = yaml.safe_load(CI_PARAMETERS.read_text()) or {}
     if not isinstance(data, dict):
-        raise ValueError(f"{CI_PARAMETERS}: expected a mapping of notebook -> parameters")
+        raise InputTypeError(
+            f"{CI_PARAMETERS}: expected a mapping of notebook -> parameters, got "
+            f"{type(data).__name__}"
+        )
     return data
 
 
