@@ -67,7 +67,7 @@ BAD = [
     (LearningConfig, "days_per_month", 0, "an integer >= 1"),
     (LearningConfig, "exploration_std", -0.1, "a value in [0, inf)"),
     (LearningConfig, "ridge", -1e-6, "a value in [0, inf)"),
-    (LearningConfig, "value_features", "hour", "one of 'paper', 'paper+hour'"),
+    (LearningConfig, "value_features", "quadratic", "one of 'paper', 'paper+hour', 'hour'"),
     (LearningConfig, "learn_constants", "yes", "True or False"),
     (LearningConfig, "optimizer", "rmsprop", "one of 'sgd', 'adam'"),
     (LearningConfig, "grad_clip", 0.0, "a value in (0, inf)"),
