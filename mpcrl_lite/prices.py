@@ -31,6 +31,7 @@ import numpy as np
 import pandas as pd
 
 from .config import PRICE_UNIT, SystemConfig
+from .resources import candidate_folders, package_folder
 
 __all__ = [
     "DATA_DIR",
@@ -43,8 +44,9 @@ __all__ = [
     "Prices",
 ]
 
-#: Folder of the shipped data, found through the package (never through the working directory).
-DATA_DIR: Path = Path(__file__).resolve().parent.parent / "data"
+#: Folder of the shipped data, found through the package (never through the working directory):
+#: ``mpcrl_lite/data`` in an installed wheel, the repository's ``data/`` in a checkout.
+DATA_DIR: Path = package_folder("data")
 
 #: Hours in one day of a price matrix (clock hours 0..23).
 HOURS_PER_DAY = 24
@@ -76,8 +78,8 @@ def _default_profile_cached() -> np.ndarray:
     for path in (shape_path, daily_path):
         if not path.is_file():
             raise FileNotFoundError(
-                f"default price data {path} not found; expected it in the package's data "
-                f"folder {DATA_DIR}"
+                f"default price data {path.name} not found; expected it in the package's data "
+                f"folder, one of {[str(p) for p in candidate_folders('data')]}"
             )
     shape = pd.read_csv(shape_path)
     daily = pd.read_csv(daily_path, parse_dates=["date"])
