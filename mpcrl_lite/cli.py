@@ -104,8 +104,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("report", help="execute every notebook into a report directory")
     p.add_argument("--out", type=Path, default=Path("reports"), help="report directory")
-    p.add_argument("--profile", choices=("full", "ci"), default="full",
-                   help="parameters: the notebooks' defaults (full) or the small CI profile")
+    p.add_argument("--profile", choices=("full", "ci", "classroom"), default="full",
+                   help="parameters: the notebooks' defaults (full), the small CI profile or "
+                        "the lesson-sized classroom profile")
     p.add_argument("--notebooks", nargs="*", default=None, help="only these notebooks")
 
     p = sub.add_parser("baselines", help="baseline policies on the same draws")

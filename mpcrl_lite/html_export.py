@@ -85,7 +85,8 @@ MathJax.Hub.Config({
 {% block data_png scoped %}
 <div class="jp-RenderedImage jp-OutputArea-output {{ extra_class }}">
 <img src="data:image/png;base64,{{ output.data['image/png'] | escape_html }}"
-alt="{{ (output | get_metadata('alt', 'image/png')) or resources.mpcrl_default_alt | escape_html }}"
+{%- set alt = (output | get_metadata('alt', 'image/png')) or resources.mpcrl_default_alt %}
+alt="{{ alt | escape_html }}"
 {%- set width=output | get_metadata('width', 'image/png') -%}
 {%- if width is not none %} width={{ width | escape_html }}{%- endif %}
 {%- set height=output | get_metadata('height', 'image/png') -%}
@@ -96,7 +97,8 @@ alt="{{ (output | get_metadata('alt', 'image/png')) or resources.mpcrl_default_a
 {% block data_jpg scoped %}
 <div class="jp-RenderedImage jp-OutputArea-output {{ extra_class }}">
 <img src="data:image/jpeg;base64,{{ output.data['image/jpeg'] | escape_html }}"
-alt="{{ (output | get_metadata('alt', 'image/jpeg')) or resources.mpcrl_default_alt | escape_html }}">
+{%- set alt = (output | get_metadata('alt', 'image/jpeg')) or resources.mpcrl_default_alt %}
+alt="{{ alt | escape_html }}">
 </div>
 {%- endblock data_jpg %}
 """
