@@ -38,7 +38,7 @@ test-fast: $(STAMP)
 LAB_ARGS ?=
 LAB_ROOT_ARG := $(if $(filter 0,$(shell id -u 2>/dev/null)),--allow-root)
 lab: $(STAMP)
-	$(BIN)/jupyter lab --ServerApp.root_dir=. --ServerApp.default_url=/lab/tree/notebooks \
+	$(BIN)/jupyter lab --ServerApp.root_dir=. --LabApp.default_url=/lab/tree/notebooks \
 		$(LAB_ROOT_ARG) $(LAB_ARGS)
 
 bench: $(STAMP)
