@@ -51,7 +51,8 @@ def _authors(names: list[str]) -> str:
 def citation_text(ref: dict[str, Any]) -> str:
     """Plain text: authors, "title", venue, year, DOI (or address)."""
     where = f"doi:{ref['doi']}" if ref["doi"] else ref["url"]
-    return f"{_authors(ref['authors'])}, \"{ref['title']}\", {ref['venue']}, {ref['year']}, {where}."
+    return (f"{_authors(ref['authors'])}, \"{ref['title']}\", {ref['venue']}, {ref['year']}, "
+            f"{where}.")
 
 
 def citation_markdown(ref: dict[str, Any]) -> str:

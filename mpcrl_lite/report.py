@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from .html_export import copy_mathjax, write_html
 from .resources import package_folder
 
 __all__ = [
@@ -205,8 +206,6 @@ def run_report(
     """Execute the notebooks into ``out`` (``.ipynb`` + offline ``.html``, MathJax in
     ``out/mathjax``) and write ``out/summary.json`` with each notebook's key numbers,
     parameters and run time."""
-    from .html_export import copy_mathjax, write_html
-
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     params = profile_parameters(profile)

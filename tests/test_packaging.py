@@ -17,9 +17,9 @@ import zipfile
 from pathlib import Path
 
 import nbformat
+import nbref
 import pytest
 
-import nbref
 from mpcrl_lite import resources
 from mpcrl_lite.launch import INSTALL_TAG, install_requirement
 
@@ -144,7 +144,8 @@ def test_a_checkout_reads_the_top_level_folders():
 
 
 def test_unknown_shipped_folder_is_an_error():
-    with pytest.raises(ValueError, match=r"name='figures': expected one of \['data', 'notebooks'\]"):
+    with pytest.raises(ValueError,
+                       match=r"name='figures': expected one of \['data', 'notebooks'\]"):
         resources.package_folder("figures")
 
 

@@ -17,16 +17,26 @@ from pathlib import Path
 
 import matplotlib
 import nbformat
+import nbref
 import pytest
 from matplotlib.figure import Figure
 
-import nbref
 from mpcrl_lite import site as site_module
 from mpcrl_lite.alt_text import _with_alt, describe_figure
-from mpcrl_lite.html_export import (WIDGET_STATE_MIME, WIDGET_VIEW_MIME, remote_resources,
-                                    static_widgets, to_html, unlink_remote_images)
-from mpcrl_lite.launch import (LAUNCH_MARKER, apply_launch_cells, binder_url, colab_url,
-                               launch_badges)
+from mpcrl_lite.html_export import (
+    WIDGET_STATE_MIME,
+    WIDGET_VIEW_MIME,
+    remote_resources,
+    static_widgets,
+    to_html,
+    unlink_remote_images,
+)
+from mpcrl_lite.launch import (
+    apply_launch_cells,
+    binder_url,
+    colab_url,
+    launch_badges,
+)
 from mpcrl_lite.references import DPG, PAPER
 
 matplotlib.use("Agg")
