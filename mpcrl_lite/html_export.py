@@ -37,6 +37,7 @@ __all__ = [
     "WIDGET_STATE_MIME",
     "mathjax_source",
     "copy_mathjax",
+    "mathjax_tags",
     "static_widgets",
     "unlink_remote_images",
     "to_html",
@@ -65,22 +66,7 @@ _TEMPLATE = r"""
 {% block jupyter_widgets %}{% endblock jupyter_widgets %}
 {%- block html_head_js_mermaidjs -%}{%- endblock html_head_js_mermaidjs -%}
 {%- block html_head_js_mathjax -%}
-<script type="text/x-mathjax-config">
-MathJax.Hub.Config({
-  tex2jax: {
-    inlineMath: [["$", "$"], ["\\(", "\\)"]],
-    displayMath: [["$$", "$$"], ["\\[", "\\]"]],
-    processEscapes: true,
-    processEnvironments: true
-  },
-  TeX: {equationNumbers: {autoNumber: "AMS", useLabelIds: true}},
-  "HTML-CSS": {availableFonts: [], imageFont: null, preferredFont: null, webFont: "STIX-Web",
-               linebreaks: {automatic: true}},
-  displayAlign: "center",
-  messageStyle: "none"
-});
-</script>
-<script src="{{ resources.mathjax_url }}"></script>
+{{ resources.mpcrl_mathjax }}
 {%- endblock html_head_js_mathjax -%}
 {% block data_png scoped %}
 <div class="jp-RenderedImage jp-OutputArea-output {{ extra_class }}">
@@ -104,6 +90,30 @@ alt="{{ alt | escape_html }}">
 """
 
 _DEFAULT_ALT = "Figure without a title (see the code cell above for what it plots)."
+
+
+# MathJax 2 set up as in JupyterLab: $...$ and $$...$$, AMS numbering, STIX web fonts.
+_MATHJAX_SETUP = r"""<script type="text/x-mathjax-config">
+MathJax.Hub.Config({
+  tex2jax: {
+    inlineMath: [["$", "$"], ["\\(", "\\)"]],
+    displayMath: [["$$", "$$"], ["\\[", "\\]"]],
+    processEscapes: true,
+    processEnvironments: true
+  },
+  TeX: {equationNumbers: {autoNumber: "AMS", useLabelIds: true}},
+  "HTML-CSS": {availableFonts: [], imageFont: null, preferredFont: null, webFont: "STIX-Web",
+               linebreaks: {automatic: true}},
+  displayAlign: "center",
+  messageStyle: "none"
+});
+</script>"""
+
+
+def mathjax_tags(url: str = f"{MATHJAX_DIRNAME}/MathJax.js") -> str:
+    """The ``<script>`` tags that typeset a page's TeX with the local MathJax at ``url``
+    (relative to the page; see :func:`copy_mathjax`)."""
+    return f'{_MATHJAX_SETUP}\n<script src="{url}?config={_MATHJAX_CONFIG}"></script>'
 
 
 # -- MathJax -----------------------------------------------------------------------------------
@@ -271,10 +281,10 @@ def to_html(nb, mathjax_url: str = f"{MATHJAX_DIRNAME}/MathJax.js") -> str:
 
     exporter = HTMLExporter(template_name="lab", template_file=_TEMPLATE_NAME,
                             extra_loaders=[DictLoader({_TEMPLATE_NAME: _TEMPLATE})])
-    exporter.mathjax_url = f"{mathjax_url}?config={_MATHJAX_CONFIG}"
     page = unlink_remote_images(static_widgets(nb))
     body, _ = exporter.from_notebook_node(
-        nbformat.from_dict(page), resources={"mpcrl_default_alt": _DEFAULT_ALT})
+        nbformat.from_dict(page), resources={"mpcrl_default_alt": _DEFAULT_ALT,
+                                             "mpcrl_mathjax": mathjax_tags(mathjax_url)})
     return body
 
 

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from . import __version__
-from .html_export import remote_resources, write_html
+from .html_export import MATHJAX_DIRNAME, mathjax_tags, remote_resources, write_html
 from .launch import binder_url, colab_url
 from .references import PAPER
 from .report import PROFILES, notebook_paths, run_report
@@ -62,19 +62,13 @@ _STUDY_FOLDER = "sweep_runs"
 
 @dataclass(frozen=True)
 class NotebookEntry:
-    """One notebook on the index page."""
+    """One notebook on the index page: its title (plain text), its goal (markdown, with TeX
+    typeset on the page by the local MathJax) and its run time."""
 
     stem: str
     title: str
     goal: str
     seconds: float | None
-
-
-def _text(markdown: str) -> str:
-    """Markdown of a notebook's first cell as plain text (no emphasis, code marks or TeX)."""
-    text = re.sub(r"\[([^\]]*)\]\([^)]*\)", r"\1", markdown)
-    text = re.sub(r"[*_`$\\]", "", text)
-    return " ".join(text.split())
 
 
 def notebook_entry(nb, stem: str, seconds: float | None = None) -> NotebookEntry:
@@ -86,9 +80,16 @@ def notebook_entry(nb, stem: str, seconds: float | None = None) -> NotebookEntry
     goal = ""
     for paragraph in re.split(r"\n\s*\n", source):
         if paragraph.lstrip().startswith("**Goal.**"):
-            goal = _text(paragraph.replace("**Goal.**", "", 1))
+            goal = paragraph.replace("**Goal.**", "", 1).strip()
             break
-    return NotebookEntry(stem, _text(title), goal, seconds)
+    return NotebookEntry(stem, title, goal, seconds)
+
+
+def _markdown(text: str) -> str:
+    """Markdown to HTML as in the notebook pages (TeX is left for MathJax)."""
+    from nbconvert.filters.markdown_mistune import markdown2html_mistune
+
+    return markdown2html_mistune(text)
 
 
 def extract_paper_figures(nb, folder: str | Path) -> list[dict[str, str]]:
@@ -121,12 +122,14 @@ def extract_paper_figures(nb, folder: str | Path) -> list[dict[str, str]]:
 
 def collect_study(report: str | Path, folder: str | Path) -> list[dict[str, Any]]:
     """Copy the results tables of the parameter study (``report/sweep_runs/*/results.csv``
-    and ``sweep.json``) into ``folder/<sweep>/``; returns one dict per sweep with its name,
-    files and table (a :class:`pandas.DataFrame`)."""
+    and ``sweep.json``, except the notebook's ``*check*`` sweeps) into ``folder/<sweep>/``;
+    returns one dict per sweep with its name, files and table (a :class:`pandas.DataFrame`)."""
     import pandas as pd
 
     studies = []
     for results in sorted(Path(report).glob(f"{_STUDY_FOLDER}/*/results.csv")):
+        if "check" in results.parent.name:  # the notebook's consistency checks, not the study
+            continue
         target = Path(folder) / results.parent.name
         target.mkdir(parents=True, exist_ok=True)
         files = []
@@ -146,6 +149,7 @@ table { border-collapse: collapse; margin: 0.5rem 0 1rem; }
 th, td { border-bottom: 1px solid #ccc; padding: 0.35rem 0.6rem; text-align: left;
          vertical-align: top; }
 th { background: #f2f2f2; }
+td p { margin: 0; }
 td.num { text-align: right; font-variant-numeric: tabular-nums; white-space: nowrap; }
 figure { display: inline-block; margin: 0.5rem 1rem 1rem 0; max-width: 29rem; }
 figure img { max-width: 100%; border: 1px solid #ddd; }
@@ -161,8 +165,10 @@ def _e(value: Any) -> str:
 
 
 def render_index(entries: list[NotebookEntry], summary: dict[str, Any],
-                 figures: list[dict[str, str]], studies: list[dict[str, Any]]) -> str:
-    """The index page (HTML) of the site."""
+                 figures: list[dict[str, str]], studies: list[dict[str, Any]],
+                 mathjax_url: str = f"notebooks/{MATHJAX_DIRNAME}/MathJax.js") -> str:
+    """The index page (HTML) of the site; TeX in the goals is typeset by the local MathJax
+    at ``mathjax_url``."""
     profile = summary.get("profile", "?")
     paper = PAPER
     rows = []
@@ -171,7 +177,7 @@ def render_index(entries: list[NotebookEntry], summary: dict[str, Any],
         rows.append(
             f'<tr><td class="num">{i}</td><td><a href="notebooks/{_e(entry.stem)}.html">'
             f"{_e(entry.title)}</a><br><span class=\"small\"><code>{_e(entry.stem)}</code></span>"
-            f"</td><td>{_e(entry.goal)}</td><td class=\"num\">{seconds}</td>"
+            f"</td><td>{_markdown(entry.goal)}</td><td class=\"num\">{seconds}</td>"
             f'<td><a href="notebooks/{_e(entry.stem)}.ipynb" download>executed .ipynb</a><br>'
             f'<a href="{_e(colab_url(entry.stem))}">Colab</a> · '
             f'<a href="{_e(binder_url(entry.stem))}">Binder</a></td></tr>')
@@ -179,7 +185,7 @@ def render_index(entries: list[NotebookEntry], summary: dict[str, Any],
         "<!DOCTYPE html>", '<html lang="en">', "<head>", '<meta charset="utf-8">',
         '<meta name="viewport" content="width=device-width, initial-scale=1">',
         "<title>mpcrl_lite: MPC-based reinforcement learning for battery storage</title>",
-        f"<style>{_STYLE}</style>", "</head>", "<body>", "<main>",
+        f"<style>{_STYLE}</style>", mathjax_tags(mathjax_url), "</head>", "<body>", "<main>",
         "<h1>MPC-based reinforcement learning for a multi-agent battery storage system</h1>",
         "<p>Seven teaching notebooks that rebuild, step by step, the paper</p>",
         f"<blockquote>{_e(', '.join(paper['authors']))}, “{_e(paper['title'])}”, "
