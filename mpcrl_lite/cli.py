@@ -125,7 +125,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("report", help="execute every notebook into a report directory")
     p.add_argument("--out", type=Path, default=Path("reports"), help="report directory")
     p.add_argument("--profile", choices=PROFILES, default="full",
-                   help="parameters: the notebooks' defaults (full) or the small CI profile")
+                   help="parameters: the notebooks' defaults (full), the small CI profile or "
+                        "the lesson-sized classroom profile")
     p.add_argument("--notebooks", nargs="*", default=None, help="only these notebooks")
 
     p = sub.add_parser("baselines", help="baseline policies on the same draws")

@@ -38,6 +38,7 @@ from .config import (
     check_int,
     check_real,
 )
+from .resources import candidate_folders, package_folder
 
 __all__ = [
     "DATA_DIR",
@@ -50,8 +51,9 @@ __all__ = [
     "nordpool_areas",
 ]
 
-#: Folder of the shipped data, found through the package (never through the working directory).
-DATA_DIR: Path = Path(__file__).resolve().parent.parent / "data"
+#: Folder of the shipped data, found through the package (never through the working directory):
+#: ``mpcrl_lite/data`` in an installed wheel, the repository's ``data/`` in a checkout.
+DATA_DIR: Path = package_folder("data")
 
 #: Local time zone of Nord Pool's Nordic exports (CET/CEST).
 LOCAL_TZ = "Europe/Oslo"
@@ -80,8 +82,8 @@ def _default_profile_cached() -> np.ndarray:
     for path in (shape_path, daily_path):
         if not path.is_file():
             raise FileNotFoundError(
-                f"default price data {path} not found; expected it in the package's data "
-                f"folder {DATA_DIR}"
+                f"default price data {path.name} not found; expected it in the package's data "
+                f"folder, one of {[str(p) for p in candidate_folders('data')]}"
             )
     shape = pd.read_csv(shape_path)
     daily = pd.read_csv(daily_path, parse_dates=["date"])

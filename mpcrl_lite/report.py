@@ -10,8 +10,14 @@ Conventions the notebooks follow (see ``notebooks/``):
   report runner collects them into ``summary.json``.
 
 :func:`run_report` executes every notebook (``NN_*.ipynb``) into a directory as executed
-``.ipynb`` and HTML, with the notebooks' defaults (``profile='full'``) or the small
-parameter set of ``notebooks/ci_parameters.yaml`` (``profile='ci'``).
+``.ipynb`` and HTML, with the notebooks' defaults (``profile='full'``), the small parameter set
+of ``notebooks/ci_parameters.yaml`` (``profile='ci'``) or the lesson-sized one of
+``notebooks/classroom_parameters.yaml`` (``profile='classroom'``). The HTML pages work offline
+(:mod:`mpcrl_lite.html_export`): local MathJax, static pictures of the explorers, alt texts.
+
+Kernels are started on this machine over IPC sockets in a private folder rather than TCP
+ports (no network exposure, and no transport warning in the output), with the
+:mod:`mpcrl_lite.alt_text` extension loaded so that figures carry their descriptions.
 """
 
 from __future__ import annotations
@@ -19,11 +25,15 @@ from __future__ import annotations
 import ast
 import difflib
 import json
+import os
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
 from .config import InputTypeError, check_choice
+from .html_export import copy_mathjax, write_html
+from .resources import package_folder
 
 __all__ = [
     "CI_PARAMETERS",
@@ -36,15 +46,23 @@ __all__ = [
     "read_summary",
     "run_report",
     "show_summary",
+    "PROFILES",
+    "CLASSROOM_PARAMETERS",
+    "KERNEL_EXTENSIONS",
 ]
 
-#: The project's notebooks (resolved through the package, not the working directory).
-NOTEBOOK_DIR = Path(__file__).resolve().parent.parent / "notebooks"
+#: The project's notebooks (resolved through the package, not the working directory): the
+#: repository's ``notebooks/`` in a checkout, ``mpcrl_lite/notebooks`` in an installed wheel.
+NOTEBOOK_DIR = package_folder("notebooks")
 #: The small CI profile: ``{notebook stem: {PARAMETER: value}}``.
 CI_PARAMETERS = NOTEBOOK_DIR / "ci_parameters.yaml"
+#: The lesson-sized profile (every notebook within about a minute), same format.
+CLASSROOM_PARAMETERS = NOTEBOOK_DIR / "classroom_parameters.yaml"
+#: Parameter profiles: the notebooks' defaults, and the files above.
+PROFILES = ("full", "ci", "classroom")
+#: IPython extensions loaded into every kernel started by :func:`execute_notebook`.
+KERNEL_EXTENSIONS = ("mpcrl_lite.alt_text",)
 SUMMARY_MIME = "application/json"
-#: Parameter profiles of :func:`run_report`: the notebooks' defaults, or the CI profile.
-PROFILES = ("full", "ci")
 
 
 def notebook_paths(names: list[str] | None = None) -> list[Path]:
@@ -179,18 +197,33 @@ def read_summary(notebook: Any) -> dict[str, Any]:
 
 
 def profile_parameters(profile: str) -> dict[str, dict[str, Any]]:
-    """Parameters per notebook stem for ``'full'`` (none: the defaults) or ``'ci'``."""
+    """Parameters per notebook stem for ``'full'`` (none: the defaults), ``'ci'`` or
+    ``'classroom'``."""
     if check_choice("profile", profile, PROFILES) == "full":
         return {}
     import yaml
 
-    data = yaml.safe_load(CI_PARAMETERS.read_text()) or {}
+    path = CI_PARAMETERS if profile == "ci" else CLASSROOM_PARAMETERS
+    data = yaml.safe_load(path.read_text()) or {}
     if not isinstance(data, dict):
         raise InputTypeError(
-            f"{CI_PARAMETERS}: expected a mapping of notebook -> parameters, got "
-            f"{type(data).__name__}"
+            f"{path}: expected a mapping of notebook -> parameters, got {type(data).__name__}"
         )
     return data
+
+
+def _kernel_options(socket_dir: str) -> dict[str, Any]:
+    """papermill/nbclient options for a local kernel: IPC sockets inside ``socket_dir`` (where
+    the platform has them) and the :data:`KERNEL_EXTENSIONS`."""
+    from traitlets.config import Config
+
+    options: dict[str, Any] = {
+        "extra_arguments": [f"--IPKernelApp.extensions={name}" for name in KERNEL_EXTENSIONS],
+    }
+    if os.name == "posix":
+        options["config"] = Config(
+            {"KernelManager": {"transport": "ipc", "ip": os.path.join(socket_dir, "kernel")}})
+    return options
 
 
 def execute_notebook(
@@ -207,19 +240,21 @@ def execute_notebook(
     path = Path(path)
     parameters = dict(parameters or {})
     _check_values(path.name, parameters, notebook_parameters(path))
-    return papermill.execute_notebook(
-        str(path), str(output), parameters=parameters, kernel_name="python3",
-        cwd=str(cwd) if cwd else None, progress_bar=False, execution_timeout=timeout,
-    )
+    # A short private path: Unix socket names are limited to ~100 characters.
+    with tempfile.TemporaryDirectory(prefix="mpcrl-kernel-") as socket_dir:
+        return papermill.execute_notebook(
+            str(path), str(output), parameters=parameters, kernel_name="python3",
+            cwd=str(cwd) if cwd else None, progress_bar=False, execution_timeout=timeout,
+            **_kernel_options(socket_dir),
+        )
 
 
 def run_report(
     out: str | Path, profile: str = "full", notebooks: list[str] | None = None
 ) -> dict[str, Any]:
-    """Execute the notebooks into ``out`` (``.ipynb`` + ``.html``) and write
-    ``out/summary.json`` with each notebook's key numbers, parameters and run time."""
-    from nbconvert import HTMLExporter
-
+    """Execute the notebooks into ``out`` (``.ipynb`` + offline ``.html``, MathJax in
+    ``out/mathjax``) and write ``out/summary.json`` with each notebook's key numbers,
+    parameters and run time."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     params = profile_parameters(profile)
@@ -227,14 +262,13 @@ def run_report(
     # check every notebook's parameters before executing any of them
     for path in paths:
         _check_values(path.name, params.get(path.stem, {}), notebook_parameters(path))
-    exporter = HTMLExporter()
+    copy_mathjax(out)  # before any work: fails at once if the MathJax files are missing
     summary: dict[str, Any] = {"profile": profile, "notebooks": {}}
     for path in paths:
         t0 = time.perf_counter()
         nb = execute_notebook(path, out / path.name, params.get(path.stem, {}), cwd=out)
         seconds = time.perf_counter() - t0
-        html, _ = exporter.from_notebook_node(nb)
-        (out / f"{path.stem}.html").write_text(html, encoding="utf-8")
+        write_html(nb, out / f"{path.stem}.html")
         summary["notebooks"][path.stem] = {
             "seconds": round(seconds, 1),
             "parameters": params.get(path.stem, {}),
