@@ -37,7 +37,10 @@ from .resources import package_folder
 
 __all__ = [
     "CI_PARAMETERS",
+    "CLASSROOM_PARAMETERS",
+    "KERNEL_EXTENSIONS",
     "NOTEBOOK_DIR",
+    "PROFILES",
     "check_parameters",
     "execute_notebook",
     "notebook_parameters",
@@ -46,9 +49,6 @@ __all__ = [
     "read_summary",
     "run_report",
     "show_summary",
-    "PROFILES",
-    "CLASSROOM_PARAMETERS",
-    "KERNEL_EXTENSIONS",
 ]
 
 #: The project's notebooks (resolved through the package, not the working directory): the
