@@ -554,7 +554,7 @@ class LearningConfig(_Config):
 class CoordinationConfig(_Config):
     """How the decentralized MPCs are coordinated on the grid limit.
 
-    Used by :class:`mpcrl_lite.decentralized.CoordinatedMPC`: per-stage grid prices found with
+    Used by :class:`mpcrl_lite.coordination.CoordinatedMPC`: per-stage grid prices found with
     a decomposed Newton method (see that module's docstring).
     """
 
