@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 export MPLBACKEND ?= Agg
 
-.PHONY: setup report test test-fast lab bench clean student
+.PHONY: setup report test test-fast lab bench clean student site
 
 $(STAMP): environment-requirements.txt pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -18,9 +18,11 @@ $(STAMP): environment-requirements.txt pyproject.toml
 
 setup: $(STAMP)
 
-## main job: execute every notebook into reports/ (executed .ipynb + HTML + summary.json)
+## main job: execute every notebook into reports/ (executed .ipynb + offline HTML + summary.json)
+## REPORT_PROFILE=classroom (or ci) runs the smaller parameter profiles.
+REPORT_PROFILE ?= full
 report: $(STAMP)
-	$(BIN)/python -m mpcrl_lite report --out reports
+	$(BIN)/python -m mpcrl_lite report --out reports --profile $(REPORT_PROFILE)
 
 ## the whole test suite (unit tests + notebook tests)
 test: $(STAMP)
@@ -30,8 +32,14 @@ test: $(STAMP)
 test-fast: $(STAMP)
 	$(BIN)/python -m pytest -m "not notebook"
 
+## JupyterLab on the repository root (notebooks/ and student/ alike), opened at notebooks/.
+## Extra options go in LAB_ARGS, e.g. make lab LAB_ARGS="--no-browser --port 8890";
+## as root (containers) --allow-root is added.
+LAB_ARGS ?=
+LAB_ROOT_ARG := $(if $(filter 0,$(shell id -u 2>/dev/null)),--allow-root)
 lab: $(STAMP)
-	$(BIN)/jupyter lab notebooks/
+	$(BIN)/jupyter lab --ServerApp.root_dir=. --LabApp.default_url=/lab/tree/notebooks \
+		$(LAB_ROOT_ARG) $(LAB_ARGS)
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/run_all.py
@@ -40,5 +48,13 @@ bench: $(STAMP)
 student: $(STAMP)
 	$(BIN)/python tools/make_student_version.py --out student
 
+## static site: site/index.html with the notebook tour, every executed notebook, the paper's
+## figures, the parameter study and summary.json; opens from disk, no server needed.
+## SITE_PROFILE=full|classroom|ci; SITE_FROM=reports reuses the notebooks that `make report` ran.
+SITE_PROFILE ?= classroom
+SITE_FROM ?=
+site: $(STAMP)
+	$(BIN)/python -m mpcrl_lite.site --out site --profile $(SITE_PROFILE) $(if $(SITE_FROM),--report $(SITE_FROM))
+
 clean:
-	rm -rf reports .pytest_cache
+	rm -rf reports site .pytest_cache

@@ -24,7 +24,13 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["main", "build_parser"]
+from .config import BACKENDS, OPTIMIZERS, PAPER_TAU, LearningConfig, MPCConfig, SystemConfig
+from .report import PROFILES
+
+# The heavier modules (CasADi, the solvers, matplotlib) are imported inside each command, so
+# that --help and argument errors answer at once.
+
+__all__ = ["build_parser", "main"]
 
 
 class _Parser(argparse.ArgumentParser):
@@ -67,15 +73,24 @@ def _float(text: str) -> float:
     return value
 
 
+# Defaults shown in --help are read from the configs, never copied.
+_SYSTEM, _MPC, _LEARNING = SystemConfig(), MPCConfig(), LearningConfig()
+
+
 def _add_system_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seed", type=_nonneg_int, default=0, help="random seed (default 0)")
-    p.add_argument("--p-bar", type=_float, default=None, help="grid peak bound P_bar (default 1.5)")
+    p.add_argument("--seed", type=_nonneg_int, default=_LEARNING.seed,
+                   help=f"random seed (default {_LEARNING.seed})")
+    p.add_argument("--p-bar", type=_float, default=None,
+                   help=f"grid peak bound P_bar (default {_SYSTEM.P_bar:g})")
     p.add_argument("--noise-var", type=_float, default=None,
-                   help="variance of the production-demand noise (default 0.5)")
-    p.add_argument("--n", type=_positive_int, default=None, help="number of batteries (default 3)")
-    p.add_argument("--tau", type=_float, default=None, help="MPC barrier parameter in NOK (default 0.1; 1e-4 is the nearly exact MPC)")
-    p.add_argument("--backend", choices=("auto", "ipopt", "batch"), default=None,
-                   help="MPC solver back-end (default auto)")
+                   help=f"variance of the production-demand noise (default {_SYSTEM.noise_var:g})")
+    p.add_argument("--n", type=_positive_int, default=None,
+                   help=f"number of batteries (default {_SYSTEM.n})")
+    p.add_argument("--tau", type=_float, default=None,
+                   help=f"MPC barrier parameter in NOK (default {_MPC.tau:g}; "
+                        f"{PAPER_TAU:g} is the nearly exact MPC)")
+    p.add_argument("--backend", choices=BACKENDS, default=None,
+                   help=f"MPC solver back-end (default {_MPC.backend})")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -93,29 +108,36 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--months", type=_positive_int, required=True, help="learning steps (months)")
     p.add_argument("--out", type=str, required=True,
                    help="run directory (committed after every month; see mpcrl_lite.rundir)")
-    p.add_argument("--days", type=_positive_int, default=None, help="days per month (default 30)")
+    p.add_argument("--days", type=_positive_int, default=None,
+                   help=f"days per month (default {_LEARNING.days_per_month})")
     p.add_argument("--resume", action="store_true", help="continue the run found in --out")
     p.add_argument("--force", action="store_true",
                    help="replace the results found in --out (they are refused otherwise)")
     p.add_argument("--step-size", type=_float, default=None, help="DPG step size")
-    p.add_argument("--optimizer", choices=("sgd", "adam"), default=None)
+    p.add_argument("--optimizer", choices=OPTIMIZERS, default=None,
+                   help=f"DPG update rule (default {_LEARNING.optimizer}; sgd is the "
+                        "paper's plain gradient step)")
     p.add_argument("--exploration-std", type=_float, default=None)
     p.add_argument("--decentralized", action="store_true",
-                   help="one local MPC and learner per battery, grid limit by dual decomposition")
+                   help="one MPC and one learner per battery; the MPCs are coordinated on the "
+                        "grid limit by per-stage grid prices found with a decomposed Newton "
+                        "method (the same policy as the centralized MPC)")
     p.add_argument("--no-figures", action="store_true", help="skip writing the figures")
     _add_system_args(p)
 
     p = sub.add_parser("report", help="execute every notebook into a report directory")
     p.add_argument("--out", type=Path, default=Path("reports"), help="report directory")
-    p.add_argument("--profile", choices=("full", "ci"), default="full",
-                   help="parameters: the notebooks' defaults (full) or the small CI profile")
+    p.add_argument("--profile", choices=PROFILES, default="full",
+                   help="parameters: the notebooks' defaults (full), the small CI profile or "
+                        "the lesson-sized classroom profile")
     p.add_argument("--notebooks", nargs="*", default=None, help="only these notebooks")
 
     p = sub.add_parser("baselines", help="baseline policies on the same draws")
     p.add_argument("--out", type=Path, required=True, help="output directory")
     p.add_argument("--history", type=Path, default=None,
                    help="a learn output directory whose final theta is evaluated too")
-    p.add_argument("--days", type=_positive_int, default=None, help="days (default 30)")
+    p.add_argument("--days", type=_positive_int, default=None,
+                   help=f"days (default {_LEARNING.days_per_month})")
     _add_system_args(p)
 
     p = sub.add_parser("sweep", help="a grid of learning runs on Dask")
@@ -133,8 +155,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 # -- configs from arguments ----------------------------------------------------------------
 def _configs(args: argparse.Namespace, **learning: Any):
-    from .config import LearningConfig, MPCConfig, SystemConfig
-
     system = {}
     if args.p_bar is not None:
         system["P_bar"] = args.p_bar
@@ -239,9 +259,10 @@ def cmd_learn(args: argparse.Namespace) -> int:
         print(f"mpcrl_lite learn: no run in {args.out} to resume: starting a new one",
               file=sys.stderr)
     elif not args.resume and found.names:
+        what = "a run" if found.holds_run else "results"
         raise UsageError(
-            f"--out {args.out} already holds results ({', '.join(found.names)}): pass "
-            "--resume to continue the run, --force to replace it, or choose another --out")
+            f"--out {args.out} already holds {what} ({', '.join(found.names)}); pass "
+            "--resume to continue it, --force to replace it, or choose another --out")
     if args.decentralized:
         from .decentralized import DecentralizedExperiment
 

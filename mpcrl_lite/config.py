@@ -1,15 +1,24 @@
 """Every number of the experiment, and every choice the paper leaves open, in one place.
 
-Three frozen dataclasses:
+Four frozen dataclasses:
 
 * :class:`SystemConfig` -- the battery system and the MPC's fixed structure (the paper's
   Table I).
 * :class:`MPCConfig` -- how the MPC is solved (barrier parameter, back-end, tolerances).
 * :class:`LearningConfig` -- the LSTD / DPG learning loop (step size, months, exploration,
   safeguards).
+* :class:`CoordinationConfig` -- how the decentralized MPCs are coordinated on the grid limit
+  (:mod:`mpcrl_lite.decentralized`).
 
-All three validate themselves at construction and raise a :class:`ValueError` that names the
-field, the value given and the range allowed, before any work starts.
+All of them validate themselves at construction and raise a :class:`ValueError` that names
+the field, the value given and the range allowed, before any work starts. Numeric fields are
+stored as plain Python ``int``/``float`` whatever was given (numpy scalars included), so a
+config always serialises to JSON.
+
+The validators behind them are the package's shared ones: :func:`check_real`,
+:func:`check_int`, :func:`check_choice`, :func:`check_bool` and :func:`check_instance`. Every
+module checks its arguments with them, so every bad input reads the same way:
+``"P_bar=-1.0: expected a value in (0, inf)"``.
 
 Choices the paper leaves open (each is a field below, with the reason in its comment):
 
@@ -82,73 +91,202 @@ from __future__ import annotations
 
 import math
 import numbers
+import reprlib
 import warnings
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
 __all__ = [
-    "SystemConfig",
-    "MPCConfig",
-    "LearningConfig",
-    "ConfigWarning",
-    "PRICE_UNIT",
-    "PAPER_TAU",
-    "PAPER_STEP_SIZE",
+    "BACKENDS",
+    "HOURS_PER_DAY",
+    "OPTIMIZERS",
     "PAPER_EXPLORATION_STD",
+    "PAPER_STEP_SIZE",
+    "PAPER_TAU",
+    "PRICE_UNIT",
+    "VALUE_FEATURES",
+    "ConfigWarning",
+    "CoordinationConfig",
+    "InputTypeError",
+    "LearningConfig",
+    "MPCConfig",
+    "SystemConfig",
+    "check_bool",
+    "check_choice",
+    "check_instance",
+    "check_int",
+    "check_real",
 ]
 
 #: Unit of every price in the project (see the module docstring for why).
 PRICE_UNIT = "NOK/MWh"
+
+#: Clock hours in one day of price data; an episode (``SystemConfig.hours_per_day``) lasts at
+#: most this long, since the price matrices (:class:`mpcrl_lite.prices.Prices`) are indexed by
+#: day and clock hour.
+HOURS_PER_DAY = 24
 
 
 class ConfigWarning(UserWarning):
     """A setting that is legal but probably not what the user meant."""
 
 
-def _check_finite(name: str, value: Any) -> None:
-    values = value if isinstance(value, tuple) else (value,)
-    for v in values:
-        if isinstance(v, bool) or not isinstance(v, numbers.Real):
-            raise ValueError(f"{name}={value!r}: expected a real number")
-        if not math.isfinite(float(v)):
-            raise ValueError(f"{name}={value!r}: expected a finite number")
+class InputTypeError(TypeError, ValueError):
+    """A value of the wrong type (a string for a number, an array for a choice, ...).
+
+    A :class:`TypeError` by Python's convention, and a :class:`ValueError` by the project's:
+    every bad input raises a ``ValueError`` whose message names the argument, the value given
+    and what was expected, so one ``except ValueError`` (as in the command line) catches all
+    of them.
+    """
 
 
-def _check_range(
+# -- validators shared by the whole package ---------------------------------------------------
+# Each returns the value normalised to a plain Python type (numpy scalars become int/float/
+# str), so that what was validated is also what is stored and written to JSON.
+
+_shown = reprlib.Repr()
+_shown.maxstring = _shown.maxother = 60
+_shown.maxlist = _shown.maxtuple = _shown.maxdict = _shown.maxset = 6
+
+
+def _show(value: Any) -> str:
+    """A short ``repr`` of a bad value for an error message (long ones are cut)."""
+    return _shown.repr(value)
+
+
+def _interval(low: float | None, high: float | None, low_open: bool, high_open: bool) -> str:
+    lo = "-inf" if low is None else f"{low:g}"
+    hi = "inf" if high is None else f"{high:g}"
+    left = "(" if (low_open or low is None) else "["
+    right = ")" if (high_open or high is None) else "]"
+    return f"{left}{lo}, {hi}{right}"
+
+
+def check_real(
     name: str,
-    value: float,
+    value: Any,
     low: float | None = None,
     high: float | None = None,
+    *,
     low_open: bool = False,
     high_open: bool = False,
-) -> None:
-    _check_finite(name, value)
-    bad = (
-        (low is not None and (value <= low if low_open else value < low))
-        or (high is not None and (value >= high if high_open else value > high))
-    )
-    if bad:
-        lo = "-inf" if low is None else f"{low:g}"
-        hi = "inf" if high is None else f"{high:g}"
-        left = "(" if (low_open or low is None) else "["
-        right = ")" if (high_open or high is None) else "]"
-        raise ValueError(f"{name}={value!r}: expected a value in {left}{lo}, {hi}{right}")
+) -> float:
+    """``value`` as a finite Python ``float`` in the interval given, else an error naming it.
+
+    Parameters
+    ----------
+    name : str
+        What the value is, as the user wrote it (``'P_bar'``, ``'factor'``).
+    value : object
+        Any real number (``int``, ``float``, numpy scalar, ``Fraction``); not ``bool``.
+    low, high : float, optional
+        Bounds (``None``: unbounded); closed unless ``low_open``/``high_open``.
+
+    Returns
+    -------
+    float
+
+    Raises
+    ------
+    InputTypeError
+        If ``value`` is not a real number.
+    ValueError
+        If it is not finite or outside the interval; the message reads
+        ``"P_bar=-1.0: expected a value in (0, inf)"``.
+    """
+    interval = _interval(low, high, low_open, high_open)
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise InputTypeError(
+            f"{name}={_show(value)}: expected a real number in {interval}, "
+            f"got {type(value).__name__}"
+        )
+    try:
+        number = float(value)
+    except OverflowError:  # an int beyond the float range
+        number = math.inf if value > 0 else -math.inf
+    if not math.isfinite(number):
+        raise ValueError(f"{name}={_show(value)}: expected a finite value in {interval}")
+    below = low is not None and (number <= low if low_open else number < low)
+    above = high is not None and (number >= high if high_open else number > high)
+    if below or above:
+        raise ValueError(f"{name}={_show(value)}: expected a value in {interval}")
+    return number
 
 
-def _check_int(name: str, value: Any, low: int) -> None:
+def check_int(
+    name: str, value: Any, low: int | None = None, high: int | None = None, note: str = ""
+) -> int:
+    """``value`` as a Python ``int`` in ``[low, high]``, else an error naming it.
+
+    Accepts ``int`` and numpy integers, not ``bool`` and not floats (``3.0`` is refused:
+    a count written as a float is usually a mistake elsewhere). ``note`` is appended to the
+    message (why the range is what it is).
+
+    Raises
+    ------
+    InputTypeError
+        If ``value`` is not an integer.
+    ValueError
+        If it is outside the range; the message reads ``"n=0: expected an integer >= 1"``.
+    """
+    if low is not None and high is not None:
+        expected = f"an integer in [{low}, {high}]"
+    elif low is not None:
+        expected = f"an integer >= {low}"
+    elif high is not None:
+        expected = f"an integer <= {high}"
+    else:
+        expected = "an integer"
+    suffix = f" ({note})" if note else ""
     if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-        raise ValueError(f"{name}={value!r}: expected an integer >= {low}")
-    if value < low:
-        raise ValueError(f"{name}={value!r}: expected an integer >= {low}")
+        raise InputTypeError(
+            f"{name}={_show(value)}: expected {expected}, got {type(value).__name__}{suffix}"
+        )
+    if (low is not None and value < low) or (high is not None and value > high):
+        raise ValueError(f"{name}={_show(value)}: expected {expected}{suffix}")
+    return int(value)
 
 
-def _check_choice(name: str, value: Any, choices: tuple[str, ...]) -> None:
+def check_choice(name: str, value: Any, choices: Sequence[str]) -> str:
+    """``value`` as one of the strings ``choices``, else an error naming it and the choices.
+
+    Only strings are compared (an array or a list is refused with the same message instead
+    of numpy's "truth value of an array is ambiguous").
+    """
+    expected = f"expected one of {', '.join(map(repr, choices))}"
+    if not isinstance(value, str):
+        raise InputTypeError(f"{name}={_show(value)}: {expected}, got {type(value).__name__}")
     if value not in choices:
-        raise ValueError(f"{name}={value!r}: expected one of {', '.join(map(repr, choices))}")
+        raise ValueError(f"{name}={_show(value)}: {expected}")
+    return str(value)
+
+
+def check_bool(name: str, value: Any) -> bool:
+    """``value`` if it is ``True`` or ``False`` (not ``0``/``1``), else an error naming it."""
+    if not isinstance(value, bool):
+        raise InputTypeError(
+            f"{name}={_show(value)}: expected True or False, got {type(value).__name__}"
+        )
+    return value
+
+
+def check_instance(name: str, value: Any, kind: type | tuple[type, ...]) -> Any:
+    """``value`` unchanged if it is an instance of ``kind``, else an error naming it."""
+    if not isinstance(value, kind):
+        kinds = kind if isinstance(kind, tuple) else (kind,)
+        expected = " or ".join(k.__name__ for k in kinds)
+        raise InputTypeError(f"{name}: expected a {expected}, got {type(value).__name__}")
+    return value
 
 
 class _Config:
     """Shared helpers: ``replace`` with validation, and plain-dict round trips."""
+
+    def _set(self, name: str, value: Any) -> None:
+        """Store the validated, normalised ``value`` of a field (the dataclass is frozen)."""
+        object.__setattr__(self, name, value)
 
     def replace(self, **changes: Any):
         """A copy with ``changes`` applied (validated like a new instance)."""
@@ -209,8 +347,9 @@ class SystemConfig(_Config):
     """Discount factor, in (0, 1]."""
     N: int = 12
     """MPC horizon in hours (prices are known about 12 hours ahead)."""
-    hours_per_day: int = 24
-    """Length of one episode; soc restarts at ``soc0`` every day."""
+    hours_per_day: int = HOURS_PER_DAY
+    """Length of one episode in hours, at most :data:`HOURS_PER_DAY` (the price data has 24
+    clock hours a day); soc restarts at ``soc0`` every day."""
     sample_time_h: float = 1.0
     """Sampling time in hours (informational: the dynamics are written per sample)."""
     sell_ratio: float = 0.5
@@ -221,31 +360,41 @@ class SystemConfig(_Config):
     """soc of every battery at the start of each day (text: 0.6; Table I says 0.5)."""
 
     def __post_init__(self) -> None:
-        _check_int("n", self.n, 1)
-        _check_range("alpha", self.alpha, 0.0, low_open=True)
-        _check_range("noise_mean", self.noise_mean)
-        _check_range("noise_var", self.noise_var, 0.0)
-        _check_range("U_bar", self.U_bar, 0.0, low_open=True)
-        _check_range("P_bar", self.P_bar, 0.0, low_open=True)
+        set_ = self._set
+        set_("n", check_int("n", self.n, 1))
+        set_("alpha", check_real("alpha", self.alpha, 0.0, low_open=True))
+        set_("noise_mean", check_real("noise_mean", self.noise_mean))
+        set_("noise_var", check_real("noise_var", self.noise_var, 0.0))
+        set_("U_bar", check_real("U_bar", self.U_bar, 0.0, low_open=True))
+        set_("P_bar", check_real("P_bar", self.P_bar, 0.0, low_open=True))
         for name in ("omega", "omega_f"):
             value = getattr(self, name)
-            if not isinstance(value, tuple) or len(value) != 2:
-                raise ValueError(f"{name}={value!r}: expected a pair (above, below) of weights >= 0")
-            for v in value:
-                _check_range(name, v, 0.0)
-        _check_range("p", self.p, 0.0)
-        _check_range("soc_low", self.soc_low, 0.0, 1.0)
-        _check_range("soc_high", self.soc_high, self.soc_low, 1.0)
-        _check_range("gamma", self.gamma, 0.0, 1.0, low_open=True)
-        _check_int("N", self.N, 1)
-        _check_int("hours_per_day", self.hours_per_day, 1)
-        _check_range("sample_time_h", self.sample_time_h, 0.0, low_open=True)
-        _check_range("sell_ratio", self.sell_ratio, 0.0)
-        _check_range("price_scale", self.price_scale, 0.0)
-        _check_range("soc0", self.soc0, 0.0, 1.0)
-        if self.P_bar >= self.n * self.U_bar:
+            expected = f"{name}={_show(value)}: expected a pair (above, below) of weights >= 0"
+            if not isinstance(value, tuple):
+                raise InputTypeError(f"{expected}, got {type(value).__name__}")
+            if len(value) != 2:
+                raise ValueError(f"{expected}, got {len(value)} value(s)")
+            set_(name, tuple(check_real(name, v, 0.0) for v in value))
+        set_("p", check_real("p", self.p, 0.0))
+        set_("soc_low", check_real("soc_low", self.soc_low, 0.0, 1.0))
+        set_("soc_high", check_real("soc_high", self.soc_high, self.soc_low, 1.0))
+        set_("gamma", check_real("gamma", self.gamma, 0.0, 1.0, low_open=True))
+        set_("N", check_int("N", self.N, 1))
+        set_("hours_per_day", check_int(
+            "hours_per_day", self.hours_per_day, 1, HOURS_PER_DAY,
+            note=f"a day of the price data has {HOURS_PER_DAY} clock hours",
+        ))
+        set_("sample_time_h", check_real("sample_time_h", self.sample_time_h, 0.0, low_open=True))
+        set_("sell_ratio", check_real("sell_ratio", self.sell_ratio, 0.0))
+        set_("price_scale", check_real("price_scale", self.price_scale, 0.0))
+        set_("soc0", check_real("soc0", self.soc0, 0.0, 1.0))
+        try:
+            reach = self.n * self.U_bar  # the most all batteries can buy (or sell) at once
+        except OverflowError:  # an n beyond the float range
+            reach = math.inf
+        if self.P_bar >= reach:
             warnings.warn(
-                f"P_bar={self.P_bar:g} >= n*U_bar={self.n * self.U_bar:g}: "
+                f"P_bar={self.P_bar:g} >= n*U_bar={reach:g}: "
                 "the grid peak limit can never bind",
                 ConfigWarning,
                 stacklevel=3,
@@ -296,22 +445,22 @@ class MPCConfig(_Config):
     """KKT matrices with a larger condition estimate are reported as ill-conditioned."""
 
     def __post_init__(self) -> None:
-        _check_range("tau", self.tau, 0.0, 1.0, low_open=True)
-        _check_choice("backend", self.backend, BACKENDS)
-        _check_range("tol", self.tol, 0.0, 1.0, low_open=True)
-        _check_int("max_iter", self.max_iter, 1)
-        if not isinstance(self.warm_start, bool):
-            raise ValueError(f"warm_start={self.warm_start!r}: expected True or False")
-        _check_range("kkt_cond_max", self.kkt_cond_max, 1.0, low_open=True)
+        set_ = self._set
+        set_("tau", check_real("tau", self.tau, 0.0, 1.0, low_open=True))
+        set_("backend", check_choice("backend", self.backend, BACKENDS))
+        set_("tol", check_real("tol", self.tol, 0.0, 1.0, low_open=True))
+        set_("max_iter", check_int("max_iter", self.max_iter, 1))
+        set_("warm_start", check_bool("warm_start", self.warm_start))
+        set_("kkt_cond_max", check_real("kkt_cond_max", self.kkt_cond_max, 1.0, low_open=True))
 
     @classmethod
-    def paper(cls, **changes: Any) -> "MPCConfig":
+    def paper(cls, **changes: Any) -> MPCConfig:
         """The nearly exact MPC, ``tau = PAPER_TAU = 1e-4`` (the paper does not give a
         barrier value); ``changes`` override any field."""
         return cls(**{"tau": PAPER_TAU, **changes})
 
 
-#: Names of the DPG update rules in :mod:`mpcrl_lite.dpg`.
+#: Names of the DPG update rules (:data:`mpcrl_lite.update_rules.UPDATE_RULES`).
 OPTIMIZERS = ("sgd", "adam")
 #: Feature sets of the critic's value baseline (see :data:`mpcrl_lite.lstd.FEATURE_SETS`).
 VALUE_FEATURES = ("paper", "paper+hour", "hour")
@@ -370,26 +519,25 @@ class LearningConfig(_Config):
     month is evaluated on the same draw)."""
 
     def __post_init__(self) -> None:
-        _check_range("step_size", self.step_size, 0.0)
-        _check_int("months", self.months, 1)
-        _check_int("days_per_month", self.days_per_month, 1)
-        _check_range("exploration_std", self.exploration_std, 0.0)
-        _check_range("ridge", self.ridge, 0.0)
-        _check_choice("value_features", self.value_features, VALUE_FEATURES)
-        if not isinstance(self.learn_constants, bool):
-            raise ValueError(f"learn_constants={self.learn_constants!r}: expected True or False")
-        _check_choice("optimizer", self.optimizer, OPTIMIZERS)
+        set_ = self._set
+        set_("step_size", check_real("step_size", self.step_size, 0.0))
+        set_("months", check_int("months", self.months, 1))
+        set_("days_per_month", check_int("days_per_month", self.days_per_month, 1))
+        set_("exploration_std", check_real("exploration_std", self.exploration_std, 0.0))
+        set_("ridge", check_real("ridge", self.ridge, 0.0))
+        set_("value_features", check_choice("value_features", self.value_features, VALUE_FEATURES))
+        set_("learn_constants", check_bool("learn_constants", self.learn_constants))
+        set_("optimizer", check_choice("optimizer", self.optimizer, OPTIMIZERS))
         if self.grad_clip is not None:
-            _check_range("grad_clip", self.grad_clip, 0.0, low_open=True)
-        if not isinstance(self.keep_well_posed, bool):
-            raise ValueError(f"keep_well_posed={self.keep_well_posed!r}: expected True or False")
-        _check_range("alpha_min", self.alpha_min, 0.0, low_open=True)
-        _check_int("seed", self.seed, 0)
-        _check_int("eval_every", self.eval_every, 0)
-        _check_int("eval_seed", self.eval_seed, 0)
+            set_("grad_clip", check_real("grad_clip", self.grad_clip, 0.0, low_open=True))
+        set_("keep_well_posed", check_bool("keep_well_posed", self.keep_well_posed))
+        set_("alpha_min", check_real("alpha_min", self.alpha_min, 0.0, low_open=True))
+        set_("seed", check_int("seed", self.seed, 0))
+        set_("eval_every", check_int("eval_every", self.eval_every, 0))
+        set_("eval_seed", check_int("eval_seed", self.eval_seed, 0))
 
     @classmethod
-    def paper(cls, **changes: Any) -> "LearningConfig":
+    def paper(cls, **changes: Any) -> LearningConfig:
         """The paper's literal learning rule: plain gradient steps of 5e-8 (Table I), the
         paper's value features and a small exploration (0.05 MW). ``changes`` override any
         field."""
@@ -400,3 +548,28 @@ class LearningConfig(_Config):
             "value_features": "paper",
         }
         return cls(**{**base, **changes})
+
+
+@dataclass(frozen=True)
+class CoordinationConfig(_Config):
+    """How the decentralized MPCs are coordinated on the grid limit.
+
+    Used by :class:`mpcrl_lite.coordination.CoordinatedMPC`: per-stage grid prices found with
+    a decomposed Newton method (see that module's docstring).
+    """
+
+    tol: float = 1e-11
+    """Stop when every KKT residual is at most ``tol * (1 + max |q|)`` (``q``: local linear
+    costs, i.e. prices and slack weights)."""
+    max_iter: int = 60
+    """Coordination rounds per hour before the fallback (local IPOPT + projection)."""
+    local_grid_factor: float = 1e4
+    """The local MPC is the paper's MPC with ``n = 1`` and its grid row ``b <= P_loc`` made
+    inert by ``P_loc = local_grid_factor * max(U_bar, P_bar)``; that row's barrier moves the
+    solution by ~1e-10 (the real limit is priced, not constrained per battery)."""
+
+    def __post_init__(self) -> None:
+        set_ = self._set
+        set_("tol", check_real("tol", self.tol, 0.0, 1e-2, low_open=True))
+        set_("max_iter", check_int("max_iter", self.max_iter, 1))
+        set_("local_grid_factor", check_real("local_grid_factor", self.local_grid_factor, 10.0))

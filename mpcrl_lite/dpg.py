@@ -17,7 +17,8 @@ and the paper's update is the plain gradient step
 
 :class:`DPGUpdater` applies that step (``optimizer='sgd'``) or an Adam step (the default), only
 to the learnable parts of theta, with optional clipping of the step and an optional projection
-that keeps the MPC a convex QP with a unique solution.
+that keeps the MPC a convex QP with a unique solution. The update rules themselves (one class
+each) live in :mod:`mpcrl_lite.update_rules`.
 
 Why Adam with per-part scales by default: theta's parts have unrelated units (a model gain of
 order 1/12, price corrections in NOK/MWh, soc cost weights in NOK), so one step size cannot
@@ -29,37 +30,40 @@ about ``step_size`` times its typical magnitude (:data:`DEFAULT_SCALE`), whateve
 
 from __future__ import annotations
 
-import math
 import warnings
 from typing import Any
 
 import numpy as np
 
-from .config import ConfigWarning, LearningConfig, SystemConfig
+from .config import (
+    ConfigWarning,
+    LearningConfig,
+    SystemConfig,
+    check_instance,
+    check_int,
+    check_real,
+)
 from .theta import CONSTANT_PARTS, PARTS, Theta
+from .update_rules import (
+    ADAM_BETAS,
+    ADAM_EPS,
+    ADAM_STEP_SIZE,
+    STATE_KEYS,
+    UpdateRule,
+    make_update_rule,
+)
 
 __all__ = [
-    "policy_gradient",
-    "learnable_mask",
-    "DPGUpdater",
     "ADAM_BETAS",
     "ADAM_EPS",
     "ADAM_STEP_SIZE",
     "DEFAULT_SCALE",
+    "DPGUpdater",
+    "learnable_mask",
     "part_scales",
+    "policy_gradient",
 ]
 
-#: Adam's moment decay rates (beta1, beta2), the usual defaults.
-ADAM_BETAS: tuple[float, float] = (0.9, 0.999)
-#: Adam's denominator guard.
-ADAM_EPS: float = 1e-8
-#: A sensible ``LearningConfig.step_size`` for ``optimizer='adam'`` (the default): each
-#: learnable entry moves by at most about 2 % of its scale per update (see
-#: :class:`DPGUpdater`). Measured on the paper's system: 0.05 lets the first, noisiest
-#: months push single batteries far in a wrong direction (one battery then keeps selling
-#: into the penalised zone for tens of months, in 2 of 3 seeds); with 0.02 all 6 seeds tried
-#: learned within 100 months.
-ADAM_STEP_SIZE: float = 2e-2
 
 #: Typical magnitude of each part of theta for Adam, for prices in NOK/MWh (multiplied by
 #: ``SystemConfig.price_scale`` in :meth:`DPGUpdater.from_configs`). ``None`` means "the true
@@ -85,12 +89,8 @@ def part_scales(system_alpha: float, price_scale: float = 1.0) -> dict[str, floa
     """:data:`DEFAULT_SCALE` made concrete: ``alpha``/``delta`` get ``system_alpha``, the cost
     parts are multiplied by ``price_scale`` (the ``SystemConfig.price_scale`` of the prices).
     """
-    system_alpha = float(system_alpha)
-    price_scale = float(price_scale)
-    if not (math.isfinite(system_alpha) and system_alpha > 0):
-        raise ValueError(f"system_alpha={system_alpha!r}: expected a finite value > 0")
-    if not (math.isfinite(price_scale) and price_scale > 0):
-        raise ValueError(f"price_scale={price_scale!r}: expected a finite value > 0")
+    system_alpha = check_real("system_alpha", system_alpha, 0.0, low_open=True)
+    price_scale = check_real("price_scale", price_scale, 0.0, low_open=True)
     return {
         name: system_alpha if value is None else value * price_scale
         for name, value in DEFAULT_SCALE.items()
@@ -144,8 +144,7 @@ def learnable_mask(n: int, learn_constants: bool = False) -> np.ndarray:
     -------
     mask : bool array, shape ``(10 n,)``
     """
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
-        raise ValueError(f"n={n!r}: expected an integer >= 1")
+    n = check_int("n", n, 1)
     if learn_constants:
         return np.ones(len(PARTS) * n, dtype=bool)
     return ~Theta.mask(n, CONSTANT_PARTS)
@@ -165,9 +164,9 @@ class DPGUpdater:
         The true battery factor ``SystemConfig.alpha``: the natural scale of the model parts
         ``alpha`` and ``delta`` for Adam, and a sanity check of ``alpha_min``.
     betas : (float, float), default :data:`ADAM_BETAS`
-        Adam's decay rates of the first and second moments.
+        Adam only: decay rates of the first and second moments.
     eps : float, default :data:`ADAM_EPS`
-        Adam's denominator guard.
+        Adam only: denominator guard.
     scale : dict, optional
         Adam only: typical magnitude of each part, ``{part: float}``; parts not given keep
         the default of :func:`part_scales` (``system_alpha`` for ``alpha`` and ``delta``,
@@ -175,11 +174,21 @@ class DPGUpdater:
     price_scale : float, default 1
         Multiplier of the default scales of the cost parts (prices not in NOK/MWh).
 
+    Attributes
+    ----------
+    rule : UpdateRule
+        The update rule named by ``config.optimizer`` (:data:`~mpcrl_lite.update_rules.
+        UPDATE_RULES`), which turns each masked gradient into the step's direction.
+    scale : array, shape ``(10 n,)``
+        Typical magnitude of each entry (used by Adam and by ``grad_norm_scaled``).
+
     Notes
     -----
-    **Direction.** With ``'sgd'`` the direction is the gradient itself, the paper's rule
+    **Direction** (:mod:`mpcrl_lite.update_rules`). With ``'sgd'``
+    (:class:`~mpcrl_lite.update_rules.GradientDescent`) the direction is the gradient itself,
+    the paper's rule
     :math:`\theta \leftarrow \theta - \alpha\nabla_\theta J` (``step_size`` = the paper's
-    :math:`\alpha`, 5e-8). With ``'adam'`` it is
+    :math:`\alpha`, 5e-8). With ``'adam'`` (:class:`~mpcrl_lite.update_rules.Adam`) it is
 
     .. math::
 
@@ -221,22 +230,14 @@ class DPGUpdater:
         scale: dict[str, float] | None = None,
         price_scale: float = 1.0,
     ) -> None:
-        if not isinstance(config, LearningConfig):
-            raise ValueError(f"config={config!r}: expected a LearningConfig")
-        self.config = config
+        self.config = check_instance("config", config, LearningConfig)
         self.mask = learnable_mask(n, config.learn_constants)
         self.n = int(n)
-        system_alpha = float(system_alpha)
-        if not (math.isfinite(system_alpha) and system_alpha > 0):
-            raise ValueError(f"system_alpha={system_alpha!r}: expected a finite value > 0")
-        self.system_alpha = system_alpha
-        if len(betas) != 2 or not all(0.0 <= b < 1.0 for b in betas):
-            raise ValueError(f"betas={betas!r}: expected two values in [0, 1)")
-        self.betas = (float(betas[0]), float(betas[1]))
-        if not (math.isfinite(eps) and eps > 0):
-            raise ValueError(f"eps={eps!r}: expected a finite value > 0")
-        self.eps = float(eps)
+        self.system_alpha = check_real("system_alpha", system_alpha, 0.0, low_open=True)
         self.scale = self._scale_vector(scale or {}, price_scale)
+        self.rule: UpdateRule = make_update_rule(
+            config.optimizer, len(PARTS) * self.n, scale=self.scale, betas=betas, eps=eps
+        )
         if config.keep_well_posed and config.alpha_min >= system_alpha:
             warnings.warn(
                 f"alpha_min={config.alpha_min:g} >= system alpha={system_alpha:g}: the "
@@ -244,14 +245,9 @@ class DPGUpdater:
                 ConfigWarning,
                 stacklevel=2,
             )
-        if config.optimizer == "adam" and config.step_size < 1e-4:
-            warnings.warn(
-                f"step_size={config.step_size:g} with optimizer='adam': Adam's step size is a "
-                f"relative move per update, so theta will hardly change; try "
-                f"{ADAM_STEP_SIZE:g}",
-                ConfigWarning,
-                stacklevel=2,
-            )
+        doubt = self.rule.step_size_warning(config.step_size)
+        if doubt:
+            warnings.warn(doubt, ConfigWarning, stacklevel=2)
         self._lower = np.full(len(PARTS) * self.n, -np.inf)
         self._lower[Theta.index(self.n, "alpha")] = config.alpha_min
         self._lower[Theta.index(self.n, "phi1")] = 0.0
@@ -274,34 +270,36 @@ class DPGUpdater:
             )
         parts = part_scales(self.system_alpha, price_scale)
         for name, value in scale.items():
-            value = float(value)
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"scale[{name!r}]={value!r}: expected a finite value > 0")
-            parts[name] = value
+            parts[name] = check_real(f"scale[{name!r}]", value, 0.0, low_open=True)
         return np.repeat([parts[name] for name in PARTS], self.n)
 
     # -- state ----------------------------------------------------------------------------
     def reset(self) -> None:
-        """Forget the optimizer state (step count and Adam's moments)."""
-        size = len(PARTS) * self.n
+        """Forget the optimizer state (step count and the rule's state, e.g. Adam's
+        moments)."""
         self.step_count = 0
-        self._m = np.zeros(size)
-        self._v = np.zeros(size)
+        self.rule.reset()
         self.last_info: dict[str, Any] = {}
 
     def state_dict(self) -> dict[str, Any]:
-        """JSON-friendly state (lists, floats, ints, str): enough to resume exactly."""
+        """JSON-friendly state (lists, floats, ints, str): enough to resume exactly.
+
+        Keys ``optimizer``, ``n``, ``step_count``, ``m`` and ``v`` for every rule (``m`` and
+        ``v`` are Adam's moments, zeros for a rule that keeps none), so checkpoints of every
+        rule, old and new, share one layout.
+        """
+        arrays = self.rule.state_arrays()
+        zeros = np.zeros(len(PARTS) * self.n)
         return {
             "optimizer": self.config.optimizer,
             "n": self.n,
             "step_count": int(self.step_count),
-            "m": self._m.tolist(),
-            "v": self._v.tolist(),
+            **{key: arrays.get(key, zeros).tolist() for key in STATE_KEYS},
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore a :meth:`state_dict` (same optimizer and ``n`` required)."""
-        expected = {"optimizer", "n", "step_count", "m", "v"}
+        expected = {"optimizer", "n", "step_count", *STATE_KEYS}
         if set(state) != expected:
             raise ValueError(f"state has keys {sorted(state)}; expected {sorted(expected)}")
         if state["optimizer"] != self.config.optimizer:
@@ -315,7 +313,7 @@ class DPGUpdater:
             raise ValueError(f"state step_count={count!r}: expected an integer >= 0")
         size = len(PARTS) * self.n
         moments = {}
-        for key in ("m", "v"):
+        for key in STATE_KEYS:
             value = np.asarray(state[key], dtype=float)
             if value.shape != (size,) or not np.all(np.isfinite(value)):
                 raise ValueError(
@@ -323,7 +321,7 @@ class DPGUpdater:
                 )
             moments[key] = value
         self.step_count = count
-        self._m, self._v = moments["m"], moments["v"]
+        self.rule.load_state_arrays(moments)
 
     # -- update ---------------------------------------------------------------------------
     def step(self, theta: Theta, grad: np.ndarray) -> Theta:
@@ -350,16 +348,7 @@ class DPGUpdater:
             raise ValueError("grad contains non-finite values (nan or inf)")
         g = np.where(self.mask, grad, 0.0)
         self.step_count += 1
-        if self.config.optimizer == "sgd":
-            direction = g
-        else:
-            b1, b2 = self.betas
-            t = self.step_count
-            self._m = b1 * self._m + (1.0 - b1) * g
-            self._v = b2 * self._v + (1.0 - b2) * g**2
-            m_hat = self._m / (1.0 - b1**t)
-            v_hat = self._v / (1.0 - b2**t)
-            direction = self.scale * m_hat / (np.sqrt(v_hat) + self.eps)
+        direction = self.rule.direction(g, self.step_count)
         step = self.config.step_size * direction
         raw_norm = float(np.linalg.norm(step))
         clip = self.config.grad_clip

@@ -50,7 +50,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.ticker import MultipleLocator
 
-from .config import PRICE_UNIT, SystemConfig
+from .config import PRICE_UNIT, SystemConfig, check_instance, check_int
 from .history import History, MonthRecord
 from .prices import Prices
 from .theta import PARTS
@@ -147,31 +147,22 @@ def _axes_or_new(
     return _root_figure(given[0]), given
 
 
-def _check_int(name: str, value: object, low: int, high: int) -> int:
-    """``value`` as an int in ``[low, high)``, else a ValueError naming it."""
-    integral = isinstance(value, numbers.Integral) and not isinstance(value, bool)
-    if not integral or not low <= value < high:
-        raise ValueError(f"{name}={value!r}: expected an integer in [{low}, {high})")
-    return int(value)
-
-
 def _select_days(days: int | Sequence[int] | None, available: int) -> list[int]:
     """Day indices from ``None`` (the first five, or fewer), a count, or explicit indices."""
     if days is None:
         return list(range(min(_DEFAULT_DAYS, available)))
     if isinstance(days, numbers.Integral) and not isinstance(days, bool):
-        count = _check_int("days", days, 1, available + 1)
+        count = check_int("days", days, 1, available)
         return list(range(count))
     if isinstance(days, (str, bytes)) or not isinstance(days, Sequence) or len(days) == 0:
         raise ValueError(
             f"days={days!r}: expected a number of days or a non-empty sequence of day indices"
         )
-    return [_check_int("day", d, 0, available) for d in days]
+    return [check_int("day", d, 0, available - 1) for d in days]
 
 
 def _history_months(history: History, need_records: bool = False) -> int:
-    if not isinstance(history, History):
-        raise ValueError(f"history: expected a History, got {type(history).__name__}")
+    check_instance("history", history, History)
     if history.months == 0:
         raise ValueError("history has no months recorded")
     if need_records and (history.first_month is None or history.last_month is None):
@@ -288,7 +279,7 @@ def plot_day(
     """
     system = record.system
     H, D, n = record.policy.shape
-    day = _check_int("day", day, 0, D)
+    day = check_int("day", day, 0, D - 1)
     if prices is not None:
         if day >= prices.days:
             raise ValueError(f"day={day}: prices have only {prices.days} day(s)")
@@ -458,7 +449,7 @@ def fig2_performance(
     """
     months = _history_months(history)
     if rolling is not None:
-        rolling = _check_int("rolling", rolling, 1, 10**9)
+        rolling = check_int("rolling", rolling, 1)
     fig, (ax,) = _axes_or_new(ax, (1, 1), (7.0, 4.0), "ax")
     x = np.arange(1, months + 1)
     J = np.asarray(history.J, dtype=float)
@@ -690,8 +681,7 @@ def fig6_prices(
     -----
     Line gids: ``"buy day d"`` (days counted from 1).
     """
-    if not isinstance(prices, Prices):
-        raise ValueError(f"prices: expected a Prices, got {type(prices).__name__}")
+    check_instance("prices", prices, Prices)
     chosen = _select_days(days, prices.days)
     fig, (ax,) = _axes_or_new(ax, (1, 1), (7.0, 4.0), "ax")
     colors = plt.get_cmap("viridis")(np.linspace(0.0, 0.85, len(chosen)))

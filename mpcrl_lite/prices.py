@@ -20,8 +20,7 @@ Three layers, each usable alone:
 from __future__ import annotations
 
 import datetime as _dt
-import math
-import numbers
+import io
 import re
 from dataclasses import dataclass
 from functools import lru_cache
@@ -30,24 +29,31 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .config import PRICE_UNIT, SystemConfig
+from .config import (
+    HOURS_PER_DAY,
+    PRICE_UNIT,
+    InputTypeError,
+    SystemConfig,
+    check_instance,
+    check_int,
+    check_real,
+)
+from .resources import candidate_folders, package_folder
 
 __all__ = [
     "DATA_DIR",
     "HOURS_PER_DAY",
     "LOCAL_TZ",
-    "load_default_profile",
-    "nordpool_areas",
-    "load_nordpool_csv",
-    "daily_matrix",
     "Prices",
+    "daily_matrix",
+    "load_default_profile",
+    "load_nordpool_csv",
+    "nordpool_areas",
 ]
 
-#: Folder of the shipped data, found through the package (never through the working directory).
-DATA_DIR: Path = Path(__file__).resolve().parent.parent / "data"
-
-#: Hours in one day of a price matrix (clock hours 0..23).
-HOURS_PER_DAY = 24
+#: Folder of the shipped data, found through the package (never through the working directory):
+#: ``mpcrl_lite/data`` in an installed wheel, the repository's ``data/`` in a checkout.
+DATA_DIR: Path = package_folder("data")
 
 #: Local time zone of Nord Pool's Nordic exports (CET/CEST).
 LOCAL_TZ = "Europe/Oslo"
@@ -76,8 +82,8 @@ def _default_profile_cached() -> np.ndarray:
     for path in (shape_path, daily_path):
         if not path.is_file():
             raise FileNotFoundError(
-                f"default price data {path} not found; expected it in the package's data "
-                f"folder {DATA_DIR}"
+                f"default price data {path.name} not found; expected it in the package's data "
+                f"folder, one of {[str(p) for p in candidate_folders('data')]}"
             )
     shape = pd.read_csv(shape_path)
     daily = pd.read_csv(daily_path, parse_dates=["date"])
@@ -120,8 +126,14 @@ def load_default_profile() -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 
 
-def _read_export(path: str | Path) -> tuple[Path, list[str], pd.DataFrame]:
-    """Header names and the data rows (all cells as stripped strings) of an export."""
+def _read_export(path: str | Path) -> tuple[Path, list[str], pd.DataFrame, np.ndarray]:
+    """Header names, the data rows (all cells as stripped strings) and their line numbers.
+
+    Every data row must have exactly as many cells as the header line (a trailing ``;``
+    counts as a cell): the areas are addressed by position, so a missing or extra ``;`` would
+    move prices to another area's column, and with a trailing ``;`` a row that lacks one cell
+    cannot be told from a row whose last area is empty.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"Nord Pool export {path} not found")
@@ -130,43 +142,47 @@ def _read_export(path: str | Path) -> tuple[Path, list[str], pd.DataFrame]:
         "line has an empty first cell, then 'Hours', then area names (e.g. ';Hours;SYS;...;"
         "Tr.heim;...')"
     )
-    # utf-8-sig drops the byte-order mark; universal newlines handle CRLF.
+    raw = path.read_bytes()
     try:
-        with path.open(encoding="utf-8-sig") as handle:
-            head = [line for _, line in zip(range(_HEADER_SEARCH_LINES), handle)]
+        text = raw.decode("utf-8-sig")  # drops the byte-order mark
     except UnicodeDecodeError as err:
-        raise ValueError(f"{not_export}; the file is not UTF-8 text ({err.reason})") from None
+        line = raw[: err.start].count(b"\n") + 1
+        raise ValueError(
+            f"{not_export}; line {line} is not UTF-8 text ({err.reason})"
+        ) from None
+    # Universal newlines (CRLF, LF, CR) and nothing else: str.splitlines would also split at
+    # characters such as U+2028 inside a cell.
+    lines = [line.rstrip("\n") for line in io.StringIO(text, newline=None)]
     header_row = None
-    for i, line in enumerate(head):
-        cells = [c.strip() for c in line.rstrip("\r\n").split(";")]
+    for i, line in enumerate(lines[:_HEADER_SEARCH_LINES]):
+        cells = [c.strip() for c in line.split(";")]
         if len(cells) >= 3 and cells[0] == "" and cells[1].lower() == "hours":
             header_row = i
             break
     if header_row is None:
-        raise ValueError(f"{not_export}; no such line among the first {len(head)} lines")
-    names = [c.strip() for c in head[header_row].rstrip("\r\n").split(";")]
+        shown = min(len(lines), _HEADER_SEARCH_LINES)
+        raise ValueError(f"{not_export}; no such line among the first {shown} lines")
+    names = [c.strip() for c in lines[header_row].split(";")]
+    width = len(names)
     # Trailing empty header cells (a trailing ';') carry no area.
     while names and names[-1] == "":
         names.pop()
-    # Columns are addressed by position; the names (which repeat) are kept aside.
-    rows = pd.read_csv(
-        path,
-        sep=";",
-        header=None,
-        skiprows=header_row + 1,
-        names=list(range(len(names))),
-        usecols=list(range(len(names))),
-        index_col=False,
-        dtype=str,
-        keep_default_na=False,
-        na_filter=False,
-        encoding="utf-8-sig",
-        skip_blank_lines=True,
-    )
-    rows = rows.apply(lambda col: col.str.strip())
-    # Lines made only of separators (padding at the end of some exports) are not data.
-    rows = rows[(rows != "").any(axis=1)].reset_index(drop=True)
-    return path, names, rows
+    rows, numbers_ = [], []
+    for number, line in enumerate(lines[header_row + 1 :], start=header_row + 2):
+        cells = [c.strip() for c in line.split(";")]
+        # Lines made only of separators (padding at the end of some exports) are not data.
+        if not any(cells):
+            continue
+        if len(cells) != width:
+            raise ValueError(
+                f"{path}: line {number} has {len(cells)} ';'-separated cells, the header "
+                f"(line {header_row + 1}) has {width}; expected one cell per header column "
+                "(a missing or extra ';' would move prices to another area)"
+            )
+        rows.append(cells[: len(names)])
+        numbers_.append(number)
+    frame = pd.DataFrame(rows, columns=range(len(names)), dtype=object).astype(str)
+    return path, names, frame, np.asarray(numbers_, dtype=int)
 
 
 def _area_list(names: list[str]) -> list[str]:
@@ -186,12 +202,13 @@ def nordpool_areas(path: str | Path) -> list[str]:
     list of str
         E.g. ``['SYS', 'SE1', ..., 'Molde', 'Tr.heim', 'Tromsø', 'EE', ...]``.
     """
-    _, names, _ = _read_export(path)
+    _, names, _, _ = _read_export(path)
     return _area_list(names)
 
 
 def _parse_prices(cells: pd.Series, path: Path, area: str, where: pd.Series) -> pd.Series:
-    """Decimal-comma strings to floats; empty cells become NaN, anything else is an error."""
+    """Decimal-comma strings to floats; empty cells become NaN, anything else that is not a
+    finite number is an error naming the line."""
     text = cells.str.replace(r"[\s\u00a0]", "", regex=True)
     # A comma is the decimal mark; a '.' next to a comma can only group thousands.
     has_comma = text.str.contains(",", regex=False)
@@ -202,8 +219,15 @@ def _parse_prices(cells: pd.Series, path: Path, area: str, where: pd.Series) -> 
     if bad.any():
         i = bad.to_numpy().nonzero()[0][0]
         raise ValueError(
-            f"{path}: area {area!r}, row {where.iloc[i]}: cannot read price "
+            f"{path}: area {area!r}, {where.iloc[i]}: cannot read price "
             f"{cells.iloc[i]!r}; expected a number with a decimal comma such as '304,19'"
+        )
+    infinite = np.isinf(values.to_numpy())
+    if infinite.any():
+        i = infinite.nonzero()[0][0]
+        raise ValueError(
+            f"{path}: area {area!r}, {where.iloc[i]}: price {cells.iloc[i]!r} is not finite; "
+            "expected a finite number with a decimal comma such as '304,19'"
         )
     return values
 
@@ -221,6 +245,9 @@ def load_nordpool_csv(path: str | Path, area: str = "Tr.heim") -> pd.Series:
       by name, never by position, since other exports order their columns differently.
     * Dates ``DD.MM.YYYY``; hours ``00 - 01`` .. ``23 - 00`` in local time (Europe/Oslo).
     * Empty cells mean "no price" and are dropped.
+    * Every data line has exactly as many ``;``-separated cells as the header line (lines of
+      separators only are padding and skipped): areas are addressed by position, so a line
+      with a cell too many or too few would read its prices into the wrong areas.
 
     **Repeated area names** (``EE;EE``, ``LV;LV``, ...): row by row, the first of the
     same-named columns that holds a value is used (in Nord Pool's exports only one of them is
@@ -254,9 +281,11 @@ def load_nordpool_csv(path: str | Path, area: str = "Tr.heim") -> pd.Series:
         If ``path`` does not exist.
     ValueError
         If the file is not such an export, ``area`` is not one of its columns (the message
-        lists those available), the area has no prices, or a date, hour or price cannot be read.
+        lists those available), the area has no prices, a line has more or fewer cells than
+        the header, or a date, hour or price cannot be read or a price is not finite (``inf``,
+        ``1e999``); the message names the file and the line.
     """
-    path, names, rows = _read_export(path)
+    path, names, rows, line = _read_export(path)
     areas = _area_list(names)
     if area not in areas:
         raise ValueError(
@@ -264,7 +293,7 @@ def load_nordpool_csv(path: str | Path, area: str = "Tr.heim") -> pd.Series:
         )
     if rows.empty:
         raise ValueError(f"{path}: the export has a header but no data rows")
-    where = rows[0] + " " + rows[1]
+    where = "line " + pd.Series(line).astype(str) + " (" + rows[0] + " " + rows[1] + ")"
 
     columns = [i for i, name in enumerate(names) if name == area]
     parsed = [_parse_prices(rows[i], path, area, where) for i in columns]
@@ -274,8 +303,8 @@ def load_nordpool_csv(path: str | Path, area: str = "Tr.heim") -> pd.Series:
         if clash.any():
             i = clash.to_numpy().nonzero()[0][0]
             raise ValueError(
-                f"{path}: area {area!r} appears in several columns with different prices in "
-                f"row {where.iloc[i]} ({values.iloc[i]:g} vs {other.iloc[i]:g})"
+                f"{path}: area {area!r} appears in several columns with different prices on "
+                f"{where.iloc[i]} ({values.iloc[i]:g} vs {other.iloc[i]:g})"
             )
         values = values.fillna(other)
 
@@ -283,7 +312,7 @@ def load_nordpool_csv(path: str | Path, area: str = "Tr.heim") -> pd.Series:
     if dates.isna().any():
         i = dates.isna().to_numpy().nonzero()[0][0]
         raise ValueError(
-            f"{path}: cannot read date {rows[0].iloc[i]!r} (data row {i + 1}); "
+            f"{path}: line {line[i]}: cannot read date {rows[0].iloc[i]!r}; "
             "expected DD.MM.YYYY"
         )
     hours = rows[1].str.extract(_HOURS_RE)
@@ -293,8 +322,8 @@ def load_nordpool_csv(path: str | Path, area: str = "Tr.heim") -> pd.Series:
     if bad.any():
         i = bad.to_numpy().nonzero()[0][0]
         raise ValueError(
-            f"{path}: cannot read hour {rows[1].iloc[i]!r} on {rows[0].iloc[i]}; "
-            "expected 'HH - HH' such as '00 - 01' or '23 - 00'"
+            f"{path}: line {line[i]}: cannot read hour {rows[1].iloc[i]!r} on "
+            f"{rows[0].iloc[i]}; expected 'HH - HH' such as '00 - 01' or '23 - 00'"
         )
 
     # The first appearance of a repeated (date, hour) row is summer time, the second winter
@@ -310,14 +339,14 @@ def load_nordpool_csv(path: str | Path, area: str = "Tr.heim") -> pd.Series:
     if local.isna().any():
         i = np.flatnonzero(local.isna())[0]
         raise ValueError(
-            f"{path}: area {area!r} has a price at {where[keep].iloc[i]}, an hour that does "
+            f"{path}: area {area!r} has a price on {where[keep].iloc[i]}, an hour that does "
             f"not exist in {LOCAL_TZ} (spring clock change); expected an empty cell"
         )
     if local.duplicated().any():
         i = np.flatnonzero(local.duplicated())[0]
         raise ValueError(
-            f"{path}: row {where[keep].iloc[i]} is repeated; only the autumn clock-change "
-            "hour 02 - 03 may appear twice"
+            f"{path}: {where[keep].iloc[i]} repeats an earlier row; only the autumn "
+            "clock-change hour 02 - 03 may appear twice"
         )
     series = pd.Series(values.to_numpy()[keep], index=local, name=area, dtype=float)
     series.index.name = "time"
@@ -339,12 +368,6 @@ def _as_date(start: _dt.date | str | pd.Timestamp, tz: str) -> _dt.date:
     if stamp != stamp.normalize():
         raise ValueError(f"start={start!r}: expected a date (midnight), not a time of day")
     return stamp.date()
-
-
-def _check_int(name: str, value: object, low: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
-        raise ValueError(f"{name}={value!r}: expected an integer >= {low}")
-    return int(value)
 
 
 def daily_matrix(
@@ -391,9 +414,13 @@ def daily_matrix(
         any hour of the requested range is missing (the message names the range and the
         series' coverage, or the first missing hours).
     """
-    days = _check_int("days", days, 1)
-    if not isinstance(series, pd.Series) or not isinstance(series.index, pd.DatetimeIndex):
-        raise ValueError("series: expected a pandas Series with a DatetimeIndex")
+    days = check_int("days", days, 1)
+    check_instance("series", series, pd.Series)
+    if not isinstance(series.index, pd.DatetimeIndex):
+        raise InputTypeError(
+            "series: expected a pandas Series with a DatetimeIndex, got an index of type "
+            f"{type(series.index).__name__}"
+        )
     if series.index.tz is None:
         raise ValueError(
             "series: expected a time-zone-aware DatetimeIndex (naive local times are ambiguous "
@@ -441,14 +468,6 @@ def daily_matrix(
 # ----------------------------------------------------------------------------------------------
 # The price matrix used by the experiment
 # ----------------------------------------------------------------------------------------------
-
-
-def _check_real(name: str, value: object, low: float | None = None) -> float:
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
-        raise ValueError(f"{name}={value!r}: expected a finite real number")
-    if low is not None and value < low:
-        raise ValueError(f"{name}={value!r}: expected a value >= {low:g}")
-    return float(value)
 
 
 @dataclass(frozen=True, eq=False, repr=False)
@@ -501,10 +520,9 @@ class Prices:
             raise ValueError(f"buy: expected finite prices, got {buy[d, h]} at day {d}, hour {h}")
         buy.setflags(write=False)
         object.__setattr__(self, "buy", buy)
-        object.__setattr__(self, "sell_ratio", _check_real("sell_ratio", self.sell_ratio, 0.0))
+        object.__setattr__(self, "sell_ratio", check_real("sell_ratio", self.sell_ratio, 0.0))
         for name in ("unit", "source"):
-            if not isinstance(getattr(self, name), str):
-                raise ValueError(f"{name}={getattr(self, name)!r}: expected a string")
+            check_instance(name, getattr(self, name), str)
 
     def __repr__(self) -> str:
         return (
@@ -545,13 +563,8 @@ class Prices:
         buy, sell : numpy.ndarray
             Each of shape ``(days, N)``; ``sell = sell_ratio * buy``.
         """
-        if (
-            isinstance(hour, bool)
-            or not isinstance(hour, numbers.Integral)
-            or not 0 <= hour < HOURS_PER_DAY
-        ):
-            raise ValueError(f"hour={hour!r}: expected an integer in [0, {HOURS_PER_DAY})")
-        N = _check_int("N", N, 1)
+        hour = check_int("hour", hour, 0, HOURS_PER_DAY - 1)
+        N = check_int("N", N, 1)
         ahead = int(hour) + np.arange(N)  # hours counted from today's midnight, (N,)
         day = (np.arange(self.days)[:, None] + ahead[None, :] // HOURS_PER_DAY) % self.days
         buy = self.buy[day, ahead[None, :] % HOURS_PER_DAY]  # (days, N)
@@ -586,7 +599,7 @@ class Prices:
         The result is cyclic on its own: its last day is followed by its day 0, not by the
         day that followed it in the original month.
         """
-        days = _check_int("days", days, 1)
+        days = check_int("days", days, 1)
         if days > self.days:
             raise ValueError(f"days={days}: expected at most {self.days} (the days available)")
         if days == self.days:
@@ -600,7 +613,7 @@ class Prices:
 
     def scaled(self, factor: float) -> Prices:
         """All prices multiplied by ``factor`` (finite, >= 0); unit and ratio unchanged."""
-        factor = _check_real("factor", factor, 0.0)
+        factor = check_real("factor", factor, 0.0)
         if factor == 1.0:
             return self
         return Prices(
@@ -627,7 +640,7 @@ class Prices:
     def month(cls, system: SystemConfig | None, days: int) -> Prices:
         """``days`` days of the shipped month for ``system``: the first ``days`` days, or
         the 30-day month repeated (day 31 is day 1 again) when ``days > 30``."""
-        days = _check_int("days", days, 1)
+        days = check_int("days", days, 1)
         prices = cls.default(system)
         if days <= prices.days:
             return prices.take(days)

@@ -3,42 +3,66 @@
 Conventions the notebooks follow (see ``notebooks/``):
 
 * one cell tagged ``parameters`` holds literals in UPPER_CASE names;
-* the cell after it calls :func:`check_parameters`, so a name injected by papermill that the
-  notebook does not know is an error, not a silent no-op (papermill itself only warns);
+* the cell after it calls :func:`check_parameters`, so a name injected by papermill that is
+  not exactly one of the notebook's parameters (``-p months 5``, ``-p P_Bar 1.0``) is an
+  error naming the closest one, not a silent no-op (papermill itself only warns);
 * one cell tagged ``summary`` calls :func:`show_summary` with the notebook's key numbers; the
   report runner collects them into ``summary.json``.
 
 :func:`run_report` executes every notebook (``NN_*.ipynb``) into a directory as executed
-``.ipynb`` and HTML, with the notebooks' defaults (``profile='full'``) or the small
-parameter set of ``notebooks/ci_parameters.yaml`` (``profile='ci'``).
+``.ipynb`` and HTML, with the notebooks' defaults (``profile='full'``), the small parameter set
+of ``notebooks/ci_parameters.yaml`` (``profile='ci'``) or the lesson-sized one of
+``notebooks/classroom_parameters.yaml`` (``profile='classroom'``). The HTML pages work offline
+(:mod:`mpcrl_lite.html_export`): local MathJax, static pictures of the explorers, alt texts.
+
+Kernels are started on this machine over IPC sockets in a private folder rather than TCP
+ports (no network exposure, and no transport warning in the output), with the
+:mod:`mpcrl_lite.alt_text` extension loaded so that figures carry their descriptions.
 """
 
 from __future__ import annotations
 
+import ast
+import difflib
 import json
+import os
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
+from .config import InputTypeError, check_choice
+from .html_export import copy_mathjax, write_html
+from .resources import package_folder
 from .rundir import jsonable as _jsonable
 
 __all__ = [
-    "NOTEBOOK_DIR",
     "CI_PARAMETERS",
-    "notebook_paths",
-    "notebook_parameters",
+    "CLASSROOM_PARAMETERS",
+    "KERNEL_EXTENSIONS",
+    "NOTEBOOK_DIR",
+    "PROFILES",
     "check_parameters",
-    "show_summary",
-    "read_summary",
     "execute_notebook",
-    "run_report",
+    "notebook_parameters",
+    "notebook_paths",
     "profile_parameters",
+    "read_summary",
+    "run_report",
+    "show_summary",
 ]
 
-#: The project's notebooks (resolved through the package, not the working directory).
-NOTEBOOK_DIR = Path(__file__).resolve().parent.parent / "notebooks"
+#: The project's notebooks (resolved through the package, not the working directory): the
+#: repository's ``notebooks/`` in a checkout, ``mpcrl_lite/notebooks`` in an installed wheel.
+NOTEBOOK_DIR = package_folder("notebooks")
 #: The small CI profile: ``{notebook stem: {PARAMETER: value}}``.
 CI_PARAMETERS = NOTEBOOK_DIR / "ci_parameters.yaml"
+#: The lesson-sized profile (every notebook within about a minute), same format.
+CLASSROOM_PARAMETERS = NOTEBOOK_DIR / "classroom_parameters.yaml"
+#: Parameter profiles: the notebooks' defaults, and the files above.
+PROFILES = ("full", "ci", "classroom")
+#: IPython extensions loaded into every kernel started by :func:`execute_notebook`.
+KERNEL_EXTENSIONS = ("mpcrl_lite.alt_text",)
 SUMMARY_MIME = "application/json"
 
 
@@ -74,12 +98,25 @@ def notebook_parameters(path: str | Path) -> dict[str, dict[str, Any]]:
 
 _TYPES = {"int": (int,), "float": (int, float), "bool": (bool,), "str": (str,)}
 
+#: First line of the cell papermill injects with the parameters it is given.
+_INJECTED_HEADER = "# Parameters"
+
+
+def _closest(name: str, allowed: dict[str, Any]) -> str:
+    """The parameter whose name is most like ``name`` (ignoring case)."""
+    by_upper = {a.upper(): a for a in allowed}
+    match = difflib.get_close_matches(name.upper(), list(by_upper), n=1, cutoff=0.0)
+    return by_upper[match[0]]
+
 
 def _check_values(notebook: str, values: dict[str, Any], allowed: dict[str, dict[str, Any]]) -> None:
     unknown = sorted(set(values) - set(allowed))
     if unknown:
+        hints = ", ".join(f"{_closest(n, allowed)!r} for {n!r}" for n in unknown) if allowed else ""
         raise ValueError(
-            f"{notebook}: unknown parameter(s) {unknown}; this notebook takes {sorted(allowed)}"
+            f"{notebook}: unknown parameter(s) {unknown}"
+            + (f"; did you mean {hints}?" if hints else "")
+            + f" Names must match exactly; this notebook takes {sorted(allowed)}"
         )
     for name, value in values.items():
         types = _TYPES.get(str(allowed[name]["type"]))
@@ -93,17 +130,49 @@ def _check_values(notebook: str, values: dict[str, Any], allowed: dict[str, dict
             )
 
 
+def _injected_names(namespace: dict[str, Any]) -> set[str]:
+    """Names assigned in the cells papermill injected, read from the kernel's input history.
+
+    papermill runs its parameters as a cell starting with ``# Parameters``; IPython keeps the
+    source of every executed cell in ``In``. Without that history (a plain dict) there is
+    nothing to read.
+    """
+    history = namespace.get("In")
+    if not isinstance(history, list):
+        return set()
+    names: set[str] = set()
+    for source in history:
+        if not isinstance(source, str) or not source.lstrip().startswith(_INJECTED_HEADER):
+            continue
+        try:
+            tree = ast.parse(source)
+        except SyntaxError:
+            continue
+        for node in tree.body:
+            targets = node.targets if isinstance(node, ast.Assign) else (
+                [node.target] if isinstance(node, ast.AnnAssign) else [])
+            names.update(t.id for t in targets if isinstance(t, ast.Name))
+    return names
+
+
 def check_parameters(namespace: dict[str, Any], notebook: str) -> dict[str, Any]:
-    """Reject UPPER_CASE names in ``namespace`` that are not parameters of ``notebook``.
+    """Reject names given to ``notebook`` that are not exactly its parameters.
 
     Called in the cell right after the parameters cell with ``globals()``; returns the
-    parameter values (for the summary). Wrong types (e.g. a string for a float) are errors.
+    parameter values (for the summary). Checked are every name papermill injected (read from
+    the kernel's input history, so ``-p months 5`` or ``-p P_Bar 1.0`` is caught although the
+    parameters are ``MONTHS`` and ``P_BAR``) and every UPPER_CASE global. An unknown name is
+    an error naming the closest parameter; a wrong type (e.g. a string for a float) is an
+    error too.
     """
     allowed = notebook_parameters(notebook)
-    values = {
-        k: v for k, v in namespace.items()
-        if k.isupper() and not k.startswith("_") and not callable(v) and not isinstance(v, type(json))
+    candidates = {
+        k for k, v in namespace.items()
+        if k.isupper() and not k.startswith("_") and not callable(v)
+        and not isinstance(v, type(json))
     }
+    candidates |= {k for k in _injected_names(namespace) if k in namespace}
+    values = {k: namespace[k] for k in candidates}
     _check_values(notebook, values, allowed)
     return {k: values[k] for k in allowed if k in values}
 
@@ -129,17 +198,33 @@ def read_summary(notebook: Any) -> dict[str, Any]:
 
 
 def profile_parameters(profile: str) -> dict[str, dict[str, Any]]:
-    """Parameters per notebook stem for ``'full'`` (none: the defaults) or ``'ci'``."""
-    if profile == "full":
+    """Parameters per notebook stem for ``'full'`` (none: the defaults), ``'ci'`` or
+    ``'classroom'``."""
+    if check_choice("profile", profile, PROFILES) == "full":
         return {}
-    if profile != "ci":
-        raise ValueError(f"profile={profile!r}: expected 'full' or 'ci'")
     import yaml
 
-    data = yaml.safe_load(CI_PARAMETERS.read_text()) or {}
+    path = CI_PARAMETERS if profile == "ci" else CLASSROOM_PARAMETERS
+    data = yaml.safe_load(path.read_text()) or {}
     if not isinstance(data, dict):
-        raise ValueError(f"{CI_PARAMETERS}: expected a mapping of notebook -> parameters")
+        raise InputTypeError(
+            f"{path}: expected a mapping of notebook -> parameters, got {type(data).__name__}"
+        )
     return data
+
+
+def _kernel_options(socket_dir: str) -> dict[str, Any]:
+    """papermill/nbclient options for a local kernel: IPC sockets inside ``socket_dir`` (where
+    the platform has them) and the :data:`KERNEL_EXTENSIONS`."""
+    from traitlets.config import Config
+
+    options: dict[str, Any] = {
+        "extra_arguments": [f"--IPKernelApp.extensions={name}" for name in KERNEL_EXTENSIONS],
+    }
+    if os.name == "posix":
+        options["config"] = Config(
+            {"KernelManager": {"transport": "ipc", "ip": os.path.join(socket_dir, "kernel")}})
+    return options
 
 
 def execute_notebook(
@@ -156,19 +241,21 @@ def execute_notebook(
     path = Path(path)
     parameters = dict(parameters or {})
     _check_values(path.name, parameters, notebook_parameters(path))
-    return papermill.execute_notebook(
-        str(path), str(output), parameters=parameters, kernel_name="python3",
-        cwd=str(cwd) if cwd else None, progress_bar=False, execution_timeout=timeout,
-    )
+    # A short private path: Unix socket names are limited to ~100 characters.
+    with tempfile.TemporaryDirectory(prefix="mpcrl-kernel-") as socket_dir:
+        return papermill.execute_notebook(
+            str(path), str(output), parameters=parameters, kernel_name="python3",
+            cwd=str(cwd) if cwd else None, progress_bar=False, execution_timeout=timeout,
+            **_kernel_options(socket_dir),
+        )
 
 
 def run_report(
     out: str | Path, profile: str = "full", notebooks: list[str] | None = None
 ) -> dict[str, Any]:
-    """Execute the notebooks into ``out`` (``.ipynb`` + ``.html``) and write
-    ``out/summary.json`` with each notebook's key numbers, parameters and run time."""
-    from nbconvert import HTMLExporter
-
+    """Execute the notebooks into ``out`` (``.ipynb`` + offline ``.html``, MathJax in
+    ``out/mathjax``) and write ``out/summary.json`` with each notebook's key numbers,
+    parameters and run time."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     params = profile_parameters(profile)
@@ -176,14 +263,13 @@ def run_report(
     # check every notebook's parameters before executing any of them
     for path in paths:
         _check_values(path.name, params.get(path.stem, {}), notebook_parameters(path))
-    exporter = HTMLExporter()
+    copy_mathjax(out)  # before any work: fails at once if the MathJax files are missing
     summary: dict[str, Any] = {"profile": profile, "notebooks": {}}
     for path in paths:
         t0 = time.perf_counter()
         nb = execute_notebook(path, out / path.name, params.get(path.stem, {}), cwd=out)
         seconds = time.perf_counter() - t0
-        html, _ = exporter.from_notebook_node(nb)
-        (out / f"{path.stem}.html").write_text(html, encoding="utf-8")
+        write_html(nb, out / f"{path.stem}.html")
         summary["notebooks"][path.stem] = {
             "seconds": round(seconds, 1),
             "parameters": params.get(path.stem, {}),

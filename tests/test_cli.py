@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import subprocess
 import sys
 
 import pytest
 
-from mpcrl_lite.cli import main
+from mpcrl_lite.cli import build_parser, main
+from mpcrl_lite.config import BACKENDS, OPTIMIZERS, LearningConfig, MPCConfig, SystemConfig
+from mpcrl_lite.experiment import CHECKPOINT
+from mpcrl_lite.report import PROFILES
 
 
 def test_simulate_writes_summary_and_figure(tmp_path, capsys):
@@ -85,3 +89,37 @@ def test_bad_arguments_give_one_line(argv, message, tmp_path):
     assert message in lines[0]
     assert "Traceback" not in proc.stderr
     assert sorted(p.name for p in (tmp_path / "x").iterdir()) == ["afile"]  # nothing written
+
+
+def _options(command: str) -> dict[str, argparse.Action]:
+    parser = build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return {a.dest: a for a in sub.choices[command]._actions}
+
+
+def test_choices_and_shown_defaults_come_from_the_package():
+    for command in ("simulate", "learn", "baselines"):
+        assert tuple(_options(command)["backend"].choices) == BACKENDS
+    assert tuple(_options("learn")["optimizer"].choices) == OPTIMIZERS
+    assert tuple(_options("report")["profile"].choices) == PROFILES
+    learn = _options("learn")
+    system, mpc, learning = SystemConfig(), MPCConfig(), LearningConfig()
+    assert f"default {system.P_bar:g}" in learn["p_bar"].help
+    assert f"default {system.noise_var:g}" in learn["noise_var"].help
+    assert f"default {system.n}" in learn["n"].help
+    assert f"default {mpc.tau:g}" in learn["tau"].help
+    assert f"default {learning.days_per_month}" in learn["days"].help
+    assert f"default {learning.optimizer}" in learn["optimizer"].help
+    assert learn["seed"].default == learning.seed
+
+
+def test_decentralized_help_says_how_the_grid_limit_is_shared():
+    text = _options("learn")["decentralized"].help
+    assert "dual decomposition" not in text  # the coordination is not plain dual decomposition
+    assert "grid prices" in text and "Newton" in text
+
+
+def test_learn_refuses_a_directory_holding_a_checkpoint(tmp_path, capsys):
+    (tmp_path / CHECKPOINT).write_text("{}")
+    assert main(["learn", "--months", "1", "--out", str(tmp_path), "--quiet"]) == 2
+    assert "already holds a run (checkpoint.json); pass --resume" in capsys.readouterr().err

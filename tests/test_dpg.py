@@ -1,4 +1,4 @@
-"""The policy gradient estimate and the theta update (SGD, Adam, mask, clip, projection)."""
+"""The policy gradient estimate, the update rules and the theta update (mask, clip, projection)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,13 @@ import warnings
 import numpy as np
 import pytest
 
-from mpcrl_lite.config import PAPER_STEP_SIZE, ConfigWarning, LearningConfig, SystemConfig
+from mpcrl_lite.config import (
+    OPTIMIZERS,
+    PAPER_STEP_SIZE,
+    ConfigWarning,
+    LearningConfig,
+    SystemConfig,
+)
 from mpcrl_lite.dpg import (
     ADAM_BETAS,
     ADAM_EPS,
@@ -20,6 +26,13 @@ from mpcrl_lite.dpg import (
     policy_gradient,
 )
 from mpcrl_lite.theta import CONSTANT_PARTS, PARTS, Theta
+from mpcrl_lite.update_rules import (
+    UPDATE_RULES,
+    Adam,
+    GradientDescent,
+    UpdateRule,
+    make_update_rule,
+)
 
 N = 3
 ALPHA = 1.0 / 12.0
@@ -34,8 +47,7 @@ def theta_from(seed: int = 0) -> Theta:
 
 
 def updater(**changes) -> DPGUpdater:
-    base = dict(step_size=0.1, keep_well_posed=False, optimizer="sgd")
-    base.update(changes)
+    base = {"step_size": 0.1, "keep_well_posed": False, "optimizer": "sgd", **changes}
     return DPGUpdater(LearningConfig(**base), N, ALPHA)
 
 
@@ -232,6 +244,102 @@ def test_adam_custom_scale_and_small_step_warning():
         DPGUpdater(LearningConfig(optimizer="adam", step_size=PAPER_STEP_SIZE), N, ALPHA)
     with pytest.raises(ValueError, match="unknown part"):
         DPGUpdater(LearningConfig(optimizer="adam", step_size=0.1), N, ALPHA, scale={"x": 1.0})
+
+
+# -- update rules ------------------------------------------------------------------------------
+def test_every_optimizer_name_has_one_update_rule():
+    assert set(UPDATE_RULES) == set(OPTIMIZERS)
+    for name, rule in UPDATE_RULES.items():
+        assert issubclass(rule, UpdateRule) and rule.name == name
+        up = DPGUpdater(LearningConfig(optimizer=name, step_size=0.02), N, ALPHA)
+        assert type(up.rule) is rule and up.rule.size == 10 * N
+    assert UPDATE_RULES["sgd"] is GradientDescent and UPDATE_RULES["adam"] is Adam
+
+
+def test_adam_rule_keeps_the_operation_order_of_its_formula():
+    """Written out with the same floating-point operations in the same order, so equal to
+    the last bit: learning runs are reproduced exactly across versions."""
+    rng = np.random.default_rng(13)
+    size = 10 * N
+    scale = rng.uniform(0.01, 100.0, size)
+    rule = Adam(size, scale)
+    (b1, b2), eps = ADAM_BETAS, ADAM_EPS
+    m, v = np.zeros(size), np.zeros(size)
+    for t in range(1, 21):
+        g = rng.normal(size=size) * 10.0 ** rng.integers(-4, 9, size=size)
+        m = b1 * m + (1.0 - b1) * g
+        v = b2 * v + (1.0 - b2) * g**2
+        expected = scale * (m / (1.0 - b1**t)) / (np.sqrt(v / (1.0 - b2**t)) + eps)
+        np.testing.assert_array_equal(rule.direction(g, t), expected)
+    np.testing.assert_array_equal(rule.m, m)
+    np.testing.assert_array_equal(rule.v, v)
+    rule.reset()
+    assert not rule.m.any() and not rule.v.any()
+
+
+@pytest.mark.parametrize("optimizer", OPTIMIZERS)
+def test_updater_moves_theta_by_step_size_times_the_rules_direction(optimizer):
+    config = LearningConfig(optimizer=optimizer, step_size=0.03, keep_well_posed=False)
+    up = DPGUpdater(config, N, ALPHA)
+    twin = make_update_rule(optimizer, 10 * N, scale=up.scale)
+    theta = theta_from(14)
+    for t, g in enumerate(np.random.default_rng(15).normal(size=(5, 10 * N)), start=1):
+        new = up.step(theta, g)
+        direction = twin.direction(np.where(up.mask, g, 0.0), t)
+        np.testing.assert_array_equal(new.to_vector(), theta.to_vector() - 0.03 * direction)
+        theta = new
+
+
+def test_make_update_rule_passes_each_rule_only_its_options():
+    sgd = make_update_rule("sgd", 4, scale=np.ones(4), betas=(0.5, 0.5), eps=1.0)
+    g = np.array([1.0, -2.0, 0.0, 3.0])
+    assert sgd.direction(g, 1) is g and sgd.state_arrays() == {}
+    adam = make_update_rule("adam", 4, scale=np.ones(4), betas=(0.5, 0.5), eps=1.0)
+    assert adam.betas == (0.5, 0.5) and adam.eps == 1.0
+    with pytest.raises(ValueError, match=r"^optimizer='rmsprop': expected one of 'sgd', 'adam'"):
+        make_update_rule("rmsprop", 4)
+    with pytest.raises(ValueError, match=r"betas\[0\]=1.0: expected a value in \[0, 1\)"):
+        Adam(4, np.ones(4), betas=(1.0, 0.5))
+    with pytest.raises(ValueError, match=r"eps=0: expected a value in \(0, inf\)"):
+        Adam(4, np.ones(4), eps=0)
+    with pytest.raises(ValueError, match=r"scale has shape \(3,\); expected \(4,\)"):
+        Adam(4, np.ones(3))
+
+
+@pytest.mark.parametrize("optimizer", OPTIMIZERS)
+def test_checkpoint_layout_is_one_for_every_rule(optimizer):
+    up = DPGUpdater(LearningConfig(optimizer=optimizer, step_size=0.02), N, ALPHA)
+    up.step(theta_from(16), np.random.default_rng(17).normal(size=10 * N))
+    state = json.loads(json.dumps(up.state_dict()))
+    assert list(state) == ["optimizer", "n", "step_count", "m", "v"]
+    assert state["optimizer"] == optimizer and state["n"] == N and state["step_count"] == 1
+    assert len(state["m"]) == len(state["v"]) == 10 * N
+    if optimizer == "sgd":  # no moments: zeros, as every checkpoint written so far
+        assert not any(state["m"]) and not any(state["v"])
+    else:
+        assert any(state["m"]) and any(state["v"])
+
+
+def test_a_checkpoint_written_in_the_old_layout_resumes():
+    """The JSON keys of DPGUpdater.state_dict are a contract: a state written before the
+    update rules had classes loads, and the next Adam step uses its moments."""
+    size = 10
+    m = [0.1 * (i - 4) for i in range(size)]
+    v = [0.01 * (i + 1) for i in range(size)]
+    text = json.dumps({"optimizer": "adam", "n": 1, "step_count": 2, "m": m, "v": v})
+    up = DPGUpdater(LearningConfig(step_size=0.02, keep_well_posed=False), 1, ALPHA)
+    up.load_state_dict(json.loads(text))
+    assert up.state_dict() == json.loads(text)
+    theta = Theta.nominal(SystemConfig(n=1, P_bar=0.5))
+    g = np.linspace(-1.0, 1.0, size)
+    new = up.step(theta, g)
+    (b1, b2), t = ADAM_BETAS, 3
+    g = np.where(up.mask, g, 0.0)
+    m_t = b1 * np.array(m) + (1.0 - b1) * g
+    v_t = b2 * np.array(v) + (1.0 - b2) * g**2
+    direction = up.scale * (m_t / (1.0 - b1**t)) / (np.sqrt(v_t / (1.0 - b2**t)) + ADAM_EPS)
+    np.testing.assert_array_equal(new.to_vector(), theta.to_vector() - 0.02 * direction)
+    assert up.step_count == 3
 
 
 # -- checkpoints -------------------------------------------------------------------------------

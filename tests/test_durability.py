@@ -195,8 +195,11 @@ def test_real_kills_at_random_times(learner, tmp_path, capsys):
     assert proc.wait(timeout=300) == 0
     duration = time.perf_counter() - t0  # from the start of the work to its end
     rng = np.random.default_rng(1)
-    outcomes = []
-    for k, when in enumerate(rng.uniform(0.0, 1.0, 4) * duration):
+    outcomes: list[str] = []
+    k = 0
+    while sum("killed" in o for o in outcomes) < 3 and k < 10:  # the load varies: try again
+        when = rng.uniform(0.0, 0.8) * duration
+        k += 1
         out = tmp_path / f"kill{k}"
         argv = learn_args(out, 3, learner)
         proc = subprocess.Popen(command + argv, env=env, stdout=subprocess.DEVNULL,
@@ -214,6 +217,7 @@ def test_real_kills_at_random_times(learner, tmp_path, capsys):
                             + resume_and_judge(out, reference, argv, capsys))
     print(f"\n{learner or 'centralized'} random kills: {outcomes}")
     assert all("refused" not in o for o in outcomes)
+    assert sum("killed" in o for o in outcomes) == 3
 
 
 # -- full disk ---------------------------------------------------------------------------------
@@ -369,7 +373,7 @@ def test_a_history_without_checkpoint_is_never_replaced(tmp_path, capsys):
             (out / "checkpoint.json").unlink()
         before = {p.name: p.read_bytes() for p in out.iterdir()}
         status, _, err = cli(learn_args(out, 2), capsys)
-        assert status == 2 and "already holds results" in one_line(err)
+        assert status == 2 and "already holds a run" in one_line(err)
         status, _, err = cli(learn_args(out, 2, "", "--resume"), capsys)
         assert status == 2
         assert "holds a History without checkpoint.json: it cannot be resumed" in one_line(err)
@@ -546,6 +550,8 @@ def test_all_solves_failing_writes_valid_json_and_exits_2(tmp_path, capsys, monk
     assert np.isnan(history.eval_bound_share[0]) and history.failed_solve_share() == 1.0
 
 
+# the optimizer's own diagnostics overflow at noise_var=1e300 (they are stored as null)
+@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
 def test_grad_norm_does_not_overflow(tmp_path):
     history = History(SMALL, MPCConfig(), LearningConfig(days_per_month=1))
     record = Experiment(system=SMALL, learning=LearningConfig(days_per_month=1)).evaluate()

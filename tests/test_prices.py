@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import datetime as dt
+import os
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
+from hypothesis import HealthCheck, event, given, settings
+from hypothesis import strategies as st
 
 from mpcrl_lite.config import PRICE_UNIT, SystemConfig
 from mpcrl_lite.prices import (
@@ -23,15 +26,20 @@ FIXTURES = Path(__file__).resolve().parent / "fixtures"
 SPRING = FIXTURES / "elspot_spring_dst_2021.csv"  # 27..29.03.2021, clock change on the 28th
 AUTUMN = FIXTURES / "elspot_autumn_dst_2021.csv"  # 30.10..01.11.2021, clock change on the 31st
 NOT_EXPORT = FIXTURES / "not_an_export.csv"
-REAL_EXPORT = (
-    Path(__file__).resolve().parents[2]
-    / "shared/data/nordpool/elspot-prices_2020_hourly_nok.csv"
-)
+# The real export is read in place (never copied into the project): from
+# MPCRL_LITE_NORDPOOL_EXPORT if set, else next to the checkout; its tests skip without it.
+REAL_EXPORT = Path(os.environ.get(
+    "MPCRL_LITE_NORDPOOL_EXPORT",
+    Path(__file__).resolve().parents[2] / "shared/data/nordpool/elspot-prices_2020_hourly_nok.csv",
+))
 
 
 def trheim(day: int, hour: int) -> float:
     """The invented Tr.heim price of the fixtures (see tests/fixtures/make_nordpool_fixtures.py)."""
     return 30.25 + 10 * day + hour
+
+
+LOCAL = "Europe/Oslo"
 
 
 def oslo_time(text: str, offset: str) -> pd.Timestamp:
@@ -386,6 +394,189 @@ def test_price_in_the_skipped_spring_hour_is_an_error(tmp_path):
     )
     with pytest.raises(ValueError, match="does not exist"):
         load_nordpool_csv(bad)
+
+
+def write_export(path: Path, lines: list[str], bom: bool = True, newline: str = "\r\n") -> Path:
+    """An export made of ``lines`` (title, header and data lines, as strings)."""
+    path.write_bytes((b"\xef\xbb\xbf" if bom else b"") + newline.join(lines).encode("utf-8"))
+    return path
+
+
+SMALL_HEADER = ";Hours;SYS;Oslo;Tr.heim;Bergen"
+
+
+def test_a_row_with_a_cell_too_many_or_too_few_is_an_error_naming_the_line(tmp_path):
+    rows = ["04.01.2021;00 - 01;10,0;20,0;555,55;40,0",
+            "04.01.2021;01 - 02;11,0;999,99;21,0;555,55;41,0",  # one cell too many
+            "04.01.2021;02 - 03;12,0;22,0;42,0"]  # one cell too few
+    good = write_export(tmp_path / "good.csv", ["Elspot Prices", SMALL_HEADER, rows[0]])
+    assert load_nordpool_csv(good).tolist() == [555.55]
+    too_many = write_export(tmp_path / "too_many.csv", ["Elspot Prices", SMALL_HEADER, *rows[:2]])
+    with pytest.raises(ValueError, match=r"too_many\.csv: line 4 has 7 ';'-separated cells, the "
+                                         r"header \(line 2\) has 6"):
+        load_nordpool_csv(too_many)  # was read as Tr.heim = 21.0, shifted by one column
+    too_few = write_export(tmp_path / "too_few.csv", [SMALL_HEADER, rows[0], rows[2]])
+    with pytest.raises(ValueError, match=r"too_few\.csv: line 3 has 5 .* has 6"):
+        load_nordpool_csv(too_few, area="Bergen")  # was read as Bergen = NaN, Tr.heim = 42
+
+
+def test_trailing_separators_count_as_cells(tmp_path):
+    lines = [SMALL_HEADER + ";", "04.01.2021;00 - 01;1;2;3;4;", "04.01.2021;01 - 02;1;2;5;;",
+             ";;;;;;", ""]  # padding lines of separators and blank lines are not data
+    assert load_nordpool_csv(write_export(tmp_path / "ok.csv", lines)).tolist() == [3.0, 5.0]
+    # Under a header with a trailing ';', a row without one lacks a cell: it cannot be told
+    # from a row with a cell missing in the middle ("1;5;4;" would read Tr.heim = 4).
+    lines[2] = "04.01.2021;01 - 02;1;2;5;4"
+    with pytest.raises(ValueError, match="line 3 has 6 ';'-separated cells, the header"):
+        load_nordpool_csv(write_export(tmp_path / "short.csv", lines))
+    lines[2] = "04.01.2021;01 - 02;1;2;5;4;;"
+    with pytest.raises(ValueError, match="line 3 has 8"):
+        load_nordpool_csv(write_export(tmp_path / "long.csv", lines))
+
+
+@pytest.mark.parametrize("cell", ["inf", "-Infinity", "1e999", "-1e999", "nan"])
+def test_non_finite_prices_are_refused_naming_the_line(tmp_path, cell):
+    lines = [SMALL_HEADER, "04.01.2021;00 - 01;1;2;3;4", f"04.01.2021;01 - 02;1;2;{cell};4"]
+    path = write_export(tmp_path / "infinite.csv", lines)
+    with pytest.raises(ValueError, match=rf"infinite\.csv: area 'Tr.heim', line 3 "
+                                         rf"\(04\.01\.2021 01 - 02\).*'{cell}'"):
+        load_nordpool_csv(path)
+    assert load_nordpool_csv(path, area="Oslo").tolist() == [2.0, 2.0]  # other areas are fine
+
+
+def test_bytes_that_are_not_utf8_name_the_line(tmp_path):
+    path = tmp_path / "latin1.csv"
+    path.write_bytes(f"{SMALL_HEADER}\r\n04.01.2021;00 - 01;1;2;3;4\r\n".encode()
+                     + "04.01.2021;01 - 02;1;2;3;Troms\u00f8".encode("latin-1"))
+    with pytest.raises(ValueError, match=r"latin1\.csv is not a Nord Pool .*; line 3 is not UTF-8"):
+        load_nordpool_csv(path)
+
+
+def test_errors_name_the_line_of_bad_dates_and_hours(tmp_path):
+    lines = [SMALL_HEADER, "04.01.2021;00 - 01;1;2;3;4", "2021-01-04;01 - 02;1;2;3;4"]
+    with pytest.raises(ValueError, match=r"line 3: cannot read date '2021-01-04'"):
+        load_nordpool_csv(write_export(tmp_path / "date.csv", lines))
+    lines[2] = "04.01.2021;1-3;1;2;3;4"
+    with pytest.raises(ValueError, match=r"line 3: cannot read hour '1-3'"):
+        load_nordpool_csv(write_export(tmp_path / "hour.csv", lines))
+
+
+# -- fuzz: a malformed export gives a clear error or the prices as written, never shifted ------
+_AREAS = ["SYS", "Oslo", "Molde", "Tr.heim", "Bergen", "EE"]
+_NOT_A_PRICE = ["inf", "-Infinity", "1e999", "nan", "n/a", "1,2,3", "--5", "12 ,5 x"]
+_MUTATIONS = ["drop_cell", "add_cell", "not_a_price", "empty_price", "delete_line",
+              "duplicate_line", "swap_lines", "blank_line", "separator_line", "truncate",
+              "bad_bytes", "bad_date", "bad_hour", "noise"]
+
+
+def _price_text(code: int, style: int) -> str:
+    """``code + 0.5`` with a decimal comma, with or without a thousands separator."""
+    whole = f"{code:,}".replace(",", [" ", ".", ""][style])
+    return f"{whole},5"
+
+
+@st.composite
+def malformed_exports(draw):
+    """An export of ordinary days (no clock change) whose Tr.heim price on line ``r`` of the
+    data encodes its column and row: ``1000 * column + r + 0.5``; then a few mutations."""
+    areas = draw(st.permutations(_AREAS))[: draw(st.integers(2, len(_AREAS)))]
+    if "Tr.heim" not in areas:
+        areas = [*areas, "Tr.heim"]
+    if areas[-1] == "Tr.heim":  # a cut inside the last cell would keep the cell count
+        areas = [*areas, "Tromsø"]
+    trailing = draw(st.booleans())
+    style = draw(st.integers(0, 2))
+    days = draw(st.integers(1, 3))
+    lines = [f"Elspot Prices in NOK/MWh{';' * (len(areas) + 1)}"] * draw(st.integers(0, 2))
+    lines.append(";Hours;" + ";".join(areas) + (";" if trailing else ""))
+    for r in range(24 * days):
+        d, h = divmod(r, 24)
+        prices = [_price_text(1000 * c + r, style) for c in range(2, len(areas) + 2)]
+        cells = [f"{4 + d:02d}.01.2021", f"{h:02d} - {(h + 1) % 24:02d}", *prices]
+        lines.append(";".join(cells) + (";" if trailing else ""))
+    header = len(lines) - 24 * days - 1
+    mutations = draw(st.lists(st.sampled_from(_MUTATIONS), max_size=3))
+    if sum(m in ("drop_cell", "add_cell") for m in mutations) > 1:
+        # Two opposite edits of one line keep its cell count with shifted values: no reader
+        # can see that, so the fuzz makes at most one such edit.
+        mutations = [m for m in mutations if m not in ("drop_cell", "add_cell")][:2] + ["add_cell"]
+    area_col = 2 + areas.index("Tr.heim")
+    cut = bad_byte = None
+    for m in mutations:
+        event(f"mutation {m}")
+        i = draw(st.integers(min(header + 1, len(lines) - 1), len(lines) - 1))  # a data line
+        cells = lines[i].split(";")
+        if m == "drop_cell":
+            del cells[draw(st.integers(0, len(cells) - 1))]
+        elif m == "add_cell":
+            extra = draw(st.text("0123456789,.- x", max_size=6))
+            cells.insert(draw(st.integers(0, len(cells))), extra)
+        elif m == "not_a_price" and area_col < len(cells):
+            garbage = st.sampled_from(_NOT_A_PRICE) | st.text(max_size=8).map("x".__add__)
+            cells[area_col] = draw(garbage)
+        elif m == "empty_price" and area_col < len(cells):
+            cells[area_col] = ""
+        elif m == "bad_date":
+            cells[0] = draw(st.sampled_from(["31.02.2021", "2021-01-04", "", "04.13.2021", "x"]))
+        elif m == "bad_hour":
+            cells[1] = draw(st.sampled_from(["24 - 01", "1-3", "", "03 - 05", "x"]))
+        elif m == "noise":  # a random line anywhere, e.g. in place of the header
+            i = draw(st.integers(0, len(lines) - 1))
+            cells = [draw(st.text(max_size=30))]
+        lines[i] = ";".join(cells)
+        if m == "delete_line":
+            del lines[draw(st.integers(0, len(lines) - 1))]
+        elif m == "duplicate_line":
+            j = draw(st.integers(0, len(lines) - 1))
+            lines.insert(j, lines[j])
+        elif m == "swap_lines":
+            j, k = draw(st.integers(0, len(lines) - 1)), draw(st.integers(0, len(lines) - 1))
+            lines[j], lines[k] = lines[k], lines[j]
+        elif m == "blank_line":
+            lines.insert(draw(st.integers(0, len(lines))), "")
+        elif m == "separator_line":
+            lines.insert(draw(st.integers(0, len(lines))), ";" * draw(st.integers(1, 12)))
+        elif m == "truncate":
+            cut = draw(st.floats(0.0, 1.0))
+        elif m == "bad_bytes":
+            bad_byte = draw(st.floats(0.0, 1.0))
+    newline = draw(st.sampled_from(["\r\n", "\n"]))
+    text = newline.join(lines)
+    if cut is not None:
+        text = text[: int(cut * len(text))]
+    raw = (b"\xef\xbb\xbf" if draw(st.booleans()) else b"") + text.encode("utf-8")
+    if bad_byte is not None:
+        at = int(bad_byte * len(raw))
+        raw = raw[:at] + b"\xff" + raw[at:]
+    return raw, area_col, days, bool(mutations)
+
+
+@settings(max_examples=250, deadline=None,
+          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@given(export=malformed_exports())
+def test_fuzz_nordpool_loader_gives_a_clear_error_or_the_prices_as_written(export,
+                                                                           tmp_path_factory):
+    raw, area_col, days, mutated = export
+    path = tmp_path_factory.getbasetemp() / "fuzzed_export.csv"
+    path.write_bytes(raw)
+    try:
+        series = load_nordpool_csv(path)
+    except ValueError as err:
+        assert str(path) in str(err), err
+        assert mutated, f"an unmodified export was refused: {err}"
+        event("clear error")
+        return
+    event("loaded")
+    assert series.name == "Tr.heim" and series.dtype == np.float64
+    assert str(series.index.tz) == "Europe/Oslo" and series.index.is_monotonic_increasing
+    codes = np.round(series.to_numpy() - 0.5).astype(int)
+    column, row = np.divmod(codes, 1000)
+    # every value is the one written in the Tr.heim column of the row of its own hour
+    assert (column == area_col).all(), "prices read from another area's column"
+    stamps = (pd.Timestamp("2021-01-04") + pd.to_timedelta(row, unit="h")).tz_localize(LOCAL)
+    assert (stamps == series.index).all(), "prices moved to another hour"
+    if not mutated:
+        assert len(series) == 24 * days
 
 
 # ----------------------------------------------------------------------------------------------
