@@ -1,37 +1,32 @@
-r"""Figures of a run, drawn from data only: a :class:`~mpcrl_lite.history.History`, a
-:class:`~mpcrl_lite.history.MonthRecord` or :class:`~mpcrl_lite.prices.Prices`.
+r"""Figures drawn from data only: a :class:`~mpcrl_lite.history.History`, a
+:class:`~mpcrl_lite.record.Record` (e.g. a :class:`~mpcrl_lite.history.MonthRecord`),
+:class:`~mpcrl_lite.prices.Prices`, an MPC :class:`~mpcrl_lite.mpc.Plan`, or the dicts of
+:mod:`mpcrl_lite.explore`.
 
-Every function takes an optional ``ax`` (or ``axes``) to draw into, otherwise it creates a
-figure, and returns the :class:`matplotlib.figure.Figure`. Nothing here simulates, learns or
+Every function takes an optional ``ax`` (or ``axes``) to draw into, or ``fig`` (a figure to
+clear and fill, as the explorers of :mod:`mpcrl_lite.widgets` do), otherwise it creates a
+figure; it returns the :class:`matplotlib.figure.Figure`. Nothing here simulates, learns or
 calls ``plt.show()``; the only computations are simple aggregations (a rolling mean, a
-concatenation of days).
+concatenation of days, finite differences on a drawn curve).
 
-Conventions shared by all figures (those of the paper):
-
-* the first month of learning is **red**, the last month **blue**; agents have their own
-  colours (:data:`AGENT_COLORS`), never red or blue;
-* reference lines are dashed: the grid limit ``P_bar`` in black, the soc band
-  ``soc_low = 0.1`` / ``soc_high = 0.9`` in grey (the penalised zones outside it are shaded),
-  the physical range ``[0, 1]`` as thin solid grey lines;
-* units: prices in NOK/MWh, powers in MW (net power ``b - s`` is positive when buying),
-  soc dimensionless, time in hours;
-* every data line and reference line carries a ``gid`` (for example ``"J"``, ``"P_bar"``,
-  ``"soc_low"``, ``"soc[2] last"``), so that notebooks and tests can find it with
-  :func:`find_lines`.
+The conventions shared by all figures (colours, reference lines, units, legends beside the
+axes, line ``gid`` s for :func:`find_lines`) are listed in :mod:`mpcrl_lite.plot_style`.
 
 =========================================  ==================================================
 function                                   figure
 =========================================  ==================================================
-:func:`plot_day`                           one day of one month (``simulate`` command)
-:func:`fig1_trajectories`                  paper Fig. 1: soc and policy, first vs last month
-:func:`fig2_performance`                   paper Fig. 2: closed-loop cost ``J`` per month
-:func:`fig3_gradient_norm`                 paper Fig. 3: ``||grad_theta J||`` per month
-:func:`fig4_grid_power`                    paper Fig. 4: grid power ``P_k`` vs ``P_bar``
-:func:`fig5_policy_and_agent_costs`        paper Fig. 5: learned policy, ``J^i`` per agent
-:func:`fig6_prices`                        paper Fig. 6: the buying price of five days
-:func:`fig7_theta`                         paper Fig. 7: one part of theta per month
-:func:`save_paper_figures`                 all seven as PNG files
+:func:`plot_day`                           one day in closed loop (``simulate`` command,
+                                           notebooks, day and rule explorers)
+:func:`plot_price_window`                  the prices of a day and the MPC's forecast window
+:func:`plot_plan`                          one MPC solution over its horizon
+:func:`plot_policy_curve`                  the policy against one input (tau explorer)
+:func:`plot_value_fit`                     LSTD values against Monte-Carlo returns
+:func:`fig1_trajectories` .. :func:`fig7_theta`, :func:`save_paper_figures`
+                                           the paper's Figs. 1-7 (:mod:`mpcrl_lite.paper_figures`)
 =========================================  ==================================================
+
+The older figure-first names ``draw_day``, ``draw_prices``, ``draw_plan``,
+``draw_policy_curve`` and ``draw_value_fit`` call the functions above.
 
 In a notebook, assign the result (``fig = fig2_performance(history)``) or end the line
 with ``;``: a returned figure is otherwise displayed twice.
@@ -39,30 +34,58 @@ with ``;``: a returned figure is otherwise displayed twice.
 
 from __future__ import annotations
 
-import numbers
 from collections.abc import Sequence
-from pathlib import Path
+from typing import Any
 
-import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
-from matplotlib.ticker import MultipleLocator
 
-from .config import PRICE_UNIT, SystemConfig, check_instance, check_int
-from .history import History, MonthRecord
-from .prices import Prices
-from .theta import PARTS
+from .config import PRICE_UNIT, SystemConfig, check_int
+from .mpc import Plan
+from .paper_figures import (
+    PAPER_FIGURES,
+    fig1_trajectories,
+    fig2_performance,
+    fig3_gradient_norm,
+    fig4_grid_power,
+    fig5_policy_and_agent_costs,
+    fig6_prices,
+    fig7_theta,
+    save_paper_figures,
+)
+from .plot_style import (
+    AGENT_COLORS,
+    COST_UNIT,
+    FIRST_COLOR,
+    LAST_COLOR,
+    REF_GREY,
+    agent_color,
+    axes_or_new,
+    day_axis,
+    find_lines,
+    headroom,
+    legend_beside,
+    p_bar_line,
+    soc_reference,
+    steps,
+)
+from .prices import HOURS_PER_DAY, Prices
+from .record import Record
 
 __all__ = [
+    "AGENT_COLORS",
+    "COST_UNIT",
     "FIRST_COLOR",
     "LAST_COLOR",
-    "AGENT_COLORS",
     "PAPER_FIGURES",
     "agent_color",
-    "find_lines",
-    "plot_day",
+    "draw_day",
+    "draw_plan",
+    "draw_policy_curve",
+    "draw_prices",
+    "draw_value_fit",
     "fig1_trajectories",
     "fig2_performance",
     "fig3_gradient_norm",
@@ -70,197 +93,64 @@ __all__ = [
     "fig5_policy_and_agent_costs",
     "fig6_prices",
     "fig7_theta",
+    "find_lines",
+    "plot_day",
+    "plot_plan",
+    "plot_policy_curve",
+    "plot_price_window",
+    "plot_value_fit",
     "save_paper_figures",
 ]
 
-#: Colour of the first month of learning (the paper's red).
-FIRST_COLOR = "#d62728"
-#: Colour of the last month of learning (the paper's blue).
-LAST_COLOR = "#1f77b4"
-#: Colours of agents 1, 2, ... (cycled); red and blue are kept for first / last month.
-AGENT_COLORS: tuple[str, ...] = (
-    "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f",
-)
-#: File names written by :func:`save_paper_figures`, in figure order.
-PAPER_FIGURES: tuple[str, ...] = (
-    "fig1_trajectories.png",
-    "fig2_performance.png",
-    "fig3_gradient_norm.png",
-    "fig4_grid_power.png",
-    "fig5_policy_and_agent_costs.png",
-    "fig6_prices.png",
-    "fig7_theta_delta.png",
-)
-
-_CURRENCY = PRICE_UNIT.split("/")[0]
-_REF_GREY = "0.45"
-_ZONE_GREY = "0.92"
-_DEFAULT_DAYS = 5
-#: Mathtext names of theta's parts (paper notation), for labels.
-_PART_TEX = {
-    "alpha": r"\theta_\alpha", "delta": r"\theta_\delta", "b": r"\theta_b", "s": r"\theta_s",
-    "phi1": r"\phi_1", "phi2": r"\phi_2", "phi3": r"\phi_3",
-    "T1": r"T_1", "T2": r"T_2", "T3": r"T_3",
-}
-#: Units of theta's parts: alpha and delta act on soc, b and s on prices, the rest on cost.
-_PART_UNIT = {
-    "alpha": "1/MWh", "delta": "–", "b": PRICE_UNIT, "s": PRICE_UNIT,
-    **{name: _CURRENCY for name in ("phi1", "phi2", "phi3", "T1", "T2", "T3")},
-}
+_GRID = {"color": "0.9", "lw": 0.6}
 
 
 # ----------------------------------------------------------------------------------------------
-# Small helpers
-# ----------------------------------------------------------------------------------------------
-def agent_color(i: int) -> str:
-    """Colour of agent ``i`` (0-based), cycling through :data:`AGENT_COLORS`."""
-    return AGENT_COLORS[i % len(AGENT_COLORS)]
-
-
-def find_lines(fig_or_ax: Figure | Axes, gid: str) -> list[Line2D]:
-    """All lines whose ``gid`` is ``gid``, in every axes of a figure (or in one axes)."""
-    axes = fig_or_ax.axes if isinstance(fig_or_ax, Figure) else [fig_or_ax]
-    return [line for ax in axes for line in ax.get_lines() if line.get_gid() == gid]
-
-
-def _root_figure(ax: Axes) -> Figure:
-    fig = ax.figure
-    while not isinstance(fig, Figure):  # axes of a SubFigure
-        fig = fig.figure
-    return fig
-
-
-def _axes_or_new(
-    axes: Sequence[Axes] | Axes | None, shape: tuple[int, int], figsize: tuple[float, float],
-    name: str, **kwargs,
-) -> tuple[Figure, list[Axes]]:
-    """The given axes (checked for their number) or a new figure with ``shape`` subplots."""
-    count = shape[0] * shape[1]
-    if axes is None:
-        fig, grid = plt.subplots(
-            *shape, figsize=figsize, squeeze=False, layout="constrained", **kwargs
-        )
-        return fig, list(grid.ravel())
-    given = [axes] if isinstance(axes, Axes) else list(np.ravel(np.asarray(axes, dtype=object)))
-    if len(given) != count or not all(isinstance(a, Axes) for a in given):
-        raise ValueError(f"{name}: expected {count} matplotlib Axes, got {len(given)} object(s)")
-    return _root_figure(given[0]), given
-
-
-def _select_days(days: int | Sequence[int] | None, available: int) -> list[int]:
-    """Day indices from ``None`` (the first five, or fewer), a count, or explicit indices."""
-    if days is None:
-        return list(range(min(_DEFAULT_DAYS, available)))
-    if isinstance(days, numbers.Integral) and not isinstance(days, bool):
-        count = check_int("days", days, 1, available)
-        return list(range(count))
-    if isinstance(days, (str, bytes)) or not isinstance(days, Sequence) or len(days) == 0:
-        raise ValueError(
-            f"days={days!r}: expected a number of days or a non-empty sequence of day indices"
-        )
-    return [check_int("day", d, 0, available - 1) for d in days]
-
-
-def _history_months(history: History, need_records: bool = False) -> int:
-    check_instance("history", history, History)
-    if history.months == 0:
-        raise ValueError("history has no months recorded")
-    if need_records and (history.first_month is None or history.last_month is None):
-        raise ValueError("history holds no month trajectories (first_month/last_month is None)")
-    return history.months
-
-
-def _steps(values: np.ndarray) -> np.ndarray:
-    """Piecewise-constant hourly values for ``drawstyle='steps-post'``: the last value is
-    repeated so that the last hour is drawn over its full width."""
-    values = np.asarray(values, dtype=float)
-    return np.append(values, values[-1:])
-
-
-def _soc_reference(ax: Axes, system: SystemConfig, label: bool = True) -> None:
-    """The soc band (dashed), the penalised zones (shaded) and ``[0, 1]`` (thin solid)."""
-    lo, hi = system.soc_low, system.soc_high
-    ax.axhspan(0.0, lo, color=_ZONE_GREY, zorder=0, lw=0)
-    ax.axhspan(hi, 1.0, color=_ZONE_GREY, zorder=0, lw=0)
-    ax.axhline(lo, color=_REF_GREY, ls="--", lw=1.0, gid="soc_low",
-               label=f"band {lo:g} / {hi:g}" if label else None)
-    ax.axhline(hi, color=_REF_GREY, ls="--", lw=1.0, gid="soc_high")
-    ax.axhline(0.0, color=_REF_GREY, ls="-", lw=0.6, gid="soc_min")
-    ax.axhline(1.0, color=_REF_GREY, ls="-", lw=0.6, gid="soc_max")
-    ax.set_ylim(-0.04, 1.04)
-    ax.yaxis.set_major_locator(MultipleLocator(0.2))
-
-
-def _p_bar_line(ax: Axes, P_bar: float) -> None:
-    # Drawn above the data: the grid power often sits exactly at the limit.
-    ax.axhline(P_bar, color="black", ls="--", lw=1.3, gid="P_bar", zorder=4,
-               label=rf"$\bar P$ = {P_bar:g} MW")
-
-
-def _day_axis(ax: Axes, n_days: int, hours: int, labels: Sequence[int] | None = None) -> None:
-    """Hour ticks and faint day separators for a time axis of ``n_days`` concatenated days."""
-    total = n_days * hours
-    ax.set_xlim(0, total)
-    if n_days == 1:
-        ax.xaxis.set_major_locator(MultipleLocator(max(1, hours // 8)))
-    else:
-        ax.xaxis.set_major_locator(MultipleLocator(hours))
-        ax.xaxis.set_minor_locator(MultipleLocator(max(1, hours // 4)))
-        for j in range(1, n_days):
-            ax.axvline(j * hours, color="0.8", lw=0.8, zorder=0)
-    if labels is not None:
-        for j, d in enumerate(labels):
-            ax.text((j + 0.5) * hours, 1.0, f"day {d + 1}", transform=ax.get_xaxis_transform(),
-                    ha="center", va="bottom", fontsize=8, color="0.35")
-
-
-def _concat_days(values: np.ndarray, days: Sequence[int], i: int | None = None) -> np.ndarray:
-    """Hourly values ``(H, D[, n])`` of the chosen days, one after the other, shape (len*H,)."""
-    picked = values[:, days] if i is None else values[:, days, i]
-    return picked.T.reshape(-1)
-
-
-def _concat_soc(soc: np.ndarray, days: Sequence[int], i: int) -> tuple[np.ndarray, np.ndarray]:
-    """soc of agent ``i`` over the chosen days, each day's ``H + 1`` points followed by a
-    gap (NaN): the battery restarts at ``soc0`` every morning, so days are not joined."""
-    H = soc.shape[0] - 1
-    t = [np.r_[j * H + np.arange(H + 1), np.nan] for j in range(len(days))]
-    y = [np.r_[soc[:, d, i], np.nan] for d in days]
-    return np.concatenate(t), np.concatenate(y)
-
-
-# ----------------------------------------------------------------------------------------------
-# One day (simulate command)
+# One day in closed loop
 # ----------------------------------------------------------------------------------------------
 def plot_day(
-    record: MonthRecord,
+    record: Record,
     day: int = 0,
     prices: Prices | None = None,
     axes: Sequence[Axes] | None = None,
+    *,
+    fig: Figure | None = None,
+    title: str | None = None,
+    planned: bool = True,
 ) -> Figure:
-    """One day of one month in closed loop: soc, actions, grid power and prices.
+    """One day in closed loop: soc, actions, grid power and prices.
 
     Four panels sharing the hour axis:
 
     1. ``soc^i_k`` per agent (``k = 0 .. H``) with the band ``[0.1, 0.9]`` and ``[0, 1]``;
-    2. net power per agent: the MPC policy ``pi^i(s_k)`` (dashed) and the applied
+    2. net power per agent: the policy ``pi^i(s_k)`` (dashed) and the applied
        ``b^i_k - s^i_k`` after the low-level controller (solid), with ``+-U_bar``;
-    3. grid power ``P_k = max(sum_i b^i_k, sum_i s^i_k)`` against ``P_bar``;
+    3. grid power ``P_k = max(sum_i b^i_k, sum_i s^i_k)`` against ``P_bar`` and, with
+       ``planned``, the largest grid power the MPC planned over its horizon (dotted);
     4. buying and selling prices ``phi_b``, ``phi_s`` of the hour.
 
-    Hourly quantities are drawn as steps over ``[k, k+1)``.
+    Hourly quantities are drawn as steps over ``[k, k+1)``. Legends stand beside the panels,
+    and the grid panel leaves room above ``P_bar`` and the data.
 
     Parameters
     ----------
-    record : MonthRecord
-        A simulated month (e.g. from :func:`mpcrl_lite.experiment.run_month`).
+    record : Record
+        A simulated period (e.g. from :func:`mpcrl_lite.closed_loop.run_month` or
+        :func:`mpcrl_lite.explore.simulate_day`), arrays ``(H, D, n)``.
     day : int, default 0
-        Index of the day, in ``[0, D)``.
+        Index of the day in the record, in ``[0, D)``.
     prices : Prices, optional
         Prices to draw; by default the buying prices stored in ``record.buy`` and
         ``sell_ratio * buy``.
     axes : sequence of 4 Axes, optional
         Where to draw; by default a new figure.
+    fig : Figure, optional
+        A figure to clear and draw into instead (not with ``axes``).
+    title : str, optional
+        Title of the top panel; default ``"Day d of D: closed loop"`` (days from 1).
+    planned : bool, default True
+        Draw ``record.planned_power`` (meaningful for an MPC; for another policy it is the
+        grid power of its command).
 
     Returns
     -------
@@ -274,8 +164,8 @@ def plot_day(
     Notes
     -----
     Line gids: ``"soc[i]"``, ``"policy[i]"``, ``"net_power[i]"`` (agents counted from 1),
-    ``"grid_power"``, ``"buy"``, ``"sell"``, and the references ``"soc_low"``,
-    ``"soc_high"``, ``"soc_min"``, ``"soc_max"``, ``"U_bar"``, ``"P_bar"``.
+    ``"grid_power"``, ``"planned_power"``, ``"buy"``, ``"sell"``, and the references
+    ``"soc_low"``, ``"soc_high"``, ``"soc_min"``, ``"soc_max"``, ``"U_bar"``, ``"P_bar"``.
     """
     system = record.system
     H, D, n = record.policy.shape
@@ -287,515 +177,258 @@ def plot_day(
     else:
         buy = record.buy[:, day]
         sell, unit = system.sell_ratio * buy, PRICE_UNIT
-    fig, (ax_soc, ax_a, ax_p, ax_price) = _axes_or_new(
-        axes, (4, 1), (8.5, 9.5), "axes", sharex=True,
+    fig, (ax_soc, ax_a, ax_p, ax_price) = axes_or_new(
+        axes, (4, 1), (8.5, 9.5), "axes", fig=fig, sharex=True,
         gridspec_kw={"height_ratios": [1.25, 1.25, 0.9, 0.9]},
     )
     hours = np.arange(H + 1)
 
-    _soc_reference(ax_soc, system)
+    soc_reference(ax_soc, system)
     for i in range(n):
         ax_soc.plot(hours, record.soc[:, day, i], color=agent_color(i), lw=1.8, marker="o",
                     ms=2.5, gid=f"soc[{i + 1}]", label=f"agent {i + 1}")
     ax_soc.set_ylabel("soc (–)")
-    ax_soc.set_title(f"Day {day + 1} of {D}: closed loop", loc="left", fontsize=11)
-    # beside the panel: room for any number of agents, never over the data
-    ax_soc.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False,
-                  borderaxespad=0.0)
+    ax_soc.set_title(f"Day {day + 1} of {D}: closed loop" if title is None else title,
+                     loc="left", fontsize=11)
+    legend_beside(ax_soc)
 
     for lim in (system.U_bar, -system.U_bar):
-        ax_a.axhline(lim, color=_REF_GREY, ls=":", lw=1.0, gid="U_bar")
+        ax_a.axhline(lim, color=REF_GREY, ls=":", lw=1.0, gid="U_bar")
     ax_a.axhline(0.0, color="0.75", lw=0.6)
     for i in range(n):
         c = agent_color(i)
-        ax_a.plot(hours, _steps(record.policy[:, day, i]), drawstyle="steps-post", color=c,
+        ax_a.plot(hours, steps(record.policy[:, day, i]), drawstyle="steps-post", color=c,
                   ls="--", lw=1.1, alpha=0.9, gid=f"policy[{i + 1}]")
-        ax_a.plot(hours, _steps(record.b[:, day, i] - record.s[:, day, i]),
+        ax_a.plot(hours, steps(record.b[:, day, i] - record.s[:, day, i]),
                   drawstyle="steps-post", color=c, lw=1.8, gid=f"net_power[{i + 1}]")
     ax_a.set_ylabel("net power b − s (MW)")
-    ax_a.legend(
-        handles=[Line2D([], [], color="0.3", ls="--", lw=1.1, label=r"policy $\pi(s)$"),
-                 Line2D([], [], color="0.3", lw=1.8, label="applied (after low-level control)")],
-        fontsize=8, loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=2, frameon=False,
-        borderaxespad=0.2,
-    )
+    # one entry per line style (the colours are the agents of the panel above)
+    legend_beside(ax_a, handles=[
+        Line2D([], [], color="0.3", ls="--", lw=1.1, label=r"policy $\pi^i(s)$"),
+        Line2D([], [], color="0.3", lw=1.8, label="applied b − s\n(after low-level control)"),
+        Line2D([], [], color=REF_GREY, ls=":", lw=1.0, label=r"$\pm\bar U$"),
+    ], loc="center left", bbox_to_anchor=(1.01, 0.5))
     ax_a.text(1.005, 1.0, "buy", transform=ax_a.transAxes, fontsize=8, va="top", color="0.35")
     ax_a.text(1.005, 0.0, "sell", transform=ax_a.transAxes, fontsize=8, va="bottom", color="0.35")
 
-    _p_bar_line(ax_p, system.P_bar)
-    ax_p.plot(hours, _steps(record.grid_power[:, day]), drawstyle="steps-post", color="0.45",
-              lw=2.0, gid="grid_power", label=r"applied $P_k$")
-    # headroom above the data for the legend
-    ax_p.set_ylim(0.0, max(system.P_bar, float(record.grid_power[:, day].max())) * 1.5)
+    p_bar_line(ax_p, system.P_bar)
+    applied = record.grid_power[:, day]
+    ax_p.plot(hours, steps(applied), drawstyle="steps-post", color="0.45", lw=2.0,
+              gid="grid_power", label=r"applied $P_k$")
+    levels = [system.P_bar, applied.max()]
+    if planned:
+        plan = record.planned_power[:, day]
+        ax_p.plot(hours, steps(plan), drawstyle="steps-post", color=LAST_COLOR, ls=":", lw=1.8,
+                  gid="planned_power", label="planned by the MPC\n(max over horizon)")
+        levels.append(plan.max())
+    headroom(ax_p, *levels)
     ax_p.set_ylabel("grid power (MW)")
-    ax_p.legend(fontsize=8, loc="upper left", ncol=2, framealpha=0.9)
+    legend_beside(ax_p)
 
-    ax_price.plot(hours, _steps(buy), drawstyle="steps-post", color="0.15", lw=1.6, gid="buy",
+    ax_price.plot(hours, steps(buy), drawstyle="steps-post", color="0.15", lw=1.6, gid="buy",
                   label=r"buy $\phi_b$")
-    ax_price.plot(hours, _steps(sell), drawstyle="steps-post", color="0.15", lw=1.2, ls="--",
+    ax_price.plot(hours, steps(sell), drawstyle="steps-post", color="0.15", lw=1.2, ls="--",
                   gid="sell", label=r"sell $\phi_s$")
     ax_price.set_ylabel(f"price ({unit})")
     ax_price.set_xlabel("hour of day (h)")
-    ax_price.legend(fontsize=8, loc="upper left", ncol=2, framealpha=0.9)
-    _day_axis(ax_price, 1, H)
+    legend_beside(ax_price)
+    day_axis(ax_price, 1, H)
 
     for ax in (ax_soc, ax_a, ax_p, ax_price):
-        ax.grid(True, axis="x", color="0.9", lw=0.6)
+        ax.grid(True, axis="x", **_GRID)
     if axes is None:
         fig.align_ylabels()
     return fig
 
 
 # ----------------------------------------------------------------------------------------------
-# Paper figures
+# Prices, one MPC solution, one policy curve, one value fit
 # ----------------------------------------------------------------------------------------------
-def fig1_trajectories(
-    history: History,
-    days: int | Sequence[int] | None = None,
-    axes: Sequence[Axes] | None = None,
+def plot_price_window(
+    prices: Prices, day: int, hour: int, N: int, ax: Axes | None = None, *,
+    fig: Figure | None = None,
 ) -> Figure:
-    """Paper Fig. 1: soc and policy of every agent over a few days, first vs last month.
+    """The buying and selling prices of ``day`` and the next day, with the window of ``N``
+    hours that the MPC forecasts from ``hour`` shaded (it reads on past midnight).
 
-    A grid of ``n`` rows (agents) by 2 columns: left ``soc^i`` (with the band 0.1 / 0.9),
-    right the MPC policy ``pi^i(s)`` as net power (MW, with ``+-U_bar``). The chosen days are
-    drawn one after the other on a common time axis; soc restarts at ``soc0`` each morning,
-    so each day's soc curve is drawn separately. Red: first month, blue: last month.
-
-    Parameters
-    ----------
-    history : History
-        A run with ``first_month`` and ``last_month``.
-    days : int or sequence of int, optional
-        The first ``days`` days, or explicit day indices; default the first five (fewer if
-        the month is shorter).
-    axes : sequence of ``2 n`` Axes, optional
-        Row-major (agent 1 soc, agent 1 policy, agent 2 soc, ...); default a new figure.
-
-    Returns
-    -------
-    matplotlib.figure.Figure
-
-    Notes
-    -----
-    Line gids: ``"soc[i] first"``, ``"soc[i] last"``, ``"policy[i] first"``,
-    ``"policy[i] last"`` (agents counted from 1) and the soc / ``U_bar`` references.
+    Line gids: ``"buy"``, ``"sell"``; the shaded window is the patch ``"window"``.
     """
-    _history_months(history, need_records=True)
-    first, last = history.first_month, history.last_month
-    H, D, n = last.policy.shape
-    chosen = _select_days(days, min(D, first.policy.shape[1]))
-    system = history.system
-    fig, flat = _axes_or_new(axes, (n, 2), (11.0, 1.9 * n + 1.0), "axes", sharex=True)
-    t_pol = np.arange(len(chosen) * H + 1)
-    months = {"first": (first, FIRST_COLOR, "first month"),
-              "last": (last, LAST_COLOR, f"last month (month {history.months})")}
+    day = check_int("day", day, 0, prices.days - 1)
+    hour = check_int("hour", hour, 0, HOURS_PER_DAY - 1)
+    N = check_int("N", N, 1, HOURS_PER_DAY)
+    fig, (ax,) = axes_or_new(ax, (1, 1), (8.0, 3.4), "ax", fig=fig)
+    nxt = (day + 1) % prices.days
+    two = np.concatenate([prices.buy[day], prices.buy[nxt]])
+    t = np.arange(2 * HOURS_PER_DAY + 1)
+    ax.plot(t, steps(two), drawstyle="steps-post", color="0.15", lw=1.6, gid="buy",
+            label=r"buy $\phi_b$")
+    ax.plot(t, steps(prices.sell_ratio * two), drawstyle="steps-post", color="0.15", lw=1.1,
+            ls="--", gid="sell", label=r"sell $\phi_s$")
+    ax.axvspan(hour, hour + N, color=LAST_COLOR, alpha=0.15, lw=0, gid="window",
+               label=f"MPC window\nat {hour:02d}:00, N = {N} h")
+    ax.axvline(HOURS_PER_DAY, color="0.6", lw=0.8)
+    for x, text in ((0.5, f"day {day + 1}"), (1.5, f"day {nxt + 1} (next)")):
+        ax.text(x * HOURS_PER_DAY, 1.0, text, transform=ax.get_xaxis_transform(),
+                ha="center", va="bottom", fontsize=9)
+    ax.set_xlim(0, 2 * HOURS_PER_DAY)
+    ax.set_xticks(range(0, 2 * HOURS_PER_DAY + 1, 6))
+    ax.set_xlabel("hour counted from the day's midnight (h)")
+    ax.set_ylabel(f"price ({prices.unit})")
+    legend_beside(ax)
+    ax.grid(True, **_GRID)
+    return fig
+
+
+def plot_plan(
+    plan: Plan, system: SystemConfig, buy: np.ndarray | None = None, title: str = "",
+    axes: Sequence[Axes] | None = None, *, fig: Figure | None = None,
+) -> Figure:
+    """One MPC solution over its horizon: predicted soc, planned net power per agent, the
+    grid sums ``sum_i b_j`` and ``sum_i s_j`` against ``P_bar``, and (with ``buy``, shape
+    ``(N,)``) the buying price of each stage in a fourth panel.
+
+    Line gids: ``"soc[i]"``, ``"net_power[i]"``, ``"sum_b"``, ``"sum_s"``, ``"buy"``,
+    ``"P_bar"``, ``"U_bar"``.
+    """
+    N, n = plan.b.shape
+    rows = 3 if buy is None else 4
+    fig, axs = axes_or_new(axes, (rows, 1), (7.5, 6.5), "axes", fig=fig, sharex=True,
+                           gridspec_kw={"height_ratios": [1.1, 1.0, 1.0, 0.7][:rows]})
+    ax_soc, ax_a, ax_p = axs[:3]
+    j = np.arange(N + 1)
+    soc_reference(ax_soc, system)
+    ax_soc.set_ylim(min(-0.04, float(plan.soc.min()) - 0.05),
+                    max(1.04, float(plan.soc.max()) + 0.05))
     for i in range(n):
-        ax_s, ax_p = flat[2 * i], flat[2 * i + 1]
-        _soc_reference(ax_s, system, label=(i == 0))
-        for lim in (system.U_bar, -system.U_bar):
-            ax_p.axhline(lim, color=_REF_GREY, ls=":", lw=1.0, gid="U_bar")
-        ax_p.axhline(0.0, color="0.75", lw=0.6)
-        for key, (rec, color, label) in months.items():
-            t, y = _concat_soc(rec.soc, chosen, i)
-            ax_s.plot(t, y, color=color, lw=1.4, gid=f"soc[{i + 1}] {key}",
-                      label=label if i == 0 else None)
-            ax_p.plot(t_pol, _steps(_concat_days(rec.policy, chosen, i)), drawstyle="steps-post",
-                      color=color, lw=1.1, alpha=0.85, gid=f"policy[{i + 1}] {key}")
-        ax_s.set_ylabel(f"soc$^{i + 1}$ (–)")
-        ax_p.set_ylabel(rf"$\pi^{i + 1}$ (MW)")
-        ax_p.set_ylim(-1.15 * system.U_bar, 1.15 * system.U_bar)
-        for ax in (ax_s, ax_p):
-            _day_axis(ax, len(chosen), H, labels=chosen if i == 0 else None)
-    flat[-2].set_xlabel("time (h)")
-    flat[-1].set_xlabel("time (h)")
-    flat[0].set_title("state of charge", loc="left", fontsize=11, pad=14)
-    flat[1].set_title("policy (net power b − s)", loc="left", fontsize=11, pad=14)
-    handles, labels = flat[0].get_legend_handles_labels()
-    if axes is None:
-        fig.legend(handles, labels, loc="outside upper center", ncol=len(labels), frameon=False)
-        fig.align_ylabels()
-    else:
-        flat[0].legend(fontsize=8, loc="lower left")
-    return fig
-
-
-def fig2_performance(
-    history: History, rolling: int | None = 10, ax: Axes | None = None,
-) -> Figure:
-    r"""Paper Fig. 2: closed-loop cost ``J`` of every month (RL step).
-
-    ``J = mean over days of sum_k gamma^k L~(s_k, a_k)`` (paper eq. 4, each day an
-    episode). The first month's point is red, the last month's blue. When the history holds
-    an evaluation series (``history.J_eval`` at ``history.eval_month``: the parameters of a
-    month on one fixed noise draw, without exploration), it is drawn as a second line with
-    square markers; it is not disturbed by each month's own noise and shows the trend.
-
-    Parameters
-    ----------
-    history : History
-    rolling : int or None, default 10
-        Also draw the mean of the last ``rolling`` months (only when there are more months
-        than that); ``None`` or 1 draws none.
-    ax : Axes, optional
-
-    Returns
-    -------
-    matplotlib.figure.Figure
-
-    Notes
-    -----
-    Line gids: ``"J"``, ``"J_rolling"`` and ``"J_eval"`` (months counted from 1, as for
-    ``"J"``).
-    """
-    months = _history_months(history)
-    if rolling is not None:
-        rolling = check_int("rolling", rolling, 1)
-    fig, (ax,) = _axes_or_new(ax, (1, 1), (7.0, 4.0), "ax")
-    x = np.arange(1, months + 1)
-    J = np.asarray(history.J, dtype=float)
-    ax.plot(x, J, color="0.35", lw=1.2, marker="o", ms=3, gid="J", label="J per month")
-    if rolling is not None and 1 < rolling < months:
-        mean = np.convolve(J, np.ones(rolling) / rolling, mode="valid")
-        ax.plot(x[rolling - 1:], mean, color="black", lw=2.2, gid="J_rolling",
-                label=f"mean of last {rolling} months")
-    if history.J_eval:
-        if len(history.eval_month) != len(history.J_eval):
-            raise ValueError(
-                f"history has {len(history.J_eval)} J_eval values but "
-                f"{len(history.eval_month)} eval_month entries"
-            )
-        x_eval = np.asarray(history.eval_month, dtype=float) + 1.0  # months counted from 1
-        ax.plot(x_eval, np.asarray(history.J_eval, dtype=float), color="black", ls="--",
-                lw=1.4, marker="s", ms=4.5, mfc="white", mec="black", mew=1.0, zorder=2.5,
-                gid="J_eval", label="evaluation (fixed draw)")
-    ax.plot(x[0], J[0], "o", color=FIRST_COLOR, ms=8, zorder=3, label="first month")
-    ax.plot(x[-1], J[-1], "o", color=LAST_COLOR, ms=8, zorder=3, label="last month")
-    ax.set_xlabel("RL step (month)")
-    ax.set_ylabel(f"closed-loop cost J ({_CURRENCY})")
-    ax.set_title("Closed-loop performance", loc="left", fontsize=11)
-    ax.grid(True, color="0.9", lw=0.6)
-    ax.legend(fontsize=8, framealpha=0.9)
-    if months <= 12:
-        ax.xaxis.set_major_locator(MultipleLocator(1))
-    return fig
-
-
-def fig3_gradient_norm(history: History, ax: Axes | None = None) -> Figure:
-    r"""Paper Fig. 3: norm of the policy gradient ``||grad_theta J(pi_theta)||`` per month.
-
-    Logarithmic scale; months whose gradient is zero (no usable samples) are not drawn.
-
-    Parameters
-    ----------
-    history : History
-    ax : Axes, optional
-
-    Returns
-    -------
-    matplotlib.figure.Figure
-
-    Notes
-    -----
-    Line gid: ``"grad_norm"``.
-    """
-    months = _history_months(history)
-    fig, (ax,) = _axes_or_new(ax, (1, 1), (7.0, 4.0), "ax")
-    x = np.arange(1, months + 1)
-    g = np.asarray(history.grad_norm, dtype=float)
-    ax.plot(x, g, color="0.25", lw=1.2, marker="o", ms=3, gid="grad_norm")
-    ax.plot(x[0], g[0], "o", color=FIRST_COLOR, ms=8, zorder=3, label="first month")
-    ax.plot(x[-1], g[-1], "o", color=LAST_COLOR, ms=8, zorder=3, label="last month")
-    ax.set_yscale("log")
-    ax.set_xlabel("RL step (month)")
-    ax.set_ylabel(r"$\Vert\nabla_\theta J(\pi_\theta)\Vert$")
-    ax.set_title("Norm of the policy gradient", loc="left", fontsize=11)
-    ax.grid(True, which="major", color="0.88", lw=0.6)
-    ax.legend(fontsize=8, framealpha=0.9)
-    if months <= 12:
-        ax.xaxis.set_major_locator(MultipleLocator(1))
-    return fig
-
-
-def fig4_grid_power(
-    history: History,
-    days: int | Sequence[int] | None = None,
-    ax: Axes | None = None,
-) -> Figure:
-    """Paper Fig. 4: grid power over a few days of the last month, against ``P_bar``.
-
-    Two series per hour ``k``:
-
-    * applied ``P_k = max(sum_i b^i_k, sum_i s^i_k)`` (solid, blue = last month): the power
-      actually exchanged at point T, after the low-level controller has absorbed the noise
-      ``Delta`` (it can exceed ``P_bar`` when a battery would leave ``[0, 1]``);
-    * planned (dotted): the largest ``sum_i b`` or ``sum_i s`` the MPC planned over its
-      horizon at hour ``k``, the quantity its constraint ``P <= P_bar`` acts on.
-
-    Hours where the applied power exceeds ``P_bar`` are shaded.
-
-    Parameters
-    ----------
-    history : History
-    days : int or sequence of int, optional
-        The first ``days`` days, or explicit day indices; default five (fewer if the month is
-        shorter).
-    ax : Axes, optional
-
-    Returns
-    -------
-    matplotlib.figure.Figure
-
-    Notes
-    -----
-    Line gids: ``"grid_power"``, ``"planned_power"``, ``"P_bar"``.
-    """
-    _history_months(history, need_records=True)
-    rec = history.last_month
-    H, D = rec.grid_power.shape
-    chosen = _select_days(days, D)
-    P_bar = history.system.P_bar
-    fig, (ax,) = _axes_or_new(ax, (1, 1), (10.0, 4.0), "ax")
-    t = np.arange(len(chosen) * H + 1)
-    applied = _concat_days(rec.grid_power, chosen)
-    planned = _concat_days(rec.planned_power, chosen)
-    _p_bar_line(ax, P_bar)
-    # shade each run of consecutive hours with P_k > P_bar
-    over = np.r_[False, applied > P_bar + 1e-9, False].astype(int)
-    starts, ends = np.flatnonzero(np.diff(over) == 1), np.flatnonzero(np.diff(over) == -1)
-    for j, (k0, k1) in enumerate(zip(starts, ends)):
-        ax.axvspan(k0, k1, color="#fdd0a2", alpha=0.8, lw=0, zorder=0, gid="P_over",
-                   label=r"applied $> \bar P$" if j == 0 else None)
-    ax.plot(t, _steps(planned), drawstyle="steps-post", color="0.55", ls=":", lw=2.2,
-            gid="planned_power", label="planned by the MPC (max over horizon)")
-    ax.plot(t, _steps(applied), drawstyle="steps-post", color=LAST_COLOR, lw=1.8,
-            gid="grid_power", label=r"applied $P_k$")
-    # headroom above the data for the legend
-    ax.set_ylim(0.0, 1.45 * max(P_bar, float(applied.max()), float(planned.max())))
-    ax.set_xlabel("time (h)")
-    ax.set_ylabel("grid power P (MW)")
-    ax.set_title(f"Power exchanged with the grid, last month (month {history.months})",
-                 loc="left", fontsize=11, pad=14)
-    _day_axis(ax, len(chosen), H, labels=chosen)
-    ax.legend(fontsize=8, loc="upper right", ncol=2, framealpha=0.9)
-    return fig
-
-
-def fig5_policy_and_agent_costs(
-    history: History, axes: Sequence[Axes] | None = None,
-) -> Figure:
-    """Paper Fig. 5: the learned policy (left) and the cost ``J^i`` of every agent (right).
-
-    Left: every action ``pi^i(s_k)`` of the last month against the hour of day ``k``. Each
-    hour holds one narrow column per agent, and within it the days are spread from left to
-    right (day 1 leftmost), so no point hides another. A scatter against the hour was chosen
-    over a time series (which shows a handful of days only) and over a histogram (which
-    loses the time of day): a (nearly) bang-bang policy -- the structure expected with a
-    linear economic cost and linear stochastic dynamics -- shows as rows of points at a few
-    levels, ``+-U_bar``, the share of the grid limit ``P_bar`` when several agents trade at
-    once, and 0, with few points in between; and where the levels switch shows how the
-    policy follows the daily price cycle.
-
-    Right: ``J^i`` per month (paper eq. 5), one line per agent.
-
-    Parameters
-    ----------
-    history : History
-        A run with ``last_month``.
-    axes : sequence of 2 Axes, optional
-
-    Returns
-    -------
-    matplotlib.figure.Figure
-
-    Notes
-    -----
-    Gids: the scatter collections ``"policy[i]"`` and the lines ``"J[i]"`` (agents counted
-    from 1), references ``"U_bar"``.
-    """
-    months = _history_months(history, need_records=True)
-    rec = history.last_month
-    H, D, n = rec.policy.shape
-    system = history.system
-    fig, (ax_pi, ax_J) = _axes_or_new(
-        axes, (1, 2), (12.0, 4.4), "axes", gridspec_kw={"width_ratios": [1.3, 1.0]},
-    )
-    slot = 0.84 / n  # width of one agent's column within an hour
-    # x = hour + agent column + day position: a deterministic spread, days left to right
-    spread = (np.arange(D) / max(D - 1, 1) - 0.5) * 0.8 * slot if D > 1 else np.zeros(1)
-    centre = 0.5 + (np.arange(n) - (n - 1) / 2) * slot
+        ax_soc.plot(j, plan.soc[:, i], color=agent_color(i), marker="o", ms=3, lw=1.5,
+                    gid=f"soc[{i + 1}]", label=f"agent {i + 1}")
+    ax_soc.set_ylabel("planned soc (–)")
+    legend_beside(ax_soc)
+    if title:
+        ax_soc.set_title(title, loc="left", fontsize=10)
     for lim in (system.U_bar, -system.U_bar):
-        ax_pi.axhline(lim, color=_REF_GREY, ls=":", lw=1.0, gid="U_bar")
-    ax_pi.axhline(0.0, color="0.75", lw=0.6)
-    x_day = (np.arange(H)[:, None] + spread[None, :]).reshape(-1)  # (H*D,), hour-major
+        ax_a.axhline(lim, color=REF_GREY, ls=":", lw=0.9, gid="U_bar")
     for i in range(n):
-        ax_pi.scatter(x_day + centre[i], rec.policy[:, :, i].reshape(-1), s=6,
-                      color=agent_color(i), alpha=0.7, lw=0, gid=f"policy[{i + 1}]",
-                      label=f"agent {i + 1}")
-    ax_pi.set_xlim(0, H)
-    ax_pi.xaxis.set_major_locator(MultipleLocator(max(1, H // 8)))
-    ax_pi.set_ylim(-1.15 * system.U_bar, 1.15 * system.U_bar)
-    ax_pi.set_xlabel("hour of day (h)")
-    ax_pi.set_ylabel(r"policy $\pi^i(s)$ = b − s (MW)")
-    ax_pi.set_title(f"Learned policy, last month ({D} days)", loc="left", fontsize=11)
-    ax_pi.legend(fontsize=8, loc="lower right", bbox_to_anchor=(1.0, 1.0), markerscale=2.5,
-                 ncol=n, frameon=False, borderaxespad=0.2)
-    ax_pi.grid(True, axis="x", color="0.92", lw=0.6)
-
-    x = np.arange(1, months + 1)
-    J_i = np.asarray(history.J_per_agent, dtype=float).reshape(months, -1)
-    for i in range(J_i.shape[1]):
-        ax_J.plot(x, J_i[:, i], color=agent_color(i), lw=1.5, marker="o", ms=3,
-                  gid=f"J[{i + 1}]", label=f"$J^{i + 1}$")
-    ax_J.set_xlabel("RL step (month)")
-    ax_J.set_ylabel(f"cost per agent $J^i$ ({_CURRENCY})")
-    ax_J.set_title("Closed-loop cost per agent", loc="left", fontsize=11)
-    ax_J.grid(True, color="0.9", lw=0.6)
-    ax_J.legend(fontsize=8, framealpha=0.9)
-    if months <= 12:
-        ax_J.xaxis.set_major_locator(MultipleLocator(1))
+        # agents that plan the same power overlap: earlier agents drawn wider, underneath
+        ax_a.plot(j, steps(plan.b[:, i] - plan.s[:, i]), drawstyle="steps-post",
+                  color=agent_color(i), lw=1.5 + 0.8 * (n - 1 - i), gid=f"net_power[{i + 1}]")
+    ax_a.set_ylabel("planned b − s (MW)")
+    p_bar_line(ax_p, system.P_bar)
+    sum_b, sum_s = plan.b.sum(axis=1), plan.s.sum(axis=1)
+    ax_p.plot(j, steps(sum_b), drawstyle="steps-post", color=FIRST_COLOR, lw=1.5, gid="sum_b",
+              label=r"$\sum_i b^i_j$ (bought)")
+    ax_p.plot(j, steps(sum_s), drawstyle="steps-post", color=LAST_COLOR, lw=1.5, gid="sum_s",
+              label=r"$\sum_i s^i_j$ (sold)")
+    headroom(ax_p, system.P_bar, sum_b.max(), sum_s.max())
+    ax_p.set_ylabel("grid (MW)")
+    legend_beside(ax_p)
+    if buy is not None:
+        ax_b = axs[3]
+        ax_b.plot(j, steps(buy), drawstyle="steps-post", color="0.15", lw=1.2, gid="buy")
+        ax_b.set_ylabel(f"buy ({PRICE_UNIT})", fontsize=8)
+    axs[-1].set_xlabel("prediction step j (h from now)")
+    axs[-1].set_xlim(0, N)
     return fig
 
 
-def fig6_prices(
-    prices: Prices,
-    days: int | Sequence[int] | None = None,
-    ax: Axes | None = None,
+def plot_policy_curve(
+    curve: dict[str, Any], reference: dict[str, Any] | None = None,
+    axes: Sequence[Axes] | None = None, *, fig: Figure | None = None,
 ) -> Figure:
-    """Paper Fig. 6: the 24-hour buying price ``phi_b`` of a few days.
+    """Agent 1's policy against the swept input of :func:`mpcrl_lite.explore.policy_curve`
+    (top) and its slope by finite differences on the curve's grid (bottom); ``reference``
+    (another curve, e.g. the smallest tau) dashed.
 
-    One line per day; the value drawn at hour ``k`` is the price of ``[k, k+1)``.
-
-    Parameters
-    ----------
-    prices : Prices
-    days : int or sequence of int, optional
-        The first ``days`` days, or explicit day indices; default five (fewer if there are
-        fewer days).
-    ax : Axes, optional
-
-    Returns
-    -------
-    matplotlib.figure.Figure
-
-    Notes
-    -----
-    Line gids: ``"buy day d"`` (days counted from 1).
+    Line gids: ``"policy"``, ``"slope"`` and ``"policy reference"``, ``"slope reference"``.
     """
-    check_instance("prices", prices, Prices)
-    chosen = _select_days(days, prices.days)
-    fig, (ax,) = _axes_or_new(ax, (1, 1), (7.0, 4.0), "ax")
-    colors = plt.get_cmap("viridis")(np.linspace(0.0, 0.85, len(chosen)))
-    hours = np.arange(prices.buy.shape[1])
-    for color, d in zip(colors, chosen):
-        ax.plot(hours, prices.buy[d], color=color, lw=1.7, marker="o", ms=3,
-                gid=f"buy day {d + 1}", label=f"day {d + 1}")
-    ax.set_xlim(-0.5, hours[-1] + 0.5)
-    ax.xaxis.set_major_locator(MultipleLocator(3))
-    ax.set_xlabel("hour of day (h)")
-    ax.set_ylabel(rf"buying price $\phi_b$ ({prices.unit})")
-    ax.set_title("Buying price", loc="left", fontsize=11)
-    ax.annotate(f"source: {prices.source}", xy=(0.0, 0.0), xycoords="axes fraction",
-                xytext=(0, -34), textcoords="offset points", ha="left", va="top", fontsize=7,
-                color="0.45")
-    ax.grid(True, color="0.9", lw=0.6)
-    ax.legend(fontsize=8, framealpha=0.9, ncol=1 if len(chosen) <= 6 else 2)
+    fig, (ax_pi, ax_d) = axes_or_new(axes, (2, 1), (7.0, 5.6), "axes", fig=fig, sharex=True,
+                                     gridspec_kw={"height_ratios": [1.4, 1.0]})
+    for c, style, width, suffix in ((reference, "--", 1.0, " reference"), (curve, "-", 2.0, "")):
+        if c is None:
+            continue
+        label = rf"$\tau$ = {c['tau']:.0e}"
+        ax_pi.plot(c["x"], c["policy"][:, 0], ls=style, lw=width, color="black", marker="o",
+                   ms=2.5 if style == "-" else 0, gid=f"policy{suffix}", label=label)
+        ax_d.plot(c["x"], np.gradient(c["policy"][:, 0], c["x"]), ls=style, lw=width,
+                  color="black", gid=f"slope{suffix}", label=label)
+    ax_pi.set_ylabel(r"$\pi^1$ = b − s (MW)")
+    legend_beside(ax_pi)
+    ax_pi.grid(True, **_GRID)
+    ax_d.set_ylabel(r"slope $\Delta\pi^1/\Delta x$ on the grid")
+    ax_d.set_xlabel(curve["label"])
+    ax_d.grid(True, **_GRID)
     return fig
 
 
-def fig7_theta(history: History, part: str = "delta", ax: Axes | None = None) -> Figure:
-    """Paper Fig. 7: one part of theta (one entry per agent) over the months.
+def plot_value_fit(
+    fit: dict[str, Any], axes: Sequence[Axes] | None = None, *, fig: Figure | None = None,
+) -> Figure:
+    """LSTD values against Monte-Carlo returns (a :func:`mpcrl_lite.explore.value_fit` dict):
+    every visited state coloured by its hour (left) and the means over days hour by hour
+    (right). Values are costs to the end of the day, in NOK.
 
-    Point ``m`` is the value used during month ``m + 1``; the last point is theta after the
-    last update (:meth:`History.theta_part`), so month 0 is ``theta_0``.
-
-    Parameters
-    ----------
-    history : History
-    part : str, default "delta"
-        One of :data:`mpcrl_lite.theta.PARTS`.
-    ax : Axes, optional
-
-    Returns
-    -------
-    matplotlib.figure.Figure
-
-    Raises
-    ------
-    ValueError
-        If ``part`` is not a part of theta.
-
-    Notes
-    -----
-    Line gids: ``"theta_<part>[i]"`` (agents counted from 1).
+    Line gids: ``"diagonal"``, ``"mean G"``, ``"mean V"``.
     """
-    if part not in PARTS:
-        raise ValueError(f"part={part!r}: expected one of {PARTS}")
-    _history_months(history)
-    if not history.theta_final:
-        raise ValueError("history has no theta_final (no update was recorded)")
-    values = history.theta_part(part)
-    fig, (ax,) = _axes_or_new(ax, (1, 1), (7.0, 4.0), "ax")
-    x = np.arange(values.shape[0])
-    tex = _PART_TEX[part]
-    for i in range(values.shape[1]):
-        ax.plot(x, values[:, i], color=agent_color(i), lw=1.6, marker="o", ms=3,
-                gid=f"theta_{part}[{i + 1}]", label=f"${tex}^{{{i + 1}}}$")
-    ax.set_xlabel("RL step (month)")
-    ax.set_ylabel(f"${tex}$ ({_PART_UNIT[part]})")
-    ax.set_title(f"Convergence of ${tex}^i$", loc="left", fontsize=11)
-    ax.grid(True, color="0.9", lw=0.6)
-    ax.legend(fontsize=9, framealpha=0.9)
-    ax.ticklabel_format(axis="y", style="sci", scilimits=(-3, 4), useMathText=True)
-    if values.shape[0] <= 13:
-        ax.xaxis.set_major_locator(MultipleLocator(1))
+    fig, (ax_s, ax_h) = axes_or_new(axes, (1, 2), (9.0, 3.8), "axes", fig=fig)
+    V, G = fit["V"], fit["G"]
+    H = V.shape[0]
+    hours = np.broadcast_to(np.arange(H)[:, None], V.shape)
+    points = ax_s.scatter(G.ravel(), V.ravel(), c=hours.ravel(), cmap="viridis", s=6, lw=0)
+    fig.colorbar(points, ax=ax_s, label="hour k", pad=0.02)
+    lo, hi = float(min(G.min(), V.min())), float(max(G.max(), V.max()))
+    ax_s.plot([lo, hi], [lo, hi], color="0.4", ls="--", lw=1.0, gid="diagonal")
+    ax_s.set_xlabel("Monte-Carlo return $G_k$ (NOK)")
+    ax_s.set_ylabel("LSTD value $V(s_k)$ (NOK)")
+    ax_s.set_title(f"each state; $R^2$ = {fit['r2']:.2f}", loc="left", fontsize=9)
+    ax_h.plot(np.arange(H), G.mean(axis=1), color="black", lw=1.8, gid="mean G",
+              label="mean $G_k$")
+    ax_h.plot(np.arange(H), V.mean(axis=1), color=LAST_COLOR, lw=1.5, ls="--", gid="mean V",
+              label="mean $V(s_k)$")
+    ax_h.set_xlabel("hour k")
+    ax_h.set_ylabel("NOK")
+    ax_h.set_title(f"features: {fit['features']}, {fit['days']} day(s), "
+                   rf"$\gamma$ = {fit['gamma']:g}", loc="left", fontsize=9)
+    legend_beside(ax_h)
+    ax_h.grid(True, **_GRID)
     return fig
 
 
-def save_paper_figures(
-    history: History,
-    directory: str | Path,
-    prices: Prices | None = None,
-    dpi: int = 110,
-) -> list[Path]:
-    """Write paper Figs. 1-7 as PNG files into ``directory``.
+# ----------------------------------------------------------------------------------------------
+# Older figure-first names
+# ----------------------------------------------------------------------------------------------
+def draw_day(fig: Figure, traj: Record, buy: np.ndarray, day: int = 0, title: str = "",
+             policy: np.ndarray | None = None, planned: np.ndarray | None = None) -> Figure:
+    """:func:`plot_day` of ``traj`` into ``fig`` (the older call).
 
-    Parameters
-    ----------
-    history : History
-        A run with ``first_month`` and ``last_month``.
-    directory : str or Path
-        Created if missing.
-    prices : Prices, optional
-        For Fig. 6; default the shipped month for ``history.system``, as many days as the
-        recorded month (:meth:`Prices.month`).
-    dpi : int, default 110
-
-    Returns
-    -------
-    list of Path
-        The files, named as in :data:`PAPER_FIGURES`, in figure order.
+    ``buy`` (24,) and ``policy`` (H, n) must be the record's own (they are drawn from the
+    record); ``planned`` given draws the record's planned grid power.
     """
-    _history_months(history, need_records=True)
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
-    if prices is None:
-        prices = Prices.month(history.system, history.last_month.policy.shape[1])
-    makers = (
-        lambda: fig1_trajectories(history),
-        lambda: fig2_performance(history),
-        lambda: fig3_gradient_norm(history),
-        lambda: fig4_grid_power(history),
-        lambda: fig5_policy_and_agent_costs(history),
-        lambda: fig6_prices(prices),
-        lambda: fig7_theta(history, "delta"),
-    )
-    paths = []
-    for name, make in zip(PAPER_FIGURES, makers):
-        fig = make()
-        try:
-            path = directory / name
-            fig.savefig(path, dpi=dpi, bbox_inches="tight")
-            paths.append(path)
-        finally:
-            plt.close(fig)
-    return paths
+    own = {"buy": (buy, traj.buy[:, day]),
+           "policy": (policy, None if policy is None else traj.policy[:, day])}
+    for name, (given, stored) in own.items():
+        if given is not None and not np.allclose(np.asarray(given, float), stored):
+            raise ValueError(f"{name}: expected the record's own {name} of day {day} (this "
+                             "figure draws the record); use plot_day")
+    return plot_day(traj, day, fig=fig, title=title or None, planned=planned is not None)
+
+
+def draw_prices(fig: Figure, month: Prices, day: int, hour: int, N: int) -> Figure:
+    """:func:`plot_price_window` into ``fig`` (the older call)."""
+    return plot_price_window(month, day, hour, N, fig=fig)
+
+
+def draw_plan(fig: Figure, plan: Plan, system: SystemConfig, buy: np.ndarray | None = None,
+              title: str = "") -> Figure:
+    """:func:`plot_plan` into ``fig`` (the older call)."""
+    return plot_plan(plan, system, buy, title, fig=fig)
+
+
+def draw_policy_curve(fig: Figure, curve: dict[str, Any],
+                      reference: dict[str, Any] | None = None) -> Figure:
+    """:func:`plot_policy_curve` into ``fig`` (the older call)."""
+    return plot_policy_curve(curve, reference, fig=fig)
+
+
+def draw_value_fit(fig: Figure, fit: dict[str, Any]) -> Figure:
+    """:func:`plot_value_fit` into ``fig`` (the older call)."""
+    return plot_value_fit(fit, fig=fig)

@@ -177,12 +177,28 @@ def check_parameters(namespace: dict[str, Any], notebook: str) -> dict[str, Any]
     return {k: values[k] for k in allowed if k in values}
 
 
+#: Significant digits of the floats a summary shows: enough for every result, and a change in
+#: the last digit from round-off stays far below the notebook tests' tolerance (1e-4).
+SUMMARY_DIGITS = 6
+
+
 def show_summary(values: dict[str, Any]) -> None:
-    """Display the notebook's key numbers as JSON (read back by :func:`read_summary`)."""
+    """Display the notebook's key numbers as JSON (read back by :func:`read_summary`), floats
+    rounded to :data:`SUMMARY_DIGITS` significant digits."""
     from IPython.display import display
 
-    data = json.loads(json.dumps(values, default=_jsonable))
+    data = _round_floats(json.loads(json.dumps(values, default=_jsonable)))
     display({SUMMARY_MIME: data, "text/plain": json.dumps(data, indent=1)}, raw=True)
+
+
+def _round_floats(value: Any) -> Any:
+    if isinstance(value, float):
+        return float(f"{value:.{SUMMARY_DIGITS}g}")  # nan and inf stay as they are
+    if isinstance(value, dict):
+        return {k: _round_floats(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_round_floats(v) for v in value]
+    return value
 
 
 def read_summary(notebook: Any) -> dict[str, Any]:

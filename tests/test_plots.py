@@ -8,16 +8,17 @@ import matplotlib
 
 matplotlib.use("Agg")
 
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import pytest  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+import pytest
+from matplotlib.figure import Figure
 
-from mpcrl_lite import plots  # noqa: E402
-from mpcrl_lite.config import LearningConfig  # noqa: E402
-from mpcrl_lite.experiment import Experiment  # noqa: E402
-from mpcrl_lite.history import History  # noqa: E402
-from mpcrl_lite.plots import (  # noqa: E402
+from mpcrl_lite import plots
+from mpcrl_lite.config import LearningConfig, SystemConfig
+from mpcrl_lite.experiment import Experiment
+from mpcrl_lite.history import History
+from mpcrl_lite.mpc import Plan
+from mpcrl_lite.plots import (
     FIRST_COLOR,
     LAST_COLOR,
     PAPER_FIGURES,
@@ -32,7 +33,7 @@ from mpcrl_lite.plots import (  # noqa: E402
     plot_day,
     save_paper_figures,
 )
-from mpcrl_lite.prices import Prices  # noqa: E402
+from mpcrl_lite.prices import Prices
 
 DAYS, MONTHS = 3, 2
 
@@ -77,7 +78,7 @@ def days_concat(values: np.ndarray, days, i=None) -> np.ndarray:
 # -- plot_day ----------------------------------------------------------------------------------
 def test_plot_day_data_and_references(history):
     rec = history.last_month
-    H, D, n = rec.policy.shape
+    H, _, n = rec.policy.shape
     fig = plot_day(rec, day=1)
     assert isinstance(fig, Figure)
     assert len(fig.axes) == 4
@@ -126,6 +127,112 @@ def test_plot_day_rejects_short_prices_and_wrong_axes(history):
         plot_day(history.last_month, axes=axes)
 
 
+def _extent(fig, artist):
+    return artist.get_window_extent(fig.canvas.get_renderer())
+
+
+def _overlap(a, b) -> bool:
+    return a.x0 < b.x1 and b.x0 < a.x1 and a.y0 < b.y1 and b.y0 < a.y1
+
+
+def test_plot_day_legends_never_cover_data_nor_the_P_bar_line(history):
+    rec = history.last_month
+    fig = plot_day(rec, day=1)
+    fig.canvas.draw()
+    ax_p = fig.axes[2]
+    p_bar = _extent(fig, one_line(ax_p, "P_bar"))
+    legend = _extent(fig, ax_p.get_legend())
+    assert not _overlap(legend, p_bar)
+    # every legend stands beside its panel, outside the area where the data are drawn
+    for ax in fig.axes:
+        if ax.get_legend() is not None:
+            assert not _overlap(_extent(fig, ax.get_legend()), _extent(fig, ax.patch)), ax
+
+
+def test_plot_day_grid_panel_has_headroom_and_the_planned_power(history):
+    rec = history.last_month
+    P_bar = history.system.P_bar
+    fig = plot_day(rec, day=1)
+    ax_p = fig.axes[2]
+    np.testing.assert_allclose(one_line(fig, "planned_power").get_ydata()[:-1],
+                               rec.planned_power[:, 1])
+    highest = max(P_bar, rec.grid_power[:, 1].max(), rec.planned_power[:, 1].max())
+    low, top = ax_p.get_ylim()
+    assert low == 0.0 and top >= highest + 0.2 * (highest - low)   # nothing on the top edge
+    assert find_lines(plot_day(rec, day=1, planned=False), "planned_power") == []
+
+
+def test_plot_day_explains_the_dashed_and_solid_net_power(history):
+    fig = plot_day(history.last_month, day=0)
+    legend = fig.axes[1].get_legend()
+    entries = dict(zip([t.get_text() for t in legend.get_texts()], legend.legend_handles))
+    dashed = [text for text, h in entries.items() if h.get_linestyle() == "--"]
+    solid = [text for text, h in entries.items() if h.get_linestyle() == "-"]
+    assert dashed == [r"policy $\pi^i(s)$"] and solid[0].startswith("applied b − s")
+    assert {line.get_linestyle() for line in fig.axes[1].get_lines()
+            if str(line.get_gid()).startswith("policy[")} == {"--"}
+
+
+def test_plot_day_title_days_from_one_and_into_a_given_figure(history):
+    rec = history.last_month
+    fig = plot_day(rec, day=2)
+    assert fig.axes[0].get_title("left") == f"Day 3 of {DAYS}: closed loop"
+    target = Figure(figsize=(6, 6))
+    assert plot_day(rec, 0, fig=target, title="mine") is target
+    assert len(target.axes) == 4 and target.axes[0].get_title("left") == "mine"
+    plot_day(rec, 1, fig=target)                           # cleared and drawn again
+    assert len(target.axes) == 4
+    _, axes = plt.subplots(4, 1)
+    with pytest.raises(ValueError, match="not both"):
+        plot_day(rec, axes=axes, fig=target)
+
+
+def test_draw_day_is_plot_day_of_the_record(history):
+    rec = history.last_month
+    fig = plots.draw_day(Figure(), rec, rec.buy[:, 1], day=1, title="t",
+                         policy=rec.policy[:, 1], planned=rec.planned_power[:, 1])
+    np.testing.assert_allclose(one_line(fig, "soc[2]").get_ydata(), rec.soc[:, 1, 1])
+    assert find_lines(fig, "planned_power")
+    with pytest.raises(ValueError, match="buy"):
+        plots.draw_day(Figure(), rec, 2.0 * rec.buy[:, 1], day=1)
+
+
+def test_price_window_plan_policy_curve_and_value_fit():
+    prices = Prices.default()
+    fig = plots.plot_price_window(prices, day=29, hour=20, N=12)
+    np.testing.assert_allclose(one_line(fig, "buy").get_ydata()[:48],
+                               np.concatenate([prices.buy[29], prices.buy[0]]))
+    (window,) = [p for p in fig.axes[0].patches if p.get_gid() == "window"]
+    assert window.get_x() == 20 and window.get_width() == 12
+    assert "day 30" in [t.get_text() for t in fig.axes[0].texts]
+    with pytest.raises(ValueError, match="hour=24"):
+        plots.plot_price_window(prices, 0, 24, 12)
+
+    system = SystemConfig()
+    rng = np.random.default_rng(0)
+    b, s = rng.uniform(0, 0.5, (12, 3)), rng.uniform(0, 0.5, (12, 3))
+    plan = Plan(b=b, s=s, soc=rng.uniform(0, 1, (13, 3)), sigma_hi=np.zeros((12, 3)),
+                sigma_lo=np.zeros((12, 3)))
+    fig = plots.plot_plan(plan, system, buy=prices.buy[0, :12], title="plan")
+    assert len(fig.axes) == 4
+    np.testing.assert_allclose(one_line(fig, "sum_b").get_ydata()[:-1], b.sum(axis=1))
+    np.testing.assert_allclose(one_line(fig, "net_power[2]").get_ydata()[:-1], b[:, 1] - s[:, 1])
+    assert fig.axes[2].get_ylim()[1] > max(system.P_bar, b.sum(1).max(), s.sum(1).max())
+    assert len(plots.draw_plan(Figure(), plan, system).axes) == 3
+
+    x = np.linspace(-1.0, 1.0, 9)
+    curve = {"x": x, "policy": np.tanh(np.c_[x, x, x]), "tau": 0.1, "label": "x"}
+    fig = plots.plot_policy_curve(curve, {**curve, "tau": 1e-5})
+    np.testing.assert_allclose(one_line(fig, "slope").get_ydata(), np.gradient(np.tanh(x), x))
+    assert one_line(fig, "policy reference").get_linestyle() == "--"
+
+    G = rng.normal(size=(24, 3))
+    fit = {"V": G + 0.1, "G": G, "r2": 0.9, "features": "hour", "days": 3, "gamma": 0.99}
+    fig = plots.plot_value_fit(fit)
+    np.testing.assert_allclose(one_line(fig, "mean V").get_ydata(), (G + 0.1).mean(axis=1))
+    assert len(plots.draw_value_fit(Figure(), fit).axes) == 3        # two panels, a colorbar
+
+
 # -- Fig. 1 ------------------------------------------------------------------------------------
 def test_fig1_first_red_last_blue(history):
     n = history.system.n
@@ -166,7 +273,7 @@ def test_fig2_performance(history):
     np.testing.assert_allclose(line.get_ydata(), history.J)
     np.testing.assert_allclose(line.get_xdata(), np.arange(1, MONTHS + 1))
     assert find_lines(fig, "J_rolling") == []  # fewer months than the window
-    assert "NOK" in fig.axes[0].get_ylabel()
+    assert "NOK/day" in fig.axes[0].get_ylabel()       # a daily cost
     assert history.J_eval  # the default evaluates the first and the last month
     evaluation = one_line(fig, "J_eval")
     np.testing.assert_allclose(evaluation.get_ydata(), history.J_eval)

@@ -1,13 +1,22 @@
-"""Parameter sweeps: grid validation, Dask vs serial, failures, reruns, reports, summaries.
+"""Parameter sweeps: grid validation, Dask vs serial, failures, reruns, reports, summaries,
+and the one-line errors for everything that can be wrong before a sweep starts (grid file,
+output directory, scheduler address, damaged files of an earlier sweep).
 
 The learning runs are tiny (2 months of 2 days, horizon N = 4, IPOPT) so the whole file stays
-well under a minute; one local Dask cluster of 2 worker processes is started once.
+around a minute; one local Dask cluster of 2 worker processes is started for the sweep, and
+one small cluster with a single worker for the scheduler-address route.
 """
 
 from __future__ import annotations
 
+import ast
 import json
+import logging
+import os
+import re
 import shutil
+import socket
+import time
 from pathlib import Path
 
 import nbformat
@@ -15,12 +24,22 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
+import mpcrl_lite.sweep as sweep_module
+from mpcrl_lite import sweep_grid, sweep_run, sweep_schedule, sweep_store, sweep_table
+from mpcrl_lite.cli import main
 from mpcrl_lite.history import History
 from mpcrl_lite.sweep import (
     FAIL_ENV,
-    GridError,
     NOTEBOOK_PARAMETERS,
+    DamagedFileError,
+    GridError,
+    MissingFileError,
+    SchedulerError,
+    Sweep,
+    check_scheduler,
     load_grid,
     load_results,
     run_sweep,
@@ -239,8 +258,6 @@ def test_rerun_with_other_settings_is_refused(serial, tmp_path: Path) -> None:
 
 
 def test_cli_reruns_only_what_is_missing(serial, tmp_path: Path, capsys) -> None:
-    from mpcrl_lite.cli import main
-
     out = tmp_path / "cli"
     shutil.copytree(serial[0], out)
     grid = tmp_path / "grid.yaml"
@@ -315,3 +332,392 @@ def test_notebook_route(tiny_notebook: Path, tmp_path: Path) -> None:
                   notebooks=True, notebook=tiny_notebook,
                   notebook_parameters={**NOTEBOOK_PARAMETERS, "mpc.tau": "TAU"})
     assert not (tmp_path / "o2").exists() and not (tmp_path / "o3").exists()
+
+
+# -- the module layout ---------------------------------------------------------------------
+#: What each sweep module may import from the package, read from the source (an import hidden
+#: in a function counts too): grid -> store -> table -> run -> schedule -> sweep.
+SWEEP_LAYER = {
+    "sweep_grid": {"config"},
+    "sweep_store": {"sweep_grid"},
+    "sweep_table": {"history", "sweep_grid", "sweep_store"},
+    "sweep_run": {"experiment", "report", "sweep_grid", "sweep_store", "sweep_table"},
+    "sweep_schedule": {"sweep_grid", "sweep_run", "sweep_store", "sweep_table"},
+    "sweep": {"report", "sweep_grid", "sweep_run", "sweep_schedule", "sweep_store",
+              "sweep_table"},
+}
+
+
+@pytest.mark.parametrize("module", sorted(SWEEP_LAYER))
+def test_sweep_modules_import_only_downwards(module: str) -> None:
+    tree = ast.parse((Path(sweep_module.__file__).parent / f"{module}.py").read_text())
+    top_level = {id(node) for node in tree.body}
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.ImportFrom) or not node.level:
+            continue
+        assert id(node) in top_level, f"{module}: import inside a function, line {node.lineno}"
+        names = [node.module] if node.module else [alias.name for alias in node.names]
+        for name in names:
+            assert name.split(".")[0] in SWEEP_LAYER[module], f"{module} imports {name}"
+
+
+def test_public_names_stay_importable_from_sweep() -> None:
+    before_the_split = [
+        "SECTIONS", "NOTEBOOK", "NOTEBOOK_PARAMETERS", "FAIL_ENV", "GridError", "InjectedFailure",
+        "SweepRun", "Sweep", "load_grid", "run_sweep", "run_sweep_cli", "load_results",
+        "summarize",
+    ]
+    assert set(before_the_split) <= set(sweep_module.__all__)
+    for name in sweep_module.__all__:
+        assert hasattr(sweep_module, name), name
+    assert sweep_module.load_grid is sweep_grid.load_grid
+    assert sweep_module.summarize is sweep_table.summarize
+    assert sweep_module.FAIL_ENV is sweep_run.FAIL_ENV
+    assert issubclass(sweep_store.DamagedFileError, GridError)
+    assert issubclass(sweep_schedule.SchedulerError, GridError)
+    assert issubclass(sweep_schedule.DaskMissingError, ImportError)
+
+
+def test_grid_columns_never_shadow_result_columns() -> None:
+    assert set(sweep_table.COLUMNS) <= sweep_grid._RESERVED
+
+
+# -- grid files: every problem is one GridError line naming the file -----------------------
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [
+        (None, r"grid file \S+ is a directory; expected a YAML file$"),
+        ("grid:\n  system.P_bar: [1.0\n  learning.seed: [0]\n",
+         (r"grid file \S+: not valid YAML: line 3, column 16: expected ',' or ']', but got ':' "
+          r"\(while parsing a flow sequence started at line 2, column 17\)$")),
+        ("grid:\n  system.P_bar: [1.0]\n    learning.seed: [0]\n",
+         (r"not valid YAML: line 3, column 5: expected <block end>, but found '<block mapping "
+          r"start>' \(while parsing a block mapping started at line 2, column 3\)$")),
+        ("grid: {learning.seed: [0]}\n\x00\n",
+         r"not valid YAML: character #x0000 at position 27: special characters are not allowed"),
+        (b"\xff\xfegrid:", r"grid file \S+ is not UTF-8 text \(byte 0xff at position 0\)$"),
+        ("grid:\n  learning.seed: &x [*x]\n", r"a value contains itself"),
+        ("- 1\n- 2\n", r"grid file \S+: a sweep is a mapping with keys 'base' and 'grid'; got li"),
+        ("", r"got NoneType$"),
+        ("grid:\n  learning.seed: [2001-13-45]\n", r"not valid YAML: month must be in 1\.\.12$"),
+        ("[" * 3000, r"not valid YAML: nested too deeply$"),
+        # too large for a float: rejected by the config or by the conversion, in one line
+        ("grid:\n  system.P_bar: [1" + "0" * 400 + "]\n",
+         r"^grid point P_bar=10+~\w+ \(system\): (int too large to convert to float|P_bar=)"),
+    ],
+)
+def test_grid_file_errors_are_one_line(tmp_path: Path, content, message: str) -> None:
+    path = tmp_path / "grid.yaml"
+    if content is None:
+        path.mkdir()
+    elif isinstance(content, bytes):
+        path.write_bytes(content)
+    else:
+        path.write_text(content)
+    with pytest.raises(GridError, match=message) as info:
+        load_grid(path)
+    assert len(str(info.value).splitlines()) == 1
+    if "grid point" not in message:
+        assert str(path) in str(info.value)
+
+
+def test_missing_grid_file_is_a_grid_error_and_a_file_not_found(tmp_path: Path) -> None:
+    path = tmp_path / "nope.yaml"
+    with pytest.raises(MissingFileError, match=r"^grid file \S+nope\.yaml not found$") as info:
+        load_grid(path)
+    assert isinstance(info.value, FileNotFoundError) and isinstance(info.value, GridError)
+
+
+def test_unreadable_grid_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "grid.yaml"
+    path.write_text(yaml.safe_dump(GRID))
+    path.chmod(0)
+    if os.access(path, os.R_OK):  # root reads it anyway: fail the read as it fails for a user
+        def denied(self: Path) -> bytes:
+            raise PermissionError(13, "Permission denied", str(self))
+
+        monkeypatch.setattr(Path, "read_bytes", denied)
+    with pytest.raises(GridError, match=r"^grid file \S+ cannot be read: Permission denied$"):
+        load_grid(path)
+
+
+# -- hypothesis: any document is a Sweep or one GridError line, never another exception ------
+_TEXT = st.text(st.characters(codec="utf-8"), max_size=8)
+_KEYS = st.sampled_from([
+    "system.P_bar", "system.noise_var", "system.n", "system.N", "system.omega", "mpc.tau",
+    "mpc.backend", "learning.seed", "learning.months", "system.P_barr", "sytem.P_bar", "P_bar",
+    "a.b.c", "", "base", "grid",
+]) | _TEXT | st.integers() | st.none() | st.booleans() | st.floats()
+_SCALARS = (
+    st.none() | st.booleans() | st.integers() | st.floats() | _TEXT
+    | st.sampled_from([0, 1, 2, 0.5, 1.0, 1.5, 20.0, "1e-4", "ipopt", "batch", 10**400])
+)
+_VALUES = st.recursive(
+    _SCALARS,
+    lambda inner: st.lists(inner, max_size=3) | st.dictionaries(_KEYS, inner, max_size=3),
+    max_leaves=8,
+)
+_SECTION_KEYS = st.sampled_from(["system", "mpc", "learning", "physics"]) | _KEYS
+_BASE = st.none() | _VALUES | st.dictionaries(
+    _SECTION_KEYS,
+    st.dictionaries(st.sampled_from(["N", "P_bar", "seed", "months", "tau", "x"]) | _TEXT,
+                    _VALUES, max_size=3) | _VALUES,
+    max_size=3,
+)
+_AXES = st.dictionaries(_KEYS, st.lists(_VALUES, max_size=3) | _VALUES, max_size=3)
+#: Grids close to valid ones, so the fuzz also reaches run ids and the configs' validation.
+_NEAR_AXES = st.dictionaries(
+    st.sampled_from(["system.P_bar", "system.noise_var", "system.omega", "mpc.tau",
+                     "mpc.backend", "learning.seed", "learning.months", "system.N"]),
+    st.lists(_SCALARS | st.lists(st.floats(0, 50), min_size=2, max_size=2), min_size=1,
+             max_size=3),
+    min_size=1, max_size=3,
+)
+_DOCUMENTS = (
+    st.fixed_dictionaries({"grid": _NEAR_AXES}, optional={"base": _BASE})
+    | st.fixed_dictionaries({"grid": _AXES}, optional={"base": _BASE, "extra": _VALUES})
+    | st.dictionaries(_KEYS, _VALUES, max_size=3)
+    | _VALUES
+)
+_NOISE = st.text(":-[]{},#&*!|>'\"%@`?\n\t .0123456789abeglmnrsty_\x00\x85\u2028", max_size=30)
+
+
+@st.composite
+def _yaml_texts(draw: st.DrawFn) -> bytes:
+    """YAML written from a random document, then (usually) damaged by a random splice."""
+    text = yaml.safe_dump(draw(_DOCUMENTS), allow_unicode=True, sort_keys=False)
+    if draw(st.booleans()):
+        i = draw(st.integers(0, len(text)))
+        j = draw(st.integers(i, min(len(text), i + 10)))
+        text = text[:i] + draw(_NOISE) + text[j:]
+    raw = text.encode("utf-8")
+    if draw(st.integers(0, 9)) == 0:  # sometimes not UTF-8 at all
+        raw = raw[: draw(st.integers(0, len(raw)))] + b"\xc3\x28"
+    return raw
+
+
+def _sweep_or_one_line_error(load) -> None:
+    try:
+        result = load()
+    except GridError as err:
+        text = str(err)
+        assert text.strip() and len(text.splitlines()) == 1, repr(text)
+    else:
+        assert isinstance(result, Sweep) and len(result.runs) >= 1
+
+
+@pytest.mark.filterwarnings("ignore::mpcrl_lite.config.ConfigWarning")
+@settings(max_examples=200, deadline=None)
+@given(document=_DOCUMENTS)
+def test_fuzz_load_grid_documents(document) -> None:
+    _sweep_or_one_line_error(lambda: load_grid(document))
+
+
+@pytest.fixture(scope="module")
+def scratch(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return tmp_path_factory.mktemp("fuzz")
+
+
+@pytest.mark.filterwarnings("ignore::mpcrl_lite.config.ConfigWarning")
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(raw=_yaml_texts() | st.binary(max_size=40))
+def test_fuzz_load_grid_files(raw: bytes, scratch: Path) -> None:
+    path = scratch / "grid.yaml"
+    path.write_bytes(raw)
+    _sweep_or_one_line_error(lambda: load_grid(path))
+
+
+@pytest.mark.filterwarnings("ignore::mpcrl_lite.config.ConfigWarning")
+def test_fuzz_documents_include_valid_sweeps() -> None:
+    """The fuzz above is not all rejected at the door: its documents include valid sweeps
+    (a fixed draw of the same strategy, so this count does not vary between runs)."""
+    valid: list[bool] = []
+
+    @settings(max_examples=300, deadline=None, database=None, derandomize=True)
+    @given(document=_DOCUMENTS)
+    def classify(document) -> None:
+        try:
+            valid.append(isinstance(load_grid(document), Sweep))
+        except GridError:
+            valid.append(False)
+
+    classify()
+    assert any(valid) and not all(valid)
+
+
+# -- the output directory and the scheduler: checked before anything is written ------------
+def _files(root: Path) -> list[Path]:
+    return sorted(root.rglob("*"))
+
+
+@pytest.mark.parametrize(
+    ("case", "message"),
+    [
+        ("grid is a directory", r"grid file \S+ is a directory; expected a YAML file"),
+        ("grid is missing", r"grid file \S+missing\.yaml not found"),
+        ("grid is not YAML", r"grid file \S+: not valid YAML: line 3, column 16: "),
+        ("out is a file", r"output directory \S+taken is a file; expected a directory"),
+        ("out is under a file",
+         r"output directory \S+taken/out: \S+taken is a file, so it cannot be created"),
+    ],
+)
+def test_cli_errors_before_the_start_are_one_line(
+    case: str, message: str, tmp_path: Path, capfd: pytest.CaptureFixture
+) -> None:
+    grid, out = tmp_path / "grid.yaml", tmp_path / "out"
+    grid.write_text(yaml.safe_dump(GRID))
+    (tmp_path / "taken").write_text("a file")
+    if case == "grid is a directory":
+        grid = tmp_path
+    elif case == "grid is missing":
+        grid = tmp_path / "missing.yaml"
+    elif case == "grid is not YAML":
+        grid.write_text("grid:\n  system.P_bar: [1.0\n  learning.seed: [0]\n")
+    elif case == "out is a file":
+        out = tmp_path / "taken"
+    else:
+        out = tmp_path / "taken" / "out"
+    before = _files(tmp_path)
+    code = main(["sweep", "--grid", str(grid), "--out", str(out), "--workers", "0", "--quiet"])
+    err = capfd.readouterr().err
+    assert code == 2
+    assert len(err.splitlines()) == 1, err
+    assert re.match(r"mpcrl_lite sweep: error: " + message, err), err
+    assert _files(tmp_path) == before
+
+
+def test_read_only_output_directory_is_refused_before_any_work(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    out = tmp_path / "read_only"
+    out.mkdir()
+    out.chmod(0o555)
+    if os.access(out, os.W_OK):  # root writes anyway: answer as the system does for a user
+        access = os.access
+        monkeypatch.setattr(
+            os, "access", lambda path, mode, **kw: False if Path(path) == out
+            else access(path, mode, **kw))
+    with pytest.raises(GridError, match=r"^output directory \S+read_only is not writable$"):
+        run_sweep(GRID, out, scheduler="serial", progress=False)
+    with pytest.raises(GridError, match=r"^output directory \S+read_only/new cannot be created: "
+                                        r"\S+read_only is not writable$"):
+        run_sweep(GRID, out / "new", scheduler="serial", progress=False)
+    assert list(out.iterdir()) == []
+
+
+def test_values_yaml_cannot_save_are_refused_before_anything_is_written(tmp_path: Path) -> None:
+    grid = {**GRID, "grid": {"system.P_bar": [np.float64(1.0)]}}  # valid for the config
+    with pytest.raises(GridError, match=r"^the sweep cannot be saved as grid\.yaml \(cannot "
+                                        r"represent an object \S*1\.0\)?\); give"):
+        run_sweep(grid, tmp_path / "out", scheduler="serial", progress=False)
+    assert not (tmp_path / "out").exists()
+
+
+def test_unreachable_scheduler_is_reported_before_anything_is_written(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    t0 = time.perf_counter()
+    with pytest.raises(SchedulerError, match=(
+        r"^no Dask scheduler answered at tcp://127\.0\.0\.1:1 within 1 s; expected the address "
+        r"of a running Dask scheduler, e\.g\. tcp://HOST:8786$"
+    )):
+        run_sweep(GRID, out, scheduler="tcp://127.0.0.1:1", connect_timeout=1, progress=False)
+    assert time.perf_counter() - t0 < 10  # not Dask's 30 s
+    assert not out.exists()
+
+
+def test_cli_unreachable_scheduler_is_one_line(tmp_path: Path, capfd) -> None:
+    grid, out = tmp_path / "grid.yaml", tmp_path / "out"
+    grid.write_text(yaml.safe_dump(GRID))
+    code = main(["sweep", "--grid", str(grid), "--out", str(out), "--scheduler",
+                 "tcp://127.0.0.1:1", "--quiet"])
+    err = capfd.readouterr().err
+    assert code == 2
+    assert err.splitlines() == [(
+        "mpcrl_lite sweep: error: no Dask scheduler answered at tcp://127.0.0.1:1 within "
+        f"{sweep_schedule.CONNECT_TIMEOUT:g} s; expected the address of a running Dask "
+        "scheduler, e.g. tcp://HOST:8786"
+    )]
+    assert not out.exists()
+
+
+def test_check_scheduler_rejects_what_is_not_a_scheduler() -> None:
+    with socket.socket() as listener:  # accepts connections and never answers
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        address = f"tcp://127.0.0.1:{listener.getsockname()[1]}"
+        with pytest.raises(SchedulerError, match=rf"^no Dask scheduler answered at {address} "
+                                                 r"within 0\.5 s; expected"):
+            check_scheduler(address, timeout=0.5)
+    with pytest.raises(SchedulerError, match=r"^scheduler address 'host' is malformed \("):
+        check_scheduler("host")
+    with pytest.raises(GridError, match=r"^connect_timeout=0: expected a number of seconds > 0"):
+        check_scheduler("tcp://127.0.0.1:1", timeout=0)
+
+
+def test_sweep_on_a_scheduler_address(serial: tuple[Path, pd.DataFrame], tmp_path: Path) -> None:
+    """The address route: the check accepts a scheduler, refuses its worker, and a run
+    executed there equals the serial one bit for bit."""
+    from distributed import Client, LocalCluster
+
+    out = tmp_path / "remote"
+    shutil.copytree(serial[0], out)
+    shutil.rmtree(out / "runs" / IDS[1])
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address="127.0.0.1:0", silence_logs=logging.CRITICAL) as cluster:
+        with Client(cluster) as client:
+            client.wait_for_workers(1)
+            worker = next(iter(client.scheduler_info()["workers"]))
+        check_scheduler(cluster.scheduler_address, timeout=5)
+        with pytest.raises(SchedulerError, match=r"is not a Dask scheduler \(it answered as "
+                                                 r"'Worker'\)"):
+            check_scheduler(worker, timeout=5)
+        table = run_sweep(GRID, out, scheduler=cluster.scheduler_address, progress=False)
+    assert table.attrs["executed"] == 1 and (table["status"] == "done").all()
+    assert table.attrs["scheduler"] == cluster.scheduler_address
+    assert J_series(out, IDS[1]) == J_series(serial[0], IDS[1])
+
+
+# -- damaged files of an earlier sweep are named -------------------------------------------
+def test_damaged_config_json_is_named_before_anything_runs(serial, tmp_path: Path) -> None:
+    out = tmp_path / "damaged_config"
+    shutil.copytree(serial[0], out)
+    (out / "runs" / IDS[0] / "config.json").write_text('{"system": ')
+    before = (out / "results.csv").stat().st_mtime_ns
+    with pytest.raises(DamagedFileError, match=(
+        rf"^\S+/runs/{re.escape(IDS[0])}/config\.json is not valid JSON \(line 1, column 12: "
+        r"Expecting value\); delete that run directory \(or the file\) to run it again$"
+    )):
+        run_sweep(GRID, out, scheduler="serial", progress=False)
+    assert (out / "results.csv").stat().st_mtime_ns == before
+
+
+def test_damaged_run_files_are_named_in_the_table(serial, tmp_path: Path) -> None:
+    out = tmp_path / "damaged"
+    shutil.copytree(serial[0], out)
+    runs = out / "runs"
+    (runs / IDS[0] / "done.json").write_text("")
+    (runs / IDS[1] / "done.json").unlink()
+    (runs / IDS[1] / "error.json").write_text('{"type": ')
+    (runs / IDS[2] / "history.json").write_text("[")
+    (runs / IDS[3] / "done.json").unlink()
+    (runs / IDS[3] / "checkpoint.json").write_text("{}}")
+
+    # only IDS[3] is executed: its resume meets the damaged checkpoint, recorded in error.json
+    table = run_sweep(GRID, out, scheduler="serial", progress=False, only=[IDS[3]])
+    rows = table.set_index("run_id")
+    expected = {
+        IDS[0]: ("failed", "done.json is not valid JSON (line 1, column 1: Expecting value)"),
+        IDS[1]: ("failed", "error.json is not valid JSON (line 1, column 10: Expecting value)"),
+        IDS[2]: ("done", "history.json is not valid JSON (line 1, column 2: Expecting value)"),
+        IDS[3]: ("failed", "checkpoint.json is not valid JSON (line 1, column 3: Extra data)"),
+    }
+    for run_id, (status, message) in expected.items():
+        assert rows.loc[run_id, "status"] == status, run_id
+        assert rows.loc[run_id, "error"].startswith("DamagedFileError: "), rows.loc[run_id, "error"]
+        assert rows.loc[run_id, "error"].endswith(f"/runs/{run_id}/{message}")
+    assert json.loads((runs / IDS[3] / "error.json").read_text())["type"] == "DamagedFileError"
+
+    # a damaged done.json does not stop the run from being finished again
+    table = run_sweep(GRID, out, scheduler="serial", progress=False, only=[IDS[0]])
+    assert table.set_index("run_id").loc[IDS[0], "status"] == "done"
+    assert J_series(out, IDS[0]) == J_series(serial[0], IDS[0])
