@@ -80,6 +80,8 @@ def _load_history(directory: Path) -> History:
             f"{directory / 'history.json'} is not valid JSON "
             f"(line {err.lineno}, column {err.colno}: {err.msg})"
         ) from None
+    except ValueError as err:  # the run directory does not verify (the message names the file)
+        raise DamagedFileError(str(err)) from None
 
 
 def run_row(run: SweepRun, out: Path, notebooks: bool) -> dict[str, Any]:

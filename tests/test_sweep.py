@@ -31,6 +31,7 @@ import mpcrl_lite.sweep as sweep_module
 from mpcrl_lite import sweep_grid, sweep_run, sweep_schedule, sweep_store, sweep_table
 from mpcrl_lite.cli import main
 from mpcrl_lite.history import History
+from mpcrl_lite.rundir import RECOVER
 from mpcrl_lite.sweep import (
     FAIL_ENV,
     NOTEBOOK_PARAMETERS,
@@ -708,7 +709,8 @@ def test_damaged_run_files_are_named_in_the_table(serial, tmp_path: Path) -> Non
     expected = {
         IDS[0]: ("failed", "done.json is not valid JSON (line 1, column 1: Expecting value)"),
         IDS[1]: ("failed", "error.json is not valid JSON (line 1, column 10: Expecting value)"),
-        IDS[2]: ("done", "history.json is not valid JSON (line 1, column 2: Expecting value)"),
+        IDS[2]: ("done", ("history.json does not match its sha256 in manifest.json (damaged "
+                          f"or changed after the run wrote it); {RECOVER}")),
         IDS[3]: ("failed", "checkpoint.json is not valid JSON (line 1, column 3: Extra data)"),
     }
     for run_id, (status, message) in expected.items():
