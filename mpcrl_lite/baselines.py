@@ -79,7 +79,6 @@ achievable cost, and on the paper's system it lies within ~0.5 % of the bound.
 
 from __future__ import annotations
 
-import json
 import time
 import warnings
 from collections.abc import Mapping
@@ -91,6 +90,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import linprog
 
+from . import rundir
 from .closed_loop import MPCPolicy, Policy, Projection, simulate
 from .config import LearningConfig, MPCConfig, SystemConfig
 from .history import History
@@ -637,12 +637,18 @@ def evaluate_baselines(
     }
 
 
+#: The file written by :func:`run_baselines_cli`.
+BASELINES_JSON = "baselines.json"
+
+
 def run_baselines_cli(
     system: SystemConfig,
     mpc_config: MPCConfig,
     learning: LearningConfig,
     history_dir: str | Path | None,
     out_dir: str | Path,
+    prices: Prices | None = None,
+    force: bool = False,
 ) -> dict[str, Any]:
     """The ``baselines`` command: evaluate and write ``out_dir/baselines.json``.
 
@@ -650,6 +656,12 @@ def run_baselines_cli(
     ``history_dir`` (a ``learn`` output directory) its final theta is evaluated as
     ``"learned"``; its system must have the same ``n`` (a different configuration otherwise
     only triggers a warning, since evaluating a theta elsewhere can be deliberate).
+
+    ``prices`` (e.g. another month of a Nord Pool export) must have that many days.
+    ``out_dir`` is checked before any work: a file, a directory that cannot be written, or
+    one that holds ``baselines.json`` already (unless ``force``) is a ``ValueError``
+    (:class:`~mpcrl_lite.rundir.RunDirError`). ``baselines.json`` is strict JSON (NaN as
+    null), written atomically.
 
     Returns
     -------
@@ -673,9 +685,12 @@ def run_baselines_cli(
         if not history.theta_final:
             raise ValueError(f"history in {history_dir} has no final theta (no month finished)")
         thetas["learned"] = history.final_theta()
-    result = evaluate_baselines(system, mpc_config, learning.days_per_month, learning.seed, thetas)
+    if rundir.inspect(out_dir, others=[BASELINES_JSON]).others and not force:
+        raise rundir.RunDirError(f"--out {out_dir} already holds {BASELINES_JSON}; pass --force "
+                                 "to replace it or choose another --out")
+    out = rundir.check_output_dir(out_dir)
+    result = evaluate_baselines(system, mpc_config, learning.days_per_month, learning.seed, thetas,
+                                prices=prices)
     result["history"] = None if history_dir is None else str(history_dir)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "baselines.json").write_text(json.dumps(result, indent=1))
+    rundir.write_atomic(out / BASELINES_JSON, rundir.dumps(result))
     return result

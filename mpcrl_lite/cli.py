@@ -6,15 +6,23 @@ simulate   closed loop of the nominal MPC (theta0) over some days; summary + fig
 learn      the learning experiment (months x days, LSTD + DPG); History + summary + figures
 report     execute every notebook into a report directory (papermill)
 baselines  clairvoyant / nominal / rule-based policies on the same draws as a History
+evaluate   a learned theta and the nominal MPC on K noise draws of a (new) month
 sweep      a grid of learning runs on Dask
 
+``learn``, ``simulate``, ``baselines`` and ``evaluate`` read another month of prices with
+``--prices EXPORT.csv --area AREA --month YYYY-MM`` (a Nord Pool export).
+
 Bad arguments end with one line on stderr (``mpcrl_lite <command>: error: ...``) and exit
-status 2, never with a traceback.
+status 2, never with a traceback; nothing is computed or written before every argument,
+the output directory and the size of the work (memory available, time limit: see
+:mod:`mpcrl_lite.cli_inputs`) have been checked. Outputs are written atomically and finished
+results are never replaced without ``--force``.
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import logging
 import sys
@@ -24,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from . import rundir
 from .config import BACKENDS, OPTIMIZERS, PAPER_TAU, LearningConfig, MPCConfig, SystemConfig
 from .report import PROFILES
 
@@ -94,14 +103,32 @@ def _add_system_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
+def _add_price_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--prices", type=Path, default=None, metavar="EXPORT.csv",
+                   help="a Nord Pool price export (default: the shipped November 2020 month)")
+    p.add_argument("--area", default=None,
+                   help="area column of --prices (default Tr.heim)")
+    p.add_argument("--month", default=None, metavar="YYYY-MM",
+                   help="month of --prices to use (every hour of every day must have a price)")
+
+
+def _add_force(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--force", action="store_true",
+                   help="replace the results found in --out (they are refused otherwise)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``python -m mpcrl_lite``."""
     parser = _Parser(prog="mpcrl_lite", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
 
     p = sub.add_parser("simulate", help="closed loop of the nominal MPC")
-    p.add_argument("--days", type=_positive_int, required=True, help="number of days (batch)")
+    p.add_argument("--days", type=_positive_int, default=None,
+                   help="number of days (batch); required without --prices, else the first "
+                        "days of --month (default all)")
     p.add_argument("--out", type=Path, required=True, help="output directory")
+    _add_force(p)
+    _add_price_args(p)
     _add_system_args(p)
 
     p = sub.add_parser("learn", help="the learning experiment")
@@ -123,6 +150,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "grid limit by per-stage grid prices found with a decomposed Newton "
                         "method (the same policy as the centralized MPC)")
     p.add_argument("--no-figures", action="store_true", help="skip writing the figures")
+    _add_price_args(p)
     _add_system_args(p)
 
     p = sub.add_parser("report", help="execute every notebook into a report directory")
@@ -131,14 +159,30 @@ def build_parser() -> argparse.ArgumentParser:
                    help="parameters: the notebooks' defaults (full), the small CI profile or "
                         "the lesson-sized classroom profile")
     p.add_argument("--notebooks", nargs="*", default=None, help="only these notebooks")
+    _add_force(p)
 
     p = sub.add_parser("baselines", help="baseline policies on the same draws")
     p.add_argument("--out", type=Path, required=True, help="output directory")
     p.add_argument("--history", type=Path, default=None,
                    help="a learn output directory whose final theta is evaluated too")
     p.add_argument("--days", type=_positive_int, default=None,
-                   help=f"days (default {_LEARNING.days_per_month})")
+                   help=f"days (default {_LEARNING.days_per_month}, or all of --month)")
+    _add_force(p)
+    _add_price_args(p)
     _add_system_args(p)
+
+    p = sub.add_parser("evaluate", help="a learned theta and the nominal MPC on K noise draws")
+    p.add_argument("--history", type=Path, required=True,
+                   help="a learn output directory (its final theta, system and MPC are used)")
+    p.add_argument("--out", type=Path, required=True, help="output directory")
+    p.add_argument("--draws", type=_positive_int, default=10,
+                   help="K noise draws (draw k uses seed SEED + k; default 10)")
+    p.add_argument("--seed", type=_nonneg_int, default=0, help="seed of the first draw (default 0)")
+    p.add_argument("--days", type=_positive_int, default=None,
+                   help="days (default the run's days per month, or all of --month)")
+    _add_force(p)
+    _add_price_args(p)
+    p.add_argument("--quiet", action="store_true", help="no progress output")
 
     p = sub.add_parser("sweep", help="a grid of learning runs on Dask")
     p.add_argument("--grid", type=Path, required=True, help="YAML file with the grid")
@@ -179,12 +223,76 @@ def _configs(args: argparse.Namespace, **learning: Any):
 
 
 def _write_json(path: Path, data: dict[str, Any]) -> None:
-    path.write_text(json.dumps(data, indent=1))
+    """Strict JSON (NaN as null), written atomically."""
+    try:
+        rundir.write_atomic(path, rundir.dumps(data))
+    except OSError as err:
+        raise UsageError(str(err)) from None
+
+
+def _write_bytes(path: Path, data: bytes) -> None:
+    try:
+        rundir.write_atomic(path, data)
+    except OSError as err:
+        raise UsageError(str(err)) from None
+
+
+def _prices(args: argparse.Namespace, system: SystemConfig, days: int | None):
+    """The month of ``--prices/--area/--month`` (None without ``--prices``), checked."""
+    from . import cli_inputs
+
+    if args.prices is None:
+        given = [f for f, v in (("--area", args.area), ("--month", args.month)) if v is not None]
+        if given:
+            raise UsageError(f"{' and '.join(given)} given without --prices; expected "
+                             "--prices EXPORT.csv with them")
+        return None
+    if args.month is None:
+        raise UsageError(f"--prices {args.prices} given without --month; expected --month "
+                         "YYYY-MM (the month of the export to use)")
+    try:
+        return cli_inputs.month_prices(args.prices, args.area or "Tr.heim", args.month,
+                                       system, days)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+
+
+def _budget(what: str, n: int, days: int, runs: int = 1, sensitivities: bool = False,
+            horizon: int = SystemConfig().N) -> None:
+    from . import cli_inputs
+
+    try:
+        cli_inputs.check_budget(what, n, days, runs, sensitivities, horizon)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+
+
+def _out(args: argparse.Namespace, outputs: tuple[str, ...]) -> Path:
+    """--out checked (writable, no finished results unless --force) before any work."""
+    from . import cli_inputs
+
+    try:
+        return cli_inputs.prepare_out(args.out, outputs, force=args.force)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+
+
+#: What ``simulate`` writes (summary.json last: it marks a finished result).
+SIMULATE_OUTPUTS = ("trajectories.npz", "day0.png", rundir.SUMMARY)
+#: What ``evaluate`` writes.
+EVALUATE_OUTPUTS = (rundir.SUMMARY,)
 
 
 # -- commands ------------------------------------------------------------------------------
 def cmd_simulate(args: argparse.Namespace) -> int:
     system, mpc_config, learning = _configs(args)  # validate before any work
+    prices = _prices(args, system, args.days)
+    if prices is None and args.days is None:
+        raise UsageError("--days is missing; expected a number of days (required without "
+                         "--prices)")
+    days = prices.days if prices is not None else args.days
+    _budget(f"--days {days} --n {system.n}", system.n, days, horizon=system.N)
+    out = _out(args, SIMULATE_OUTPUTS)
     from .experiment import run_month
     from .mpc import MPC
     from .plots import plot_day
@@ -192,9 +300,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     from .solvers import make_solver
     from .theta import Theta
 
-    out: Path = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    prices = Prices.month(system, args.days)
+    if prices is None:
+        prices = Prices.month(system, days)
     theta = Theta.nominal(system)
     mpc = MPC(system)
     solver = make_solver(mpc, mpc_config, theta)
@@ -204,24 +311,29 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     elapsed = time.perf_counter() - t0
     summary = {
         **record.summary(),
-        "days": args.days,
+        "days": days,
         "P_bar": system.P_bar,
         "noise_var": system.noise_var,
         "seed": learning.seed,
         "backend": solver.name,
         "wall_time_s": elapsed,
-        "ms_per_mpc_solve": 1000 * elapsed / (args.days * system.hours_per_day),
+        "ms_per_mpc_solve": 1000 * elapsed / (days * system.hours_per_day),
+        "prices": prices.source,
         "theta": theta.to_dict(),
         "system": system.to_dict(),
         "mpc": mpc_config.to_dict(),
     }
-    np.savez_compressed(out / "trajectories.npz", **record.arrays("month"))
-    _write_json(out / "summary.json", summary)
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **record.arrays("month"))
+    _write_bytes(out / "trajectories.npz", buffer.getvalue())
     fig = plot_day(record, day=0)
-    fig.savefig(out / "day0.png", dpi=110)
-    print(json.dumps({k: summary[k] for k in (
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=110)
+    _write_bytes(out / "day0.png", buffer.getvalue())
+    _write_json(out / "summary.json", summary)
+    print(json.dumps(rundir.plain({k: summary[k] for k in (
         "J", "max_P_mpc", "max_P_applied", "hours_soc_below_0_1", "solver_failures", "wall_time_s"
-    )}))
+    )})))
     return 0
 
 
@@ -234,7 +346,15 @@ def cmd_learn(args: argparse.Namespace) -> int:
         args, months=args.months, days_per_month=args.days, step_size=args.step_size,
         optimizer=args.optimizer, exploration_std=args.exploration_std,
     )
-    from . import rundir
+    prices = _prices(args, system, args.days)
+    if prices is not None:  # the month's days
+        system, mpc_config, learning = _configs(
+            args, months=args.months, days_per_month=prices.days, step_size=args.step_size,
+            optimizer=args.optimizer, exploration_std=args.exploration_std,
+        )
+    _budget(f"--months {args.months} --days {learning.days_per_month} --n {system.n}",
+            system.n, learning.days_per_month, runs=args.months, sensitivities=True,
+            horizon=system.N)
 
     if args.resume and args.force:
         raise UsageError("--resume and --force exclude each other: --resume continues the run "
@@ -266,9 +386,9 @@ def cmd_learn(args: argparse.Namespace) -> int:
     if args.decentralized:
         from .decentralized import DecentralizedExperiment
 
-        exp = DecentralizedExperiment(system, mpc_config, learning)
+        exp = DecentralizedExperiment(system, mpc_config, learning, prices=prices)
     else:
-        exp = Experiment(system, mpc_config, learning)
+        exp = Experiment(system, mpc_config, learning, prices=prices)
     try:
         # a run found in --out is verified before any month runs
         history = exp.run(months=args.months, out=out, resume=args.resume,
@@ -307,25 +427,82 @@ def cmd_learn(args: argparse.Namespace) -> int:
 
 
 def cmd_report(args: argparse.Namespace) -> int:
-    from .report import run_report
+    from .report import notebook_paths, run_report
 
-    try:
-        summary = run_report(args.out, profile=args.profile, notebooks=args.notebooks)
+    try:  # the notebooks are checked before --out is created
+        paths = notebook_paths(args.notebooks)
     except ValueError as err:
         raise UsageError(str(err)) from None
+    outputs = (rundir.SUMMARY, *(f"{p.stem}{ext}" for p in paths for ext in (".ipynb", ".html")))
+    _out(args, outputs)
+    try:
+        summary = run_report(args.out, profile=args.profile, notebooks=args.notebooks)
+    except (ValueError, OSError) as err:
+        raise UsageError(" ".join(str(err).split())) from None
     print(json.dumps({"report": str(args.out), "notebooks": list(summary["notebooks"])}))
     return 0
 
 
 def cmd_baselines(args: argparse.Namespace) -> int:
     system, mpc_config, learning = _configs(args, days_per_month=args.days)
+    prices = _prices(args, system, args.days)
+    if prices is not None:
+        system, mpc_config, learning = _configs(args, days_per_month=prices.days)
     from .baselines import run_baselines_cli
 
+    # the nominal, rule-based and (with --history) learned policies and the clairvoyant LP
+    _budget(f"--days {learning.days_per_month} --n {system.n}", system.n,
+            learning.days_per_month, runs=3, horizon=system.N)
     try:
-        result = run_baselines_cli(system, mpc_config, learning, args.history, args.out)
-    except (ValueError, FileNotFoundError) as err:
+        result = run_baselines_cli(system, mpc_config, learning, args.history, args.out,
+                                   prices=prices, force=args.force)
+    except (ValueError, OSError) as err:  # FileNotFoundError, RunDirError, RunWriteError
         raise UsageError(str(err)) from None
-    print(json.dumps({k: v["J"] for k, v in result["policies"].items()}))
+    print(json.dumps(rundir.plain({k: v["J"] for k, v in result["policies"].items()})))
+    return 0
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    """The ``evaluate`` command: the final theta of ``--history`` and the nominal MPC of its
+    system on ``--draws`` noise draws of a month (``--prices`` or the shipped one)."""
+    from .history import History
+    from .prices import Prices
+
+    try:
+        history = History.load(args.history)
+    except (ValueError, OSError) as err:  # FileNotFoundError, RunDirError
+        raise UsageError(f"--history {args.history}: {err}") from None
+    if not history.theta_final:
+        raise UsageError(f"--history {args.history}: no final theta (no month finished); "
+                         "expected a run with at least one month")
+    system, mpc_config = history.system, history.mpc
+    prices = _prices(args, system, args.days)
+    days = prices.days if prices is not None else (args.days or history.learning.days_per_month)
+    _budget(f"--draws {args.draws} --days {days} --n {system.n}", system.n, days,
+            runs=2 * args.draws, horizon=system.N)
+    out = _out(args, EVALUATE_OUTPUTS)
+    from .theta import Theta
+    from .transfer import evaluate_thetas
+
+    if prices is None:
+        prices = Prices.month(system, days)
+    result = evaluate_thetas(
+        {"nominal": Theta.nominal(system), "learned": history.final_theta()},
+        system, mpc_config, prices, args.draws, args.seed,
+    )
+    summary = {
+        **result,
+        "history": str(args.history),
+        "months_learned": history.months,
+        "days": days,
+        "prices": prices.source,
+        "theta_learned": history.final_theta().to_dict(),
+        "system": system.to_dict(),
+        "mpc": mpc_config.to_dict(),
+    }
+    _write_json(out / rundir.SUMMARY, summary)
+    policies = summary["policies"]
+    print(json.dumps(rundir.plain({name: policies[name]["J_stats"] for name in policies})))
     return 0
 
 
@@ -347,6 +524,7 @@ COMMANDS = {
     "learn": cmd_learn,
     "report": cmd_report,
     "baselines": cmd_baselines,
+    "evaluate": cmd_evaluate,
     "sweep": cmd_sweep,
 }
 

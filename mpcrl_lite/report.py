@@ -31,6 +31,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from . import rundir
 from .config import InputTypeError, check_choice
 from .html_export import copy_mathjax, write_html
 from .resources import package_folder
@@ -273,12 +274,12 @@ def run_report(
     ``out/mathjax``) and write ``out/summary.json`` with each notebook's key numbers,
     parameters and run time."""
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     params = profile_parameters(profile)
     paths = notebook_paths(notebooks)
-    # check every notebook's parameters before executing any of them
+    # check every notebook's parameters before executing any of them (or creating ``out``)
     for path in paths:
         _check_values(path.name, params.get(path.stem, {}), notebook_parameters(path))
+    out = rundir.check_output_dir(out)
     copy_mathjax(out)  # before any work: fails at once if the MathJax files are missing
     summary: dict[str, Any] = {"profile": profile, "notebooks": {}}
     for path in paths:
@@ -291,6 +292,6 @@ def run_report(
             "parameters": params.get(path.stem, {}),
             "results": read_summary(nb),
         }
-        (out / "summary.json").write_text(json.dumps(summary, indent=1))
+        rundir.write_atomic(out / "summary.json", rundir.dumps(summary))
     return summary
 
