@@ -1,0 +1,399 @@
+"""The command line's checks before any work: another month of prices (--prices/--area/
+--month), the evaluate command, --out and --force, the size of the work; and a fuzz test:
+any argument list ends with exit 0, or exit 2 and exactly one line on stderr."""
+
+from __future__ import annotations
+
+import calendar
+import json
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, event, given, settings
+from hypothesis import strategies as st
+
+from mpcrl_lite import baselines, cli_inputs, decentralized, experiment, report, solvers, transfer
+from mpcrl_lite.cli import main
+from mpcrl_lite.closed_loop import evaluate_mpc
+from mpcrl_lite.config import SystemConfig
+from mpcrl_lite.history import History
+from mpcrl_lite.mpc import MPC
+from mpcrl_lite.theta import Theta
+
+FIXTURES = Path(__file__).resolve().parent / "fixtures"
+RUN = FIXTURES / "run_v0_centralized"
+REAL_EXPORT = Path(os.environ.get(
+    "MPCRL_LITE_NORDPOOL_EXPORT",
+    Path(__file__).resolve().parents[2] / "shared/data/nordpool/elspot-prices_2020_hourly_nok.csv",
+))
+
+
+def price(day: int, hour: int) -> float:
+    """The invented Tr.heim price of :func:`write_export` (NOK/MWh)."""
+    return 200.5 + 7 * day + 3 * hour
+
+
+def write_export(path: Path, year: int, month: int, skip: tuple[int, int] | None = None) -> Path:
+    """A Nord Pool "Elspot Prices" export of one month without clock change (title lines, a
+    byte-order mark, decimal commas, CRLF), areas Oslo and Tr.heim; the cell of Tr.heim at
+    ``skip = (day, hour)`` (1-based day) is left empty."""
+    days = calendar.monthrange(year, month)[1]
+    lines = ["Elspot Prices in NOK/MWh;;;", "Data was last updated 01-01-2030;;;",
+             ";Hours;Oslo;Tr.heim"]
+    for d in range(1, days + 1):
+        for h in range(24):
+            cell = "" if skip == (d, h) else f"{price(d, h):.2f}".replace(".", ",")
+            lines.append(f"{d:02d}.{month:02d}.{year};{h:02d} - {(h + 1) % 24:02d};1,0;{cell}")
+    path.write_bytes(("\ufeff" + "\r\n".join(lines) + "\r\n").encode("utf-8"))
+    return path
+
+
+@pytest.fixture
+def export(tmp_path) -> Path:
+    return write_export(tmp_path / "elspot.csv", 2021, 2)  # February 2021: no clock change
+
+
+def run_cli(args: list[str], capsys) -> tuple[int, list[str]]:
+    code = main([str(a) for a in args])
+    return code, capsys.readouterr().err.strip().splitlines()
+
+
+# -- prices of another month ------------------------------------------------------------------
+def test_month_prices_reads_the_whole_month(export):
+    prices = cli_inputs.month_prices(export, "Tr.heim", "2021-02", SystemConfig())
+    assert prices.buy.shape == (28, 24)
+    expected = np.array([[price(d, h) for h in range(24)] for d in range(1, 29)])
+    np.testing.assert_allclose(prices.buy, expected)
+    assert prices.sell_ratio == SystemConfig().sell_ratio
+    first = cli_inputs.month_prices(export, "Tr.heim", "2021-02", SystemConfig(), days=3)
+    np.testing.assert_array_equal(first.buy, expected[:3])
+    scaled = cli_inputs.month_prices(export, "Tr.heim", "2021-02", SystemConfig(price_scale=2.0))
+    np.testing.assert_allclose(scaled.buy, 2 * expected)
+
+
+@pytest.mark.parametrize("area, month, days, match", [
+    ("Tr.heim", "2021-2", None, "YYYY-MM"),
+    ("Tr.heim", "2021-13", None, "YYYY-MM"),
+    ("Bergen", "2021-02", None, r"--area 'Bergen' is not in .*expected one of \['Oslo', 'Tr.heim'\]"),
+    ("Tr.heim", "2021-03", None, "no prices from 2021-03-01"),
+    ("Tr.heim", "2021-02", 29, "--days 29: 2021-02 has 28 days"),
+])
+def test_month_prices_refuses_what_is_not_there(export, area, month, days, match):
+    with pytest.raises(ValueError, match=match) as info:
+        cli_inputs.month_prices(export, area, month, SystemConfig(), days)
+    assert "\n" not in str(info.value)
+
+
+def test_a_month_with_a_missing_hour_is_refused(tmp_path):
+    path = write_export(tmp_path / "gap.csv", 2021, 2, skip=(17, 5))
+    with pytest.raises(ValueError, match=r"1 hour\(s\) missing .* 2021-02-17 05:00"):
+        cli_inputs.month_prices(path, "Tr.heim", "2021-02", SystemConfig())
+
+
+def test_simulate_on_another_month(export, tmp_path, capsys):
+    out = tmp_path / "sim"
+    code, err = run_cli(["simulate", "--prices", export, "--area", "Tr.heim", "--month",
+                         "2021-02", "--days", "2", "--out", out, "--quiet"], capsys)
+    assert code == 0, err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["days"] == 2 and "2021-02-01" in summary["prices"]
+    # the same closed loop as the library on these prices
+    system = SystemConfig()
+    prices = cli_inputs.month_prices(export, "Tr.heim", "2021-02", system, days=2)
+    theta = Theta.nominal(system)
+    record = evaluate_mpc(theta, solvers.make_solver(MPC(system), None, theta), prices, system,
+                          seed=0)
+    assert summary["J"] == pytest.approx(record.J(), rel=1e-9)
+
+
+@pytest.mark.parametrize("extra, match", [
+    (["--area", "Tr.heim"], "--area given without --prices"),
+    (["--month", "2021-02"], "--month given without --prices"),
+    (["--prices", "{export}"], "without --month"),
+    (["--prices", "{missing}", "--month", "2021-02"], "no such file"),
+    (["--prices", "{export}", "--month", "2021-02", "--area", "SE9"], "'SE9' is not in"),
+])
+@pytest.mark.parametrize("command", ["simulate", "learn", "baselines"])
+def test_bad_prices_arguments_are_one_line_before_any_work(command, extra, match, export,
+                                                          tmp_path, capsys):
+    out = tmp_path / "out"
+    extra = [e.format(export=export, missing=tmp_path / "nope.csv") for e in extra]
+    sizes = {"simulate": ["--days", "1"], "learn": ["--months", "1"], "baselines": []}[command]
+    code, err = run_cli([command, *sizes, "--out", out, *extra], capsys)
+    assert code == 2 and len(err) == 1 and match in err[0], err
+    assert not out.exists()
+
+
+# -- evaluate ---------------------------------------------------------------------------------
+def test_evaluate_pairs_the_learned_and_nominal_mpc(export, tmp_path, capsys):
+    out = tmp_path / "eval"
+    args = ["evaluate", "--history", RUN, "--prices", export, "--month", "2021-02", "--days",
+            "2", "--draws", "3", "--seed", "5", "--out", out]
+    code, err = run_cli(args, capsys)
+    assert code == 0, err
+    summary = json.loads((out / "summary.json").read_text())
+    history = History.load(RUN)
+    assert summary["seeds"] == [5, 6, 7]
+    system = history.system
+    prices = cli_inputs.month_prices(export, "Tr.heim", "2021-02", system, days=2)
+    for name, theta in (("nominal", Theta.nominal(system)), ("learned", history.final_theta())):
+        solver = solvers.make_solver(MPC(system), history.mpc, theta)
+        expected = [evaluate_mpc(theta, solver, prices, system, s).J() for s in (5, 6, 7)]
+        np.testing.assert_allclose(summary["policies"][name]["J"], expected, rtol=1e-9)
+        stats = summary["policies"][name]["J_stats"]
+        assert stats["mean"] == pytest.approx(np.mean(expected))
+        assert stats["ci_low"] < stats["mean"] < stats["ci_high"]
+    diff = summary["difference"]["learned - nominal"]
+    paired = np.subtract(summary["policies"]["learned"]["J"], summary["policies"]["nominal"]["J"])
+    assert diff["mean"] == pytest.approx(paired.mean())
+    # finished results are kept unless --force
+    before = (out / "summary.json").read_bytes()
+    code, err = run_cli(args, capsys)
+    assert code == 2 and len(err) == 1 and "--force" in err[0]
+    assert (out / "summary.json").read_bytes() == before
+    code, err = run_cli([*args[:-2], "--draws", "1", "--out", out, "--force"], capsys)
+    assert code == 0, err
+    assert json.loads((out / "summary.json").read_text())["draws"] == 1
+
+
+def test_mean_ci_is_the_t_interval():
+    stats = transfer.mean_ci([1.0, 2.0, 3.0, 6.0])
+    half = 3.182446305284263 * np.std([1, 2, 3, 6], ddof=1) / 2  # t_{0.975, 3}
+    assert stats["ci_high"] - stats["mean"] == pytest.approx(half)
+    assert transfer.mean_ci([4.0])["ci_low"] is None
+
+
+@pytest.mark.skipif(not REAL_EXPORT.is_file(), reason="the Nord Pool export is not present")
+def test_evaluate_on_a_month_of_the_real_export(tmp_path, capsys):
+    code, err = run_cli(["evaluate", "--history", RUN, "--prices", REAL_EXPORT, "--month",
+                         "2020-03", "--days", "1", "--draws", "2", "--out", tmp_path / "e"],
+                        capsys)
+    assert code == 0, err
+    summary = json.loads((tmp_path / "e" / "summary.json").read_text())
+    assert "2020-03-01" in summary["prices"]
+
+
+def test_evaluate_refuses_a_missing_run(tmp_path, capsys):
+    code, err = run_cli(["evaluate", "--history", tmp_path / "none", "--out", tmp_path / "e"],
+                        capsys)
+    assert code == 2 and len(err) == 1 and "--history" in err[0]
+    assert not (tmp_path / "e").exists()
+
+
+# -- --out ------------------------------------------------------------------------------------
+COMMANDS = {
+    "simulate": ["simulate", "--days", "1"],
+    "baselines": ["baselines", "--days", "1"],
+    "evaluate": ["evaluate", "--history", str(RUN), "--days", "1", "--draws", "1"],
+    "report": ["report", "--notebooks", "01_battery_dynamics"],
+}
+
+
+@pytest.fixture
+def no_work(monkeypatch):
+    """Every command's work replaced by an error: a test passes only if it stops before."""
+
+    def work(*_args, **_kwargs):
+        raise AssertionError("the work started")
+
+    for module, name in ((solvers, "make_solver"), (baselines, "evaluate_baselines"),
+                         (transfer, "make_solver"), (report, "execute_notebook"),
+                         (experiment, "make_solver")):
+        monkeypatch.setattr(module, name, work)
+
+
+@pytest.mark.parametrize("command", sorted(COMMANDS))
+def test_out_naming_a_file_is_one_line(command, tmp_path, capsys, no_work):
+    target = tmp_path / "file.txt"
+    target.write_text("keep")
+    code, err = run_cli([*COMMANDS[command], "--out", target], capsys)
+    assert code == 2 and len(err) == 1 and "is an existing file" in err[0], err
+    assert target.read_text() == "keep"
+
+
+def _lock(directory: Path) -> bool:
+    """Make ``directory`` unwritable: read-only, or immutable where we are root (root writes
+    into read-only directories); False where neither is possible."""
+    if os.geteuid() != 0:
+        directory.chmod(0o555)
+        return True
+    chattr = shutil.which("chattr")
+    if chattr is None:
+        return False
+    return subprocess.run([chattr, "+i", str(directory)], check=False,
+                          capture_output=True).returncode == 0
+
+
+def _unlock(directory: Path) -> None:
+    if os.geteuid() == 0:
+        subprocess.run(["chattr", "-i", str(directory)], check=False, capture_output=True)
+    directory.chmod(0o755)
+
+
+@pytest.mark.parametrize("command", sorted(COMMANDS))
+def test_read_only_or_immutable_out_is_one_line(command, tmp_path, capsys, no_work):
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    if not _lock(locked):
+        pytest.skip("cannot make a directory unwritable here (root without chattr)")
+    try:
+        code, err = run_cli([*COMMANDS[command], "--out", locked / "sub"], capsys)
+        assert code == 2 and len(err) == 1 and "cannot write there" in err[0], err
+        code, err = run_cli([*COMMANDS[command], "--out", locked], capsys)
+        assert code == 2 and len(err) == 1 and "cannot write there" in err[0], err
+        assert list(locked.iterdir()) == []
+    finally:
+        _unlock(locked)
+
+
+@pytest.mark.parametrize("command, output", [("simulate", "summary.json"),
+                                             ("baselines", "baselines.json"),
+                                             ("evaluate", "summary.json"),
+                                             ("report", "summary.json")])
+def test_finished_results_are_kept_without_force(command, output, tmp_path, capsys, no_work):
+    out = tmp_path / "done"
+    out.mkdir()
+    (out / output).write_text("{}")
+    code, err = run_cli([*COMMANDS[command], "--out", out], capsys)
+    assert code == 2 and len(err) == 1 and "--force" in err[0] and output in err[0], err
+    assert (out / output).read_text() == "{}"
+    with pytest.raises(AssertionError, match="the work started"):
+        main([*COMMANDS[command], "--out", str(out), "--force"])
+
+
+def test_report_with_an_unknown_notebook_creates_nothing(tmp_path, capsys):
+    out = tmp_path / "report"
+    code, err = run_cli(["report", "--notebooks", "99_nothing", "--out", out], capsys)
+    assert code == 2 and len(err) == 1 and "99_nothing" in err[0]
+    assert not out.exists()
+
+
+def test_baselines_json_is_strict(tmp_path, capsys):
+    out = tmp_path / "b"
+    code, err = run_cli(["baselines", "--days", "1", "--out", out, "--quiet"], capsys)
+    assert code == 0, err
+
+    def refuse(constant):
+        raise ValueError(f"{constant} is not JSON")
+
+    data = json.loads((out / "baselines.json").read_text(), parse_constant=refuse)
+    assert set(data["policies"]) >= {"clairvoyant", "nominal", "rule_based"}
+    assert not list(out.glob(".*.tmp"))
+
+
+# -- size of the work -------------------------------------------------------------------------
+def test_too_much_memory_is_refused_before_allocating(tmp_path, capsys):
+    code, err = run_cli(["simulate", "--days", "1000000000", "--out", tmp_path / "s"], capsys)
+    assert code == 2 and len(err) == 1
+    assert "--days 1000000000" in err[0] and "GiB available" in err[0]
+    assert not (tmp_path / "s").exists()
+
+
+def test_too_long_a_run_is_refused(tmp_path, capsys, monkeypatch):
+    code, err = run_cli(["simulate", "--days", "2", "--n", "100000", "--out", tmp_path / "s"],
+                        capsys)
+    assert code == 2 and len(err) == 1 and "--n 100000" in err[0] and "time limit" in err[0]
+    # the limit is the documented one, and the environment variable moves it
+    monkeypatch.setenv(cli_inputs.TIME_LIMIT_ENV, "1e-6")
+    code, err = run_cli(["simulate", "--days", "1", "--out", tmp_path / "s"], capsys)
+    assert code == 2 and len(err) == 1 and "time limit" in err[0]
+    monkeypatch.setenv(cli_inputs.TIME_LIMIT_ENV, "soon")
+    code, err = run_cli(["simulate", "--days", "1", "--out", tmp_path / "s"], capsys)
+    assert code == 2 and len(err) == 1 and "MPCRL_LITE_TIME_LIMIT_S='soon'" in err[0]
+
+
+def test_estimate_grows_with_the_work():
+    small, days, agents = (cli_inputs.estimate(3, 30), cli_inputs.estimate(3, 60),
+                           cli_inputs.estimate(6, 30))
+    assert days.memory > small.memory and days.seconds > small.seconds
+    assert agents.memory > small.memory and agents.seconds > small.seconds
+    assert cli_inputs.estimate(3, 30, sensitivities=True).seconds > small.seconds
+
+
+# -- fuzz -------------------------------------------------------------------------------------
+class WorkStarted(Exception):
+    """Raised by the stubbed work: every check before it passed."""
+
+
+def _stub(*_args, **_kwargs):
+    raise WorkStarted
+
+
+def _stub_init(self, *_args, **_kwargs):
+    raise WorkStarted
+
+
+_NUMBERS = st.sampled_from(["0", "1", "2", "-1", "3.5", "nan", "inf", "1e9", "1000000000",
+                            "abc", "", "100000"])
+_MONTHS = st.sampled_from(["2021-02", "2021-03", "2021-2", "1999-13", "x", "2020-11"])
+_AREAS = st.sampled_from(["Tr.heim", "Oslo", "Bergen", "", "tr.heim"])
+_FLAGS = {
+    "--days": _NUMBERS, "--n": _NUMBERS, "--seed": _NUMBERS, "--p-bar": _NUMBERS,
+    "--noise-var": _NUMBERS, "--tau": _NUMBERS, "--months": _NUMBERS, "--draws": _NUMBERS,
+    "--month": _MONTHS, "--area": _AREAS, "--prices": st.sampled_from(["EXPORT", "MISSING"]),
+    "--out": st.sampled_from(["FRESH", "FILE", "DONE", ""]),
+    "--history": st.sampled_from(["RUN", "MISSING"]), "--backend": st.sampled_from(["batch", "x"]),
+    "--profile": st.sampled_from(["ci", "full", "nope"]),
+    "--notebooks": st.sampled_from(["01_battery_dynamics", "99_none"]),
+    "--force": st.none(), "--resume": st.none(), "--quiet": st.none(), "--bogus": st.none(),
+}
+_COMMANDS = ["simulate", "learn", "baselines", "evaluate", "report"]
+
+
+@st.composite
+def argument_lists(draw, command: str) -> list[str]:
+    args = [command]
+    for flag in draw(st.lists(st.sampled_from(sorted(_FLAGS)), max_size=7)):
+        args.append(flag)
+        value = draw(_FLAGS[flag])
+        if value is not None:
+            args.append(value)
+    return args
+
+
+@pytest.fixture
+def stubbed(monkeypatch):
+    for module, name in ((solvers, "make_solver"), (baselines, "evaluate_baselines"),
+                         (transfer, "make_solver"), (report, "execute_notebook"),
+                         (experiment, "make_solver")):
+        monkeypatch.setattr(module, name, _stub)
+    monkeypatch.setattr(decentralized.DecentralizedExperiment, "__init__", _stub_init)
+
+
+@pytest.mark.parametrize("command", _COMMANDS)
+@settings(max_examples=25, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@given(data=st.data())
+def test_fuzz_any_arguments_end_in_one_line_or_work(command, data, tmp_path, capsys, stubbed):
+    base = tmp_path / f"case{len(list(tmp_path.iterdir()))}"
+    base.mkdir()
+    export = write_export(base / "elspot.csv", 2021, 2)
+    (base / "file").write_text("x")
+    (base / "done").mkdir()
+    (base / "done" / "summary.json").write_text("{}")
+    (base / "done" / "baselines.json").write_text("{}")
+    where = {"EXPORT": export, "MISSING": base / "missing", "FRESH": base / "fresh",
+             "FILE": base / "file", "DONE": base / "done", "RUN": base / "run"}
+    shutil.copytree(RUN, base / "run")
+    args = [str(where.get(a, a)) for a in data.draw(argument_lists(command))]
+    capsys.readouterr()
+    try:
+        code = main(args)
+    except SystemExit as exit_:  # argparse
+        code = exit_.code
+    except WorkStarted:
+        code = None
+    err = capsys.readouterr().err.strip().splitlines()
+    outcome = {None: "work started", 0: "exit 0", 2: "exit 2"}.get(code, f"exit {code}")
+    event(outcome)
+    assert code in (None, 0, 2), (args, code, err)
+    if code == 2:
+        assert len(err) == 1 and "error:" in err[0], (args, err)
+        assert not (base / "fresh").exists(), args  # nothing created by a refused command
+    assert (base / "file").read_text() == "x"
+    assert (base / "done" / "summary.json").read_text() == "{}" or "--force" in args
+    assert not any("Traceback" in line for line in err)
