@@ -434,8 +434,10 @@ def cmd_report(args: argparse.Namespace) -> int:
     except ValueError as err:
         raise UsageError(str(err)) from None
     outputs = (rundir.SUMMARY, *(f"{p.stem}{ext}" for p in paths for ext in (".ipynb", ".html")))
-    _out(args, outputs)
-    try:
+    from . import cli_inputs
+
+    try:  # run_report checks the parameters, then creates --out and checks it is writable
+        cli_inputs.refuse_finished(args.out, outputs, force=args.force)
         summary = run_report(args.out, profile=args.profile, notebooks=args.notebooks)
     except (ValueError, OSError) as err:
         raise UsageError(" ".join(str(err).split())) from None

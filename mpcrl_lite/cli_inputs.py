@@ -46,6 +46,7 @@ __all__ = [
     "estimate",
     "month_prices",
     "prepare_out",
+    "refuse_finished",
 ]
 
 #: Default limit of the estimated run time of one command, in seconds.
@@ -183,20 +184,28 @@ def check_budget(what: str, n: int, days: int, runs: int = 1, sensitivities: boo
 
 
 # -- output directory ---------------------------------------------------------------------
-def prepare_out(path: str | os.PathLike, outputs: Iterable[str], force: bool = False,
-                flag: str = "--out") -> Path:
-    """The output directory, created and checked writable (:func:`~mpcrl_lite.rundir.
-    check_output_dir`), refused when it already holds one of ``outputs`` unless ``force``.
-
-    Raises
-    ------
-    ValueError
-        (:class:`~mpcrl_lite.rundir.RunDirError`) one line with the remedy.
-    """
+def refuse_finished(path: str | os.PathLike, outputs: Iterable[str], force: bool = False,
+                    flag: str = "--out") -> None:
+    """A ``RunDirError`` (one line) when the directory ``path`` holds one of ``outputs`` and
+    not ``force``; nothing is created."""
     directory = Path(os.fspath(path))
     found = inspect(directory, others=outputs).others if directory.is_dir() else []
     if found and not force:
         raise RunDirError(
             f"{flag} {os.fspath(path)} already holds results ({', '.join(found)}); pass --force "
             "to replace them or choose another --out")
+
+
+def prepare_out(path: str | os.PathLike, outputs: Iterable[str], force: bool = False,
+                flag: str = "--out") -> Path:
+    """The output directory, created and checked writable (:func:`~mpcrl_lite.rundir.
+    check_output_dir`), refused when it already holds one of ``outputs`` unless ``force``
+    (:func:`refuse_finished`).
+
+    Raises
+    ------
+    ValueError
+        (:class:`~mpcrl_lite.rundir.RunDirError`) one line with the remedy.
+    """
+    refuse_finished(path, outputs, force, flag)
     return check_output_dir(path, flag)

@@ -409,3 +409,16 @@ def test_fuzz_any_arguments_end_in_one_line_or_work(command, data, tmp_path, cap
     assert (base / "file").read_text() == "x"
     assert (base / "done" / "summary.json").read_text() == "{}" or "--force" in args
     assert not any("Traceback" in line for line in err)
+
+
+def test_learn_on_another_month(export, tmp_path, capsys):
+    out = tmp_path / "run"
+    code, err = run_cli(["learn", "--months", "1", "--days", "2", "--prices", export, "--month",
+                         "2021-02", "--out", out, "--no-figures", "--quiet"], capsys)
+    assert code == 0, err
+    history = History.load(out)
+    system = SystemConfig()
+    prices = cli_inputs.month_prices(export, "Tr.heim", "2021-02", system, days=2)
+    expected = experiment.Experiment(
+        system, None, history.learning, prices=prices).run(months=1, progress=False)
+    assert history.J == pytest.approx(expected.J, rel=1e-9)
