@@ -422,3 +422,56 @@ def test_learn_on_another_month(export, tmp_path, capsys):
     expected = experiment.Experiment(
         system, None, history.learning, prices=prices).run(months=1, progress=False)
     assert history.J == pytest.approx(expected.J, rel=1e-9)
+
+
+def test_baselines_json_writes_nan_as_null(tmp_path, monkeypatch):
+    def fake(*_args, **_kwargs):
+        return {"policies": {"nominal": {"J": float("nan"), "J_per_day": [1.0, float("inf")]}},
+                "gap_closed": {"rule_based": float("nan")}}
+
+    monkeypatch.setattr(baselines, "evaluate_baselines", fake)
+    baselines.run_baselines_cli(SystemConfig(), None, experiment.LearningConfig(), None,
+                                tmp_path / "b")
+    text = (tmp_path / "b" / "baselines.json").read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    data = json.loads(text)
+    assert data["policies"]["nominal"] == {"J": None, "J_per_day": [1.0, None]}
+    assert data["gap_closed"]["rule_based"] is None
+
+
+_SMALL = {"--days": st.sampled_from(["1", "2", "0", "x"]), "--n": st.sampled_from(["1", "2", "0"]),
+          "--seed": st.sampled_from(["0", "7", "-3"]), "--draws": st.sampled_from(["1", "2", "0"]),
+          "--p-bar": st.sampled_from(["1.0", "1.5", "nan"]), "--month": _MONTHS,
+          "--force": st.none()}
+
+
+@pytest.mark.parametrize("command", ["simulate", "evaluate"])
+@settings(max_examples=6, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@given(data=st.data())
+def test_fuzz_small_real_runs_end_in_exit_0_or_one_line(command, data, tmp_path, capsys):
+    base = tmp_path / f"case{len(list(tmp_path.iterdir()))}"
+    base.mkdir()
+    export = write_export(base / "elspot.csv", 2021, 2)
+    args = [command, "--out", str(base / "out"), "--quiet"]
+    args += ["--days", "1"] if command == "simulate" else ["--history", str(RUN), "--days", "1"]
+    if data.draw(st.booleans()):
+        args += ["--prices", str(export), "--month", "2021-02"]
+    allowed = sorted(k for k in _SMALL if command == "evaluate" or k != "--draws")
+    for flag in data.draw(st.lists(st.sampled_from(allowed), max_size=3)):
+        value = data.draw(_SMALL[flag])
+        args += [flag] if value is None else [flag, value]
+    capsys.readouterr()
+    try:
+        code = main(args)
+    except SystemExit as exit_:
+        code = exit_.code
+    err = capsys.readouterr().err.strip().splitlines()
+    event(f"exit {code}")
+    assert code in (0, 2), (args, err)
+    if code == 2:
+        assert len(err) == 1 and "error:" in err[0], (args, err)
+        assert not (base / "out").exists()
+    else:
+        json.loads((base / "out" / "summary.json").read_text())
+        assert not list((base / "out").glob(".*.tmp"))
