@@ -251,8 +251,8 @@ def _prices(args: argparse.Namespace, system: SystemConfig, days: int | None):
         raise UsageError(f"--prices {args.prices} given without --month; expected --month "
                          "YYYY-MM (the month of the export to use)")
     try:
-        return cli_inputs.month_prices(args.prices, args.area or "Tr.heim", args.month,
-                                       system, days)
+        area = args.area if args.area is not None else "Tr.heim"
+        return cli_inputs.month_prices(args.prices, area, args.month, system, days)
     except ValueError as err:
         raise UsageError(str(err)) from None
 

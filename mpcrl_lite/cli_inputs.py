@@ -108,8 +108,11 @@ def month_prices(path: str | os.PathLike, area: str, month: str, system: SystemC
         raise ValueError(f"--prices {path}: no such file; expected a Nord Pool price export (CSV)")
     try:
         areas = nordpool_areas(path)
-        if area not in areas:
-            raise ValueError(f"--area {area!r} is not in {path}; expected one of {areas}")
+    except (OSError, ValueError, TypeError) as err:
+        raise ValueError(_one_line(f"--prices {path}: {err}")) from None
+    if area not in areas:
+        raise ValueError(f"--area {area!r} is not in {path}; expected one of {areas}")
+    try:
         series = load_nordpool_csv(path, area)
         prices = Prices.from_series(series, f"{month}-01", length, sell_ratio=system.sell_ratio)
     except (OSError, ValueError, TypeError) as err:

@@ -88,6 +88,14 @@ def test_month_prices_refuses_what_is_not_there(export, area, month, days, match
     assert "\n" not in str(info.value)
 
 
+def test_a_file_that_is_not_an_export_is_refused(tmp_path):
+    path = tmp_path / "prices.csv"
+    path.write_text("time,price\n2021-02-01T00:00,30.25\n")
+    with pytest.raises(ValueError, match="is not a Nord Pool price export") as info:
+        cli_inputs.month_prices(path, "Tr.heim", "2021-02", SystemConfig())
+    assert "\n" not in str(info.value)
+
+
 def test_a_month_with_a_missing_hour_is_refused(tmp_path):
     path = write_export(tmp_path / "gap.csv", 2021, 2, skip=(17, 5))
     with pytest.raises(ValueError, match=r"1 hour\(s\) missing .* 2021-02-17 05:00"):
