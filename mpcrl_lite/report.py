@@ -33,6 +33,7 @@ from typing import Any
 
 from .config import InputTypeError, check_choice
 from .html_export import copy_mathjax, write_html
+from .json_values import plain_json
 from .resources import package_folder
 
 __all__ = [
@@ -186,7 +187,7 @@ def show_summary(values: dict[str, Any]) -> None:
     rounded to :data:`SUMMARY_DIGITS` significant digits."""
     from IPython.display import display
 
-    data = _round_floats(json.loads(json.dumps(values, default=_jsonable)))
+    data = _round_floats(plain_json(values))
     display({SUMMARY_MIME: data, "text/plain": json.dumps(data, indent=1)}, raw=True)
 
 
@@ -292,13 +293,3 @@ def run_report(
         }
         (out / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary
-
-
-def _jsonable(value: Any) -> Any:
-    import numpy as np
-
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"cannot show {type(value).__name__} in a summary")
