@@ -33,8 +33,8 @@ from typing import Any
 
 from .config import InputTypeError, check_choice
 from .html_export import copy_mathjax, write_html
+from .json_values import plain_json
 from .resources import package_folder
-from .rundir import jsonable as _jsonable
 
 __all__ = [
     "CI_PARAMETERS",
@@ -187,7 +187,7 @@ def show_summary(values: dict[str, Any]) -> None:
     rounded to :data:`SUMMARY_DIGITS` significant digits."""
     from IPython.display import display
 
-    data = _round_floats(json.loads(json.dumps(values, default=_jsonable)))
+    data = _round_floats(plain_json(values))
     display({SUMMARY_MIME: data, "text/plain": json.dumps(data, indent=1)}, raw=True)
 
 
@@ -293,4 +293,3 @@ def run_report(
         }
         (out / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary
-
