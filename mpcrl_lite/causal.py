@@ -186,8 +186,8 @@ class _Stage:
         g, gamma = self.grid, self.system.gamma
         soc = np.clip(soc, 0.0, 1.0)
         # The problem is symmetric in the batteries: solve it with each row's states sorted
-        # and the rows in lexicographic order, so that consecutive rows read neighbouring
-        # blocks of ev (random rows make the kernel wait on memory for every block).
+        # and the rows in Z order, so that consecutive rows read neighbouring blocks of ev
+        # (rows in random order make the kernel wait on memory for every block).
         perm = np.argsort(soc, axis=1, kind="stable")
         ordered = np.take_along_axis(soc, perm, axis=1)
         rows = np.argsort(_morton(ordered), kind="stable")
