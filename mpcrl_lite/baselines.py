@@ -601,11 +601,11 @@ def evaluate_baselines(
         Passed to :class:`RuleBasedPolicy`.
     causal : bool or CausalBound, default False
         Also measure against the best causal policy (:mod:`mpcrl_lite.causal`): True solves
-        the coupled DP of the scenario's days (about 1 s per day for three batteries), or pass
-        a :class:`~mpcrl_lite.causal.CausalBound` solved on these prices. The DP policy's
-        closed loop is added as ``"causal_dp"``, and ``"causal"`` holds ``J_star`` (mean over
-        the scenario's days), ``grid``, and for every policy the regret ``J - J_star``
-        (NOK/day) and the gap closed ``(J_nominal - J)/(J_nominal - J_star)``.
+        the coupled DP of the scenario's days (about 2 s of CPU per distinct day for three
+        batteries), or pass a :class:`~mpcrl_lite.causal.CausalBound` solved on these prices.
+        The DP policy's closed loop is added as ``"causal_dp"``, and ``"causal"`` holds
+        ``J_star`` (mean over the scenario's days), ``grid``, and for every policy the regret
+        ``J - J_star`` (NOK/day) and the gap closed ``(J_nominal - J)/(J_nominal - J_star)``.
 
     Returns
     -------

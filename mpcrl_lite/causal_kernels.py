@@ -44,21 +44,22 @@ _INV_SQRT_2 = 1.0 / math.sqrt(2.0)
 @njit(cache=True, fastmath=True)
 def bellman_min3(
     G: int, r: int, M: int, B: int, cost: np.ndarray, pen: np.ndarray, ev: np.ndarray,
-    gamma: float,
+    gamma: float, ring_lo: np.ndarray, ring_hi: np.ndarray,
 ) -> np.ndarray:
     """``V`` at the multiset states of three batteries (lexicographic order of
     ``itertools.combinations_with_replacement(range(G), 3)``).
 
     ``V[j] = sum_i pen[j_i] + min_m sum_i cost[j_i, m_i + M] + gamma ev[r j + m + M]`` over
     ``|m_i| <= M``, ``sum m_i^+ <= B``, ``sum m_i^- <= B``; ``ev`` has shape ``(Gy,) * 3``.
+    ``ring_lo``, ``ring_hi`` are work arrays of shape ``(2M + 1, Gy, M + 1, G)`` (passed in so
+    that their 20 MB are not allocated, and page-faulted, at every hour):
+    ``ring[slot, p2, k, j3]`` is the minimum over the third battery's steps in ``[-k, 0]``
+    (lo) or ``[0, k]`` (hi) for the first post-decision index held in ``slot``.
     """
     Gy = ev.shape[0]
     K = 2 * M + 1
     out = np.empty(G * (G + 1) * (G + 2) // 6)
     cost_t = np.ascontiguousarray(cost.T)
-    # ring[slot, p2, k, j3]: min over the third battery's steps in [-k, 0] (lo) or [0, k] (hi)
-    ring_lo = np.empty((K, Gy, M + 1, G))
-    ring_hi = np.empty((K, Gy, M + 1, G))
     plane = np.full(K, -1, dtype=np.int64)
     acc_lo = np.empty(G)
     acc_hi = np.empty(G)
