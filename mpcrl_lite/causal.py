@@ -409,7 +409,7 @@ def causal_optimum(
     """
     buy, sell = day_prices(system, prices)
     if not isinstance(keep_values, bool):
-        raise ValueError(f"keep_values={keep_values!r}: expected True or False")
+        raise ValueError(f"keep_values={keep_values!r}: expected True or False")  # noqa: TRY004
     soc_grid = SocGrid(system, grid, action_step)
     stage = _Stage(system, soc_grid)
     t0 = time.perf_counter()

@@ -39,13 +39,13 @@ from .config import SystemConfig
 from .prices import Prices
 
 __all__ = [
-    "hinge_expectations",
-    "interpolation_weights",
-    "expected_net_power",
-    "expected_agent_cost",
     "SocGrid",
     "day_prices",
     "distinct_days",
+    "expected_agent_cost",
+    "expected_net_power",
+    "hinge_expectations",
+    "interpolation_weights",
 ]
 
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
@@ -237,7 +237,7 @@ class SocGrid:
 
     def __init__(self, system: SystemConfig, points: int = 41, action_step: float = 0.1) -> None:
         if not isinstance(system, SystemConfig):
-            raise ValueError(f"system={system!r}: expected a SystemConfig")
+            raise ValueError(f"system={system!r}: expected a SystemConfig")  # noqa: TRY004
         G = _integer("points", points, 2)
         if (isinstance(action_step, bool) or not isinstance(action_step, (int, float))
                 or not (math.isfinite(action_step) and action_step > 0)):
@@ -337,11 +337,11 @@ def day_prices(system: SystemConfig, prices: Prices | None) -> tuple[np.ndarray,
     ``prices=None`` is :meth:`Prices.default` (the paper's 30 days).
     """
     if not isinstance(system, SystemConfig):
-        raise ValueError(f"system={system!r}: expected a SystemConfig")
+        raise ValueError(f"system={system!r}: expected a SystemConfig")  # noqa: TRY004
     if prices is None:
         prices = Prices.default(system)
     if not isinstance(prices, Prices):
-        raise ValueError(f"prices={prices!r}: expected a mpcrl_lite.prices.Prices")
+        raise ValueError(f"prices={prices!r}: expected a mpcrl_lite.prices.Prices")  # noqa: TRY004
     H = system.hours_per_day
     if H > prices.buy.shape[1]:
         raise ValueError(f"hours_per_day={H}: expected at most {prices.buy.shape[1]}, the "

@@ -30,11 +30,11 @@ import numpy as np
 from numba import njit
 
 __all__ = [
-    "bellman_min3",
     "bellman_min",
+    "bellman_min3",
+    "expected_cost_rows",
     "greedy3",
     "greedy_actions",
-    "expected_cost_rows",
 ]
 
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
