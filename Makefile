@@ -24,8 +24,9 @@ REPORT_PROFILE ?= full
 report: $(STAMP)
 	$(BIN)/python -m mpcrl_lite report --out reports --profile $(REPORT_PROFILE)
 
-## the whole test suite (unit tests + notebook tests)
+## the whole test suite: lint (ruff), unit tests and notebook tests
 test: $(STAMP)
+	$(BIN)/ruff check .
 	$(BIN)/python -m pytest
 
 ## unit tests only (skips the notebook executions)

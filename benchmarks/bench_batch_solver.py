@@ -64,11 +64,11 @@ def bench(n: int, N: int, days: int, repeats: int, with_ipopt: bool, tau: float)
 
     t_solve, sol = median_time(lambda: solver.solve_batch(soc0, buy, sell, theta), repeats)
     t_sens, sens = median_time(lambda: solver.sensitivity(sol), repeats)
-    row = dict(
-        n=n, N=N, days=days, solve=1e3 * t_solve / days, sens=1e3 * t_sens / days,
-        iters=f"{sol.iterations.mean():.1f}/{sol.iterations.max()}", cold=1e3 * cold,
-        ok=bool(sol.success.all() and sens.ok.all()),
-    )
+    row = {
+        "n": n, "N": N, "days": days, "solve": 1e3 * t_solve / days, "sens": 1e3 * t_sens / days,
+        "iters": f"{sol.iterations.mean():.1f}/{sol.iterations.max()}", "cold": 1e3 * cold,
+        "ok": bool(sol.success.all() and sens.ok.all()),
+    }
     if with_ipopt:
         k = min(days, IPOPT_SAMPLES.get(n, 3) if N <= 12 else 10)
         ipopt = IpoptSolver(mpc, config)

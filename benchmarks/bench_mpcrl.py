@@ -59,6 +59,7 @@ Run ``python benchmarks/bench_mpcrl.py [--days 2] [--cold]``; prints one JSON li
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import os
@@ -67,7 +68,7 @@ import time
 
 T_IMPORT = time.perf_counter()  # cold start: measured from here in a fresh interpreter
 
-__all__ = ["available", "build", "measure", "cold_start", "cold_start_subprocess", "main"]
+__all__ = ["available", "build", "cold_start", "cold_start_subprocess", "main", "measure"]
 
 
 def available() -> bool:
@@ -116,7 +117,6 @@ def build_mpc(system, mpc_config, box_as_constraints: bool = True):
     sensitivity matches ours.
     """
     import casadi as cs
-    import numpy as np
     from csnlp import Nlp
     from csnlp.wrappers import Mpc
 
@@ -138,7 +138,7 @@ def build_mpc(system, mpc_config, box_as_constraints: bool = True):
     sell = mpc.parameter("sell", (N, 1))
     th = {name: mpc.parameter(f"theta_{name}", (n, 1)) for name in PARTS}
 
-    rep = lambda v: cs.repmat(v, 1, N)  # noqa: E731  (n,1) -> (n,N)
+    rep = lambda v: cs.repmat(v, 1, N)
     mpc.constraint("dynamics", soc[:, 1:], "==",
                    soc[:, :-1] + rep(th["alpha"]) * (b - s) + rep(th["delta"]))
     if box_as_constraints:
@@ -281,7 +281,7 @@ def build(system=None, mpc_config=None, learning=None, prices=None, seed: int = 
             self.episode_times.append(time.perf_counter() - self.episode_t0)
             self.episode_cpu.append(time.process_time() - self.episode_c0)
             steps = self.step_stamps
-            self.step_times.extend(b - a for a, b in zip(steps[:-1], steps[1:]))
+            self.step_times.extend(b - a for a, b in itertools.pairwise(steps))
             self.consolidation_times.append(time.perf_counter() - steps[-1])
 
     # the same rule as LearningConfig.optimizer ('sgd' or 'adam'; ours scales Adam's step per

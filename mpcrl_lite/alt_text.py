@@ -17,7 +17,7 @@ from typing import Any
 
 from matplotlib.figure import Figure
 
-__all__ = ["describe_figure", "load_ipython_extension", "IMAGE_MIMES"]
+__all__ = ["IMAGE_MIMES", "describe_figure", "load_ipython_extension"]
 
 #: Image outputs that get an ``alt`` entry in their metadata.
 IMAGE_MIMES = ("image/png", "image/jpeg", "image/svg+xml")

@@ -12,6 +12,10 @@ draws -- with the true dynamics, the low-level controller and the true cost :mat
   discharge above it, at full power within the bounds and the grid limit;
 * **learned** -- the MPC at any given theta, e.g. :meth:`History.final_theta
   <mpcrl_lite.history.History.final_theta>`.
+* **causal_dp** (``causal=True``) -- the best causal policy of :mod:`mpcrl_lite.causal`, a
+  dynamic program over the day; every policy is then also reported against its optimum
+  :math:`J^\star`: the regret :math:`J - J^\star` and the share of the nominal-to-:math:`J^\star`
+  gap closed.
 
 Reported per policy: :math:`J` and :math:`J^i` (discounted daily cost, mean over days), the
 hours with soc below 0.1, grid powers, low-level interventions; and, for every learned theta,
@@ -91,6 +95,7 @@ import scipy.sparse as sp
 from scipy.optimize import linprog
 
 from . import rundir
+from .causal import CausalBound, causal_optimum, compare_with_optimum
 from .closed_loop import MPCPolicy, Policy, Projection, simulate
 from .config import LearningConfig, MPCConfig, SystemConfig
 from .history import History
@@ -575,6 +580,7 @@ def evaluate_baselines(
     thetas: Mapping[str, Theta] | None = None,
     prices: Prices | None = None,
     rule_soc_guard: bool = True,
+    causal: bool | CausalBound = False,
 ) -> dict[str, Any]:
     """Evaluate the clairvoyant, nominal, rule-based and given-theta policies on one scenario.
 
@@ -589,30 +595,42 @@ def evaluate_baselines(
         Seed of the noise (:func:`make_scenario`).
     thetas : mapping of name to Theta, optional
         MPCs to evaluate besides the nominal one, e.g. ``{"learned": history.final_theta()}``;
-        the names ``clairvoyant``, ``nominal`` and ``rule_based`` are reserved.
+        the names ``clairvoyant``, ``nominal``, ``rule_based`` and ``causal_dp`` are reserved.
     prices : Prices, optional
     rule_soc_guard : bool, default True
         Passed to :class:`RuleBasedPolicy`.
+    causal : bool or CausalBound, default False
+        Also measure against the best causal policy (:mod:`mpcrl_lite.causal`): True solves
+        the coupled DP of the scenario's days (about 2 s of CPU per distinct day for three
+        batteries), or pass a :class:`~mpcrl_lite.causal.CausalBound` solved on these prices.
+        The DP policy's closed loop is added as ``"causal_dp"``, and ``"causal"`` holds
+        ``J_star`` (mean over the scenario's days), ``grid``, and for every policy the regret
+        ``J - J_star`` (NOK/day) and the gap closed ``(J_nominal - J)/(J_nominal - J_star)``.
 
     Returns
     -------
     dict
         ``{"scenario": {...}, "policies": {name: summary}, "gap_closed": {name: share},
-        "system": {...}, "mpc": {...}}``; each summary holds ``J``, ``J_per_agent``,
-        ``J_per_day``, ``hours_soc_below_0_1``, ``hours_soc_above_0_9``, grid powers,
-        interventions, solver failures and wall time. ``gap_closed[name]`` is
+        "system": {...}, "mpc": {...}}`` (and ``"causal"``); each summary holds ``J``,
+        ``J_per_agent``, ``J_per_day``, ``hours_soc_below_0_1``, ``hours_soc_above_0_9``, grid
+        powers, interventions, solver failures and wall time. ``gap_closed[name]`` is
         :math:`(J_{nominal} - J_{name})/(J_{nominal} - J_{clairvoyant})` (None when the
         nominal MPC is already at the bound).
     """
     mpc_config = mpc_config or MPCConfig()
     thetas = dict(thetas or {})
-    reserved = {"clairvoyant", "nominal", "rule_based"} & set(thetas)
+    reserved = {"clairvoyant", "nominal", "rule_based", "causal_dp"} & set(thetas)
     if reserved:
         raise ValueError(f"thetas uses reserved name(s) {sorted(reserved)}; choose others")
     for name, theta in thetas.items():
         if not isinstance(theta, Theta) or theta.n != system.n:
             raise ValueError(f"thetas[{name!r}]: expected a Theta with n={system.n}")
+    if causal is not True and causal is not False and (
+            not isinstance(causal, CausalBound) or causal.system != system):
+        raise ValueError(f"causal={causal!r}: expected True, False or a CausalBound of this system")
     scenario = make_scenario(system, days, seed, prices)
+    if isinstance(causal, CausalBound):
+        causal.rows_for(scenario.prices)  # the bound must cover the scenario's days
     results: dict[str, PolicyResult] = {"clairvoyant": clairvoyant(scenario)}
     mpc = MPC(system)
     for name, theta in {"nominal": Theta.nominal(system), **thetas}.items():
@@ -623,17 +641,30 @@ def evaluate_baselines(
         RuleBasedPolicy(scenario.prices, system, rule_soc_guard), scenario, "rule_based"
     )
     order = ["clairvoyant", "nominal", "rule_based", *thetas]
+    extra: dict[str, Any] = {}
+    if causal is not False:
+        if causal is True:
+            causal = causal_optimum(system, scenario.prices)
+        j_star = float(causal.J_star_for(scenario.prices).mean())
+        results["causal_dp"] = evaluate_policy(causal.policy(scenario.prices), scenario,
+                                               "causal_dp")
+        order.insert(1, "causal_dp")
+        table = compare_with_optimum({name: results[name].J for name in order}, j_star)
+        extra["causal"] = {"J_star": j_star, "grid": causal.grid.describe(),
+                           "regret": {k: v["regret"] for k, v in table.items()},
+                           "gap_closed": {k: v["gap_closed"] for k, v in table.items()}}
     policies = {name: results[name].summary() for name in order}
     j_nom, j_clair = results["nominal"].J, results["clairvoyant"].J
     gap = j_nom - j_clair
     gap_closed = {name: ((j_nom - results[name].J) / gap if gap > 0 else None)
-                  for name in ["rule_based", *thetas]}
+                  for name in order if name not in ("clairvoyant", "nominal")}
     return {
         "scenario": scenario.describe(),
         "policies": policies,
         "gap_closed": gap_closed,
         "system": system.to_dict(),
         "mpc": mpc_config.to_dict(),
+        **extra,
     }
 
 

@@ -57,17 +57,13 @@ counts them by status.
 
 from __future__ import annotations
 
-import logging
-import time
-
 import numpy as np
 
 from .batch_adjoint import batch_sensitivity
 from .batch_kkt import TINY, BatchData, BatchKKT, KKTFactor
 from .config import MPCConfig
 from .mpc import MPC, shift
-from .solution import BatchSolution, MPCSolution, Sensitivity
-from .theta import Theta
+from .solution import BackendBase, BatchSolution, MPCSolution, Sensitivity
 
 # shift: the warm-start shift of mpcrl_lite.mpc, importable from here as before
 __all__ = [
@@ -88,12 +84,10 @@ STATUS_NON_FINITE = "non_finite"
 #: Status of a problem whose linear algebra broke down (singular or non-finite system).
 STATUS_BREAKDOWN = "linear_algebra_breakdown"
 
-log = logging.getLogger(__name__)
-
 _ETA = 0.995  # fraction to the boundary
 
 
-class BatchSolver:
+class BatchSolver(BackendBase):
     r"""Vectorised primal-dual interior point for the MPC's barrier problem.
 
     See the module docstring for the method.
@@ -101,8 +95,8 @@ class BatchSolver:
     Parameters
     ----------
     mpc
-        The formulation. Its QP data are re-derived in numpy and checked against
-        ``mpc.qp_function`` here (a mismatch raises :class:`RuntimeError`).
+        The formulation; :class:`~mpcrl_lite.batch_kkt.BatchKKT` re-derives its QP data in
+        numpy and checks them.
     config
         ``tau`` (fixed barrier parameter), ``tol`` (scaled KKT residual, see
         :meth:`residual`), ``max_iter`` (Newton steps per problem), ``warm_start`` (use
@@ -110,8 +104,9 @@ class BatchSolver:
 
     Notes
     -----
-    The interface is :class:`~mpcrl_lite.solution.SolverBackend` (:meth:`solve`,
-    :meth:`solve_batch`, :meth:`sensitivity`, which returns what
+    The interface is :class:`~mpcrl_lite.solution.SolverBackend` (:meth:`solve` and
+    :meth:`solve_batch` from :class:`~mpcrl_lite.solution.BackendBase`, around
+    :meth:`_solve_parameters`; :meth:`sensitivity`, which returns what
     :class:`~mpcrl_lite.sensitivity.PolicySensitivity` returns) plus :meth:`residual` and
     :meth:`shift` for warm starts. The QP data, layout and factorisation are in
     :attr:`kkt` (:class:`~mpcrl_lite.batch_kkt.BatchKKT`).
@@ -209,76 +204,23 @@ class BatchSolver:
         return X, np.ascontiguousarray(L), Mu
 
     # ------------------------------------------------------------------- solving ----------
-    def solve(
-        self,
-        soc0: np.ndarray,
-        buy: np.ndarray,
-        sell: np.ndarray,
-        theta: Theta,
-        x0: np.ndarray | None = None,
-    ) -> MPCSolution:
-        """Solve one MPC: soc0 (n,), buy and sell (N,), theta; optional primal guess x0 (nx,)."""
-        sol = self.solve_batch(
-            np.asarray(soc0, float)[None], np.asarray(buy, float)[None],
-            np.asarray(sell, float)[None], theta,
-            None if x0 is None else np.asarray(x0, float)[None],
-        )
-        return sol[0]
+    def _solve_parameters(self, P: np.ndarray, x0: np.ndarray | None) -> BatchSolution:
+        """All problems of the parameter vectors ``P`` (days, np) at once (the hook of
+        :meth:`~mpcrl_lite.solution.BackendBase.solve_batch`).
 
-    def solve_batch(
-        self,
-        soc0: np.ndarray,
-        buy: np.ndarray,
-        sell: np.ndarray,
-        theta: Theta,
-        x0: np.ndarray | None = None,
-    ) -> BatchSolution:
-        """Solve one MPC per row, all rows at once.
-
-        Parameters
-        ----------
-        soc0
-            States, shape (days, n).
-        buy, sell
-            Price windows, shape (days, N).
-        theta
-            MPC parameters, shared by all rows.
-        x0
-            Optional primal warm start (days, nx), e.g. ``self.shift(previous.x)``; used when
-            ``config.warm_start`` is set. Only its ``b, s`` are used (pushed into the
-            interior and blended with the cold start, see the class attributes); soc follows
-            from the dynamics. Non-finite entries are ignored.
-
-        Returns
-        -------
-        BatchSolution
-            Exact barrier solutions in :mod:`mpcrl_lite.mpc`'s orderings; rows that failed
-            have ``success = False``, a status string (:data:`STATUS_MAX_ITER`,
-            :data:`STATUS_NON_FINITE`, :data:`STATUS_BREAKDOWN`) and action zeros; their
-            ``x, lam, mu`` are the last iterate. A call with failures logs one warning
-            (:meth:`~mpcrl_lite.solution.BatchSolution.failure_summary`).
-
-        Raises
-        ------
-        ValueError
-            For inputs of the wrong shape or non-finite parameters (before any work).
+        Only the ``b, s`` of a warm start ``x0`` (days, nx) are used (pushed into the interior
+        and blended with the cold start, see the class attributes; non-finite entries are
+        ignored); soc follows from the dynamics. The solutions are exact barrier solutions in
+        :mod:`mpcrl_lite.mpc`'s orderings; rows that failed have the status
+        :data:`STATUS_MAX_ITER`, :data:`STATUS_NON_FINITE` or :data:`STATUS_BREAKDOWN`, and
+        their ``x, lam, mu`` are the last iterate.
         """
-        t_start = time.perf_counter()
-        P = self.mpc.parameters(soc0, buy, sell, theta)
-        if P.ndim != 2:
-            raise ValueError(f"solve_batch expects soc0 (days, n); got soc0 {np.shape(soc0)}")
-        days = P.shape[0]
-        if x0 is not None:
-            x0 = np.asarray(x0, float).reshape(days, self.mpc.nx)
-            if not self.config.warm_start:
-                x0 = None
         data = self.kkt.batch_data(P)
         with np.errstate(all="ignore"):  # non-finite numbers are detected per problem
             X, L, Mu, iters, status = self._run(data, x0)
         success = status == STATUS_CONVERGED
-        action = np.where(success[:, None], X[:, 0, :, 0] - X[:, 1, :, 0], 0.0)
-        batch = BatchSolution(
-            action=action,
+        return BatchSolution(
+            action=np.where(success[:, None], X[:, 0, :, 0] - X[:, 1, :, 0], 0.0),
             x=self.kkt.from_internal_x(X),
             lam=self.kkt.from_internal_lam(L),
             mu=self.kkt.mu_to_flat(Mu),
@@ -287,12 +229,7 @@ class BatchSolver:
             status=tuple(str(s) for s in status),
             iterations=iters,
             p=P,
-            solve_time=time.perf_counter() - t_start,
-            backend=self.name,
         )
-        if batch.failures:
-            log.warning("%s", batch.failure_summary())
-        return batch
 
     def _run(self, data: BatchData, x0: np.ndarray | None):
         """The interior-point iteration for all problems of ``data`` at once.

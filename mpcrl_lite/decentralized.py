@@ -75,11 +75,11 @@ from .theta import PARTS, Theta
 
 __all__ = [
     "CHECKPOINT",
-    "CoordinationConfig",
-    "CoordinatedSolution",
     "CoordinatedMPC",
-    "DecentralizedMonth",
+    "CoordinatedSolution",
+    "CoordinationConfig",
     "DecentralizedExperiment",
+    "DecentralizedMonth",
     "compare_learners",
     "join_theta",
     "local_system",
@@ -398,7 +398,8 @@ def compare_learners(
         commanded: list[float] = []
         violations: list[int] = []
 
-        def watch(month: int, history: History, _exp: Any) -> None:
+        def watch(month: int, history: History, _exp: Any,
+                  commanded: list[float] = commanded, violations: list[int] = violations) -> None:
             a = history.last_month.a
             power = np.maximum(np.maximum(a, 0).sum(-1), np.maximum(-a, 0).sum(-1))
             commanded.append(float(power.max()))

@@ -33,16 +33,16 @@ from typing import Any
 
 __all__ = [
     "MATHJAX_DIRNAME",
-    "WIDGET_VIEW_MIME",
     "WIDGET_STATE_MIME",
-    "mathjax_source",
+    "WIDGET_VIEW_MIME",
     "copy_mathjax",
+    "mathjax_source",
     "mathjax_tags",
-    "static_widgets",
-    "unlink_remote_images",
-    "to_html",
-    "write_html",
     "remote_resources",
+    "static_widgets",
+    "to_html",
+    "unlink_remote_images",
+    "write_html",
 ]
 
 #: Folder (next to the pages) holding the local MathJax copy.

@@ -14,21 +14,15 @@ Failures never raise mid-run: IPOPT errors, non-convergence and a polish that ca
 
 from __future__ import annotations
 
-import logging
-import time
-
 import casadi as ca
 import numpy as np
 
 from .config import MPCConfig
 from .mpc import MPC
 from .sensitivity import PolicySensitivity
-from .solution import BatchSolution, MPCSolution, Sensitivity
-from .theta import Theta
+from .solution import BackendBase, BatchSolution, MPCSolution, Sensitivity
 
 __all__ = ["STATUS_POLISH_FAILED", "IpoptSolver"]
-
-log = logging.getLogger(__name__)
 
 #: Status (prefix) of a problem IPOPT solved but whose Newton polish failed.
 STATUS_POLISH_FAILED = "kkt_polish_failed"
@@ -65,8 +59,11 @@ def _casadi_reason(err: RuntimeError) -> str:
     return lines[-1].rsplit(": ", 1)[-1].strip() if lines else type(err).__name__
 
 
-class IpoptSolver:
+class IpoptSolver(BackendBase):
     """Reference back-end: IPOPT on the barrier problem, then Newton polishing.
+
+    :meth:`solve` and :meth:`solve_batch` come from
+    :class:`~mpcrl_lite.solution.BackendBase`; the problems of a batch are solved one by one.
 
     Parameters
     ----------
@@ -105,19 +102,7 @@ class IpoptSolver:
         self._kkt = mpc.kkt
         self._sensitivity: PolicySensitivity | None = None
 
-    # -- single problem -------------------------------------------------------------------
-    def solve(
-        self,
-        soc0: np.ndarray,
-        buy: np.ndarray,
-        sell: np.ndarray,
-        theta: Theta,
-        x0: np.ndarray | None = None,
-    ) -> MPCSolution:
-        """Solve one MPC. soc0 (n,), buy and sell (N,), theta; optional primal guess x0."""
-        p = self.mpc.parameters(soc0, buy, sell, theta)
-        return self._solve_p(p, x0)
-
+    # -- one problem ---------------------------------------------------------------------
     def _solve_p(self, p: np.ndarray, x0: np.ndarray | None) -> MPCSolution:
         m = self.mpc
         if x0 is None:
@@ -213,26 +198,10 @@ class IpoptSolver:
         return self._sensitivity(solution)
 
     # -- batches --------------------------------------------------------------------------
-    def solve_batch(
-        self,
-        soc0: np.ndarray,
-        buy: np.ndarray,
-        sell: np.ndarray,
-        theta: Theta,
-        x0: np.ndarray | None = None,
-    ) -> BatchSolution:
-        """Solve one MPC per row: soc0 (days, n), buy and sell (days, N); optional x0
-        (days, nx) warm start. One call for all days of a month at one hour. Failed rows are
-        reported in the result and summarised in one warning of this module's logger."""
-        t0 = time.perf_counter()
-        P = self.mpc.parameters(soc0, buy, sell, theta)
-        if P.ndim != 2:
-            raise ValueError(f"solve_batch expects soc0 (days, n); got soc0 {np.shape(soc0)}")
-        sols = []
-        for d in range(P.shape[0]):
-            guess = None if x0 is None or not self.config.warm_start else x0[d]
-            sols.append(self._solve_p(P[d], guess))
-        batch = BatchSolution.stack(sols, time.perf_counter() - t0, self.name)
-        if batch.failures:
-            log.warning("%s", batch.failure_summary())
-        return batch
+    def _solve_parameters(self, P: np.ndarray, x0: np.ndarray | None) -> BatchSolution:
+        """IPOPT and the polish on each row of ``P`` (days, np) in turn, from the row of
+        ``x0`` (days, nx) or :meth:`default_guess` (the hook of
+        :meth:`~mpcrl_lite.solution.BackendBase.solve_batch`)."""
+        return BatchSolution.stack(
+            [self._solve_p(P[d], None if x0 is None else x0[d]) for d in range(P.shape[0])]
+        )

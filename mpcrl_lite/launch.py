@@ -18,20 +18,20 @@ import copy
 from .references import PAPER, citation_markdown
 
 __all__ = [
-    "REPOSITORY",
     "BRANCH",
-    "NOTEBOOK_FOLDER",
-    "LAUNCH_MARKER",
-    "colab_url",
-    "binder_url",
-    "binder_repo_url",
-    "launch_badges",
-    "install_requirement",
-    "install_cell_source",
-    "PAPER_MARKER",
     "INSTALL_TAG",
-    "paper_line",
+    "LAUNCH_MARKER",
+    "NOTEBOOK_FOLDER",
+    "PAPER_MARKER",
+    "REPOSITORY",
     "apply_launch_cells",
+    "binder_repo_url",
+    "binder_url",
+    "colab_url",
+    "install_cell_source",
+    "install_requirement",
+    "launch_badges",
+    "paper_line",
 ]
 
 #: ``owner/name`` of the public GitHub repository that Colab and Binder open.
@@ -57,7 +57,7 @@ _DEFAULT_EXTRAS = ("classroom",)
 
 def _stem(notebook: str) -> str:
     name = notebook.rsplit("/", 1)[-1]
-    return name[:-len(".ipynb")] if name.endswith(".ipynb") else name
+    return name.removesuffix(".ipynb")
 
 
 def colab_url(notebook: str, repository: str = REPOSITORY, branch: str = BRANCH) -> str:

@@ -90,6 +90,15 @@ def _same_shape(name: str, arr: np.ndarray, ref_name: str, ref: np.ndarray) -> N
         )
 
 
+def _batches_like_soc(n: int, soc: Any, **others: Any) -> list[np.ndarray]:
+    """``soc`` and the named ``others`` as finite ``(days, n)`` arrays, in that order, the
+    others of exactly soc's shape (all shapes are checked before any comparison)."""
+    arrays = [_batch("soc", soc, n)] + [_batch(name, value, n) for name, value in others.items()]
+    for name, arr in zip(others, arrays[1:]):
+        _same_shape(name, arr, "soc", arrays[0])
+    return arrays
+
+
 def _nonnegative(name: str, arr: np.ndarray) -> None:
     if (arr < 0).any():
         index = tuple(int(i) for i in np.argwhere(arr < 0)[0])
@@ -290,11 +299,7 @@ def low_level_control(
 def _low_level_inputs(
     soc: Any, a: Any, noise: Any, system: SystemConfig
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    soc = _batch("soc", soc, system.n)
-    a = _batch("a", a, system.n)
-    noise = _batch("noise", noise, system.n)
-    _same_shape("a", a, "soc", soc)
-    _same_shape("noise", noise, "soc", soc)
+    soc, a, noise = _batches_like_soc(system.n, soc, a=a, noise=noise)
     _soc_in_range("soc", soc)
     return soc, a, noise
 
@@ -359,16 +364,20 @@ def agent_costs(
     numpy.ndarray, shape ``(days, n)``
     """
     _check_system(system)
-    soc = _batch("soc", soc, system.n)
-    b = _batch("b", b, system.n)
-    s = _batch("s", s, system.n)
-    _same_shape("b", b, "soc", soc)
-    _same_shape("s", s, "soc", soc)
+    soc, b, s = _batches_like_soc(system.n, soc, b=b, s=s)
     _nonnegative("b", b)
     _nonnegative("s", s)
     days = soc.shape[0]
     phi_b = _day_prices("buy_price", buy_price, days)
     phi_s = _day_prices("sell_price", sell_price, days)
+    return _agent_costs(soc, b, s, phi_b, phi_s, system)
+
+
+def _agent_costs(
+    soc: np.ndarray, b: np.ndarray, s: np.ndarray, phi_b: np.ndarray, phi_s: np.ndarray,
+    system: SystemConfig,
+) -> np.ndarray:
+    """``L~_i`` of checked inputs: ``(days, n)`` states and powers, ``(days,)`` prices."""
     return phi_b[:, None] * b - phi_s[:, None] * s + penalty(soc, system)
 
 
@@ -467,7 +476,7 @@ def _step_checked(
 ) -> StepResult:
     net, soc_next = _apply_controller(soc, a, noise, system.alpha)
     b, s = np.maximum(net, 0.0), np.maximum(-net, 0.0)
-    cost = phi_b[:, None] * b - phi_s[:, None] * s + penalty(soc, system)
+    cost = _agent_costs(soc, b, s, phi_b, phi_s, system)
     return StepResult(
         soc_next=soc_next,
         b=b,

@@ -38,7 +38,6 @@ from .plot_style import (
     CURRENCY,
     FIRST_COLOR,
     LAST_COLOR,
-    REF_GREY,
     agent_color,
     axes_or_new,
     day_axis,
@@ -46,6 +45,7 @@ from .plot_style import (
     select_days,
     soc_reference,
     steps,
+    u_bar_lines,
 )
 from .prices import Prices
 from .theta import PARTS
@@ -109,6 +109,36 @@ def _concat_soc(soc: np.ndarray, days: Sequence[int], i: int) -> tuple[np.ndarra
     return np.concatenate(t), np.concatenate(y)
 
 
+def _first_and_last(ax: Axes, x: np.ndarray, y: np.ndarray) -> None:
+    """The first month's point of a per-month series marked red, the last month's blue."""
+    ax.plot(x[0], y[0], "o", color=FIRST_COLOR, ms=8, zorder=3, label="first month")
+    ax.plot(x[-1], y[-1], "o", color=LAST_COLOR, ms=8, zorder=3, label="last month")
+
+
+def _agent_series(
+    ax: Axes, x: np.ndarray, values: np.ndarray, gid: str, tex: str, lw: float,
+) -> None:
+    """One line per agent of ``values`` (len(x), n) over the months; gids ``"<gid>[i]"`` and
+    labels ``$<tex>^i$``, agents counted from 1."""
+    for i in range(values.shape[1]):
+        ax.plot(x, values[:, i], color=agent_color(i), lw=lw, marker="o", ms=3,
+                gid=f"{gid}[{i + 1}]", label=f"${tex}^{{{i + 1}}}$")
+
+
+def _month_axis(
+    ax: Axes, months: int, ylabel: str, title: str, grid: str = "0.9", legend_size: int = 8,
+) -> None:
+    """Labels, grid and legend of axes whose x axis is the RL step (month), with a tick at
+    every month when there are at most 12."""
+    ax.set_xlabel("RL step (month)")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, loc="left", fontsize=11)
+    ax.grid(True, color=grid, lw=0.6)
+    ax.legend(fontsize=legend_size, framealpha=0.9)
+    if months <= 12:
+        ax.xaxis.set_major_locator(MultipleLocator(1))
+
+
 def fig1_trajectories(
     history: History,
     days: int | Sequence[int] | None = None,
@@ -152,9 +182,7 @@ def fig1_trajectories(
     for i in range(n):
         ax_s, ax_p = flat[2 * i], flat[2 * i + 1]
         soc_reference(ax_s, system, label=(i == 0))
-        for lim in (system.U_bar, -system.U_bar):
-            ax_p.axhline(lim, color=REF_GREY, ls=":", lw=1.0, gid="U_bar")
-        ax_p.axhline(0.0, color="0.75", lw=0.6)
+        u_bar_lines(ax_p, system.U_bar)
         for key, (rec, color, label) in months.items():
             t, y = _concat_soc(rec.soc, chosen, i)
             ax_s.plot(t, y, color=color, lw=1.4, gid=f"soc[{i + 1}] {key}",
@@ -228,15 +256,8 @@ def fig2_performance(
         ax.plot(x_eval, np.asarray(history.J_eval, dtype=float), color="black", ls="--",
                 lw=1.4, marker="s", ms=4.5, mfc="white", mec="black", mew=1.0, zorder=2.5,
                 gid="J_eval", label="evaluation (fixed draw)")
-    ax.plot(x[0], J[0], "o", color=FIRST_COLOR, ms=8, zorder=3, label="first month")
-    ax.plot(x[-1], J[-1], "o", color=LAST_COLOR, ms=8, zorder=3, label="last month")
-    ax.set_xlabel("RL step (month)")
-    ax.set_ylabel(f"closed-loop cost J ({COST_UNIT})")
-    ax.set_title("Closed-loop performance", loc="left", fontsize=11)
-    ax.grid(True, color="0.9", lw=0.6)
-    ax.legend(fontsize=8, framealpha=0.9)
-    if months <= 12:
-        ax.xaxis.set_major_locator(MultipleLocator(1))
+    _first_and_last(ax, x, J)
+    _month_axis(ax, months, f"closed-loop cost J ({COST_UNIT})", "Closed-loop performance")
     return fig
 
 
@@ -263,16 +284,10 @@ def fig3_gradient_norm(history: History, ax: Axes | None = None) -> Figure:
     x = np.arange(1, months + 1)
     g = np.asarray(history.grad_norm, dtype=float)
     ax.plot(x, g, color="0.25", lw=1.2, marker="o", ms=3, gid="grad_norm")
-    ax.plot(x[0], g[0], "o", color=FIRST_COLOR, ms=8, zorder=3, label="first month")
-    ax.plot(x[-1], g[-1], "o", color=LAST_COLOR, ms=8, zorder=3, label="last month")
+    _first_and_last(ax, x, g)
     ax.set_yscale("log")
-    ax.set_xlabel("RL step (month)")
-    ax.set_ylabel(r"$\Vert\nabla_\theta J(\pi_\theta)\Vert$")
-    ax.set_title("Norm of the policy gradient", loc="left", fontsize=11)
-    ax.grid(True, which="major", color="0.88", lw=0.6)
-    ax.legend(fontsize=8, framealpha=0.9)
-    if months <= 12:
-        ax.xaxis.set_major_locator(MultipleLocator(1))
+    _month_axis(ax, months, r"$\Vert\nabla_\theta J(\pi_\theta)\Vert$",
+                "Norm of the policy gradient", grid="0.88")
     return fig
 
 
@@ -383,9 +398,7 @@ def fig5_policy_and_agent_costs(
     # x = hour + agent column + day position: a deterministic spread, days left to right
     spread = (np.arange(D) / max(D - 1, 1) - 0.5) * 0.8 * slot if D > 1 else np.zeros(1)
     centre = 0.5 + (np.arange(n) - (n - 1) / 2) * slot
-    for lim in (system.U_bar, -system.U_bar):
-        ax_pi.axhline(lim, color=REF_GREY, ls=":", lw=1.0, gid="U_bar")
-    ax_pi.axhline(0.0, color="0.75", lw=0.6)
+    u_bar_lines(ax_pi, system.U_bar)
     x_day = (np.arange(H)[:, None] + spread[None, :]).reshape(-1)  # (H*D,), hour-major
     for i in range(n):
         ax_pi.scatter(x_day + centre[i], rec.policy[:, :, i].reshape(-1), s=6,
@@ -403,16 +416,8 @@ def fig5_policy_and_agent_costs(
 
     x = np.arange(1, months + 1)
     J_i = np.asarray(history.J_per_agent, dtype=float).reshape(months, -1)
-    for i in range(J_i.shape[1]):
-        ax_J.plot(x, J_i[:, i], color=agent_color(i), lw=1.5, marker="o", ms=3,
-                  gid=f"J[{i + 1}]", label=f"$J^{i + 1}$")
-    ax_J.set_xlabel("RL step (month)")
-    ax_J.set_ylabel(f"cost per agent $J^i$ ({COST_UNIT})")
-    ax_J.set_title("Closed-loop cost per agent", loc="left", fontsize=11)
-    ax_J.grid(True, color="0.9", lw=0.6)
-    ax_J.legend(fontsize=8, framealpha=0.9)
-    if months <= 12:
-        ax_J.xaxis.set_major_locator(MultipleLocator(1))
+    _agent_series(ax_J, x, J_i, "J", "J", lw=1.5)
+    _month_axis(ax_J, months, f"cost per agent $J^i$ ({COST_UNIT})", "Closed-loop cost per agent")
     return fig
 
 
@@ -490,24 +495,17 @@ def fig7_theta(history: History, part: str = "delta", ax: Axes | None = None) ->
     """
     if part not in PARTS:
         raise ValueError(f"part={part!r}: expected one of {PARTS}")
-    _history_months(history)
+    months = _history_months(history)
     if not history.theta_final:
         raise ValueError("history has no theta_final (no update was recorded)")
     values = history.theta_part(part)
     fig, (ax,) = axes_or_new(ax, (1, 1), (7.0, 4.0), "ax")
-    x = np.arange(values.shape[0])
+    x = np.arange(values.shape[0])  # theta_0 at 0, then after each month's update
     tex = _PART_TEX[part]
-    for i in range(values.shape[1]):
-        ax.plot(x, values[:, i], color=agent_color(i), lw=1.6, marker="o", ms=3,
-                gid=f"theta_{part}[{i + 1}]", label=f"${tex}^{{{i + 1}}}$")
-    ax.set_xlabel("RL step (month)")
-    ax.set_ylabel(f"${tex}$ ({_PART_UNIT[part]})")
-    ax.set_title(f"Convergence of ${tex}^i$", loc="left", fontsize=11)
-    ax.grid(True, color="0.9", lw=0.6)
-    ax.legend(fontsize=9, framealpha=0.9)
+    _agent_series(ax, x, values, f"theta_{part}", tex, lw=1.6)
+    _month_axis(ax, months, f"${tex}$ ({_PART_UNIT[part]})", f"Convergence of ${tex}^i$",
+                legend_size=9)
     ax.ticklabel_format(axis="y", style="sci", scilimits=(-3, 4), useMathText=True)
-    if values.shape[0] <= 13:
-        ax.xaxis.set_major_locator(MultipleLocator(1))
     return fig
 
 

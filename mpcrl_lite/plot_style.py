@@ -7,7 +7,8 @@ Conventions (those of the paper's figures):
   blue;
 * reference lines are dashed: the grid limit ``P_bar`` in black, the soc band
   ``soc_low = 0.1`` / ``soc_high = 0.9`` in grey (the penalised zones outside it are shaded),
-  the physical range ``[0, 1]`` as thin solid grey lines;
+  the physical range ``[0, 1]`` as thin solid grey lines; the bounds ``+-U_bar`` of net power
+  are dotted grey;
 * units: prices in NOK/MWh, powers in MW (net power ``b - s`` is positive when buying), soc
   dimensionless, time in hours, the daily closed-loop cost ``J`` in NOK/day
   (:data:`COST_UNIT`);
@@ -50,6 +51,7 @@ __all__ = [
     "select_days",
     "soc_reference",
     "steps",
+    "u_bar_lines",
 ]
 
 #: Colour of the first month of learning (the paper's red).
@@ -162,6 +164,15 @@ def p_bar_line(ax: Axes, P_bar: float) -> None:
     sits exactly at the limit)."""
     ax.axhline(P_bar, color="black", ls="--", lw=1.3, gid="P_bar", zorder=4,
                label=rf"$\bar P$ = {P_bar:g} MW")
+
+
+def u_bar_lines(ax: Axes, U_bar: float, zero: bool = True) -> None:
+    """The bounds ``+-U_bar`` of a battery's net power (dotted grey) and, with ``zero``, a
+    faint line at 0 (buying above it, selling below)."""
+    for lim in (U_bar, -U_bar):
+        ax.axhline(lim, color=REF_GREY, ls=":", lw=1.0, gid="U_bar")
+    if zero:
+        ax.axhline(0.0, color="0.75", lw=0.6)
 
 
 def headroom(ax: Axes, *levels: float, bottom: float = 0.0) -> None:

@@ -70,6 +70,7 @@ from .plot_style import (
     p_bar_line,
     soc_reference,
     steps,
+    u_bar_lines,
 )
 from .prices import HOURS_PER_DAY, Prices
 from .record import Record
@@ -192,9 +193,7 @@ def plot_day(
                      loc="left", fontsize=11)
     legend_beside(ax_soc)
 
-    for lim in (system.U_bar, -system.U_bar):
-        ax_a.axhline(lim, color=REF_GREY, ls=":", lw=1.0, gid="U_bar")
-    ax_a.axhline(0.0, color="0.75", lw=0.6)
+    u_bar_lines(ax_a, system.U_bar)
     for i in range(n):
         c = agent_color(i)
         ax_a.plot(hours, steps(record.policy[:, day, i]), drawstyle="steps-post", color=c,
@@ -306,8 +305,7 @@ def plot_plan(
     legend_beside(ax_soc)
     if title:
         ax_soc.set_title(title, loc="left", fontsize=10)
-    for lim in (system.U_bar, -system.U_bar):
-        ax_a.axhline(lim, color=REF_GREY, ls=":", lw=0.9, gid="U_bar")
+    u_bar_lines(ax_a, system.U_bar, zero=False)
     for i in range(n):
         # agents that plan the same power overlap: earlier agents drawn wider, underneath
         ax_a.plot(j, steps(plan.b[:, i] - plan.s[:, i]), drawstyle="steps-post",

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["PAPER", "DPG", "citation_markdown", "citation_text"]
+__all__ = ["DPG", "PAPER", "citation_markdown", "citation_text"]
 
 PAPER: dict[str, Any] = {
     "key": "kordabad2021multiagent",

@@ -34,8 +34,8 @@ from typing import Any
 from . import rundir
 from .config import InputTypeError, check_choice
 from .html_export import copy_mathjax, write_html
+from .json_values import plain_json
 from .resources import package_folder
-from .rundir import jsonable as _jsonable
 
 __all__ = [
     "CI_PARAMETERS",
@@ -188,7 +188,7 @@ def show_summary(values: dict[str, Any]) -> None:
     rounded to :data:`SUMMARY_DIGITS` significant digits."""
     from IPython.display import display
 
-    data = _round_floats(json.loads(json.dumps(values, default=_jsonable)))
+    data = _round_floats(plain_json(values))
     display({SUMMARY_MIME: data, "text/plain": json.dumps(data, indent=1)}, raw=True)
 
 
@@ -294,4 +294,3 @@ def run_report(
         }
         rundir.write_atomic(out / "summary.json", rundir.dumps(summary))
     return summary
-

@@ -12,7 +12,7 @@ from __future__ import annotations
 from importlib import resources
 from pathlib import Path
 
-__all__ = ["SHIPPED_FOLDERS", "package_folder", "candidate_folders"]
+__all__ = ["SHIPPED_FOLDERS", "candidate_folders", "package_folder"]
 
 #: Folders of the repository that the wheel carries inside the package, under the same names.
 SHIPPED_FOLDERS = ("data", "notebooks")

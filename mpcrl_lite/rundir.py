@@ -71,6 +71,8 @@ from typing import Any
 
 import numpy as np
 
+from .json_values import json_default as jsonable
+
 __all__ = [
     "CHECKPOINT",
     "FORMAT",
@@ -133,15 +135,6 @@ class RunWriteError(OSError):
 
 
 # -- JSON ---------------------------------------------------------------------------------
-def jsonable(value: Any) -> Any:
-    """``default=`` for :func:`json.dumps`: numpy arrays and scalars as plain Python."""
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"cannot store {type(value).__name__} in JSON")
-
-
 def _finite_or_none(value: Any) -> Any:
     if isinstance(value, np.ndarray):
         value = value.tolist()

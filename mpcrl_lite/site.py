@@ -45,12 +45,12 @@ from .report import PROFILES, notebook_paths, run_report
 __all__ = [
     "PAPER_FIGURES_NOTEBOOK",
     "NotebookEntry",
-    "notebook_entry",
-    "extract_paper_figures",
-    "collect_study",
-    "render_index",
     "build_site",
+    "collect_study",
+    "extract_paper_figures",
     "main",
+    "notebook_entry",
+    "render_index",
 ]
 
 #: The notebook whose figures are the paper's (cells calling ``figN_...`` of ``plots``).
@@ -188,18 +188,18 @@ def render_index(entries: list[NotebookEntry], summary: dict[str, Any],
         f"<style>{_STYLE}</style>", mathjax_tags(mathjax_url), "</head>", "<body>", "<main>",
         "<h1>MPC-based reinforcement learning for a multi-agent battery storage system</h1>",
         "<p>Seven teaching notebooks that rebuild, step by step, the paper</p>",
-        f"<blockquote>{_e(', '.join(paper['authors']))}, “{_e(paper['title'])}”, "
+        (f"<blockquote>{_e(', '.join(paper['authors']))}, “{_e(paper['title'])}”, "
         f"<em>{_e(paper['venue'])}</em>, {paper['year']}. "
         f'DOI <a href="{_e(paper["url"])}">{_e(paper["doi"])}</a>; '
         f'preprint <a href="{_e(paper["preprint_url"])}">{_e(paper["preprint"])}</a>.'
-        "</blockquote>",
-        f'<p class="small">Executed with the <strong>{_e(profile)}</strong> parameter profile by '
+        "</blockquote>"),
+        (f'<p class="small">Executed with the <strong>{_e(profile)}</strong> parameter profile by '
         f"mpcrl_lite {_e(__version__)} on {_dt.date.today().isoformat()}. Every page works "
         "offline; the interactive explorers appear as pictures of their first state (open a "
-        "notebook in Jupyter, Colab or Binder to move their controls).</p>",
+        "notebook in Jupyter, Colab or Binder to move their controls).</p>"),
         '<h2 id="tour">The notebook tour</h2>',
-        "<table><thead><tr><th>#</th><th>notebook</th><th>goal</th><th>run time</th>"
-        "<th>open</th></tr></thead><tbody>", *rows, "</tbody></table>",
+        ("<table><thead><tr><th>#</th><th>notebook</th><th>goal</th><th>run time</th>"
+        "<th>open</th></tr></thead><tbody>"), *rows, "</tbody></table>",
         '<h2 id="figures">The paper\'s figures</h2>',
     ]
     if figures:

@@ -11,6 +11,8 @@ This module sits below all back-ends (:mod:`mpcrl_lite.ipopt_solver`,
 * :class:`Sensitivity` -- ``grad_theta pi`` (paper eq. 21) for a batch, with a per-problem
   flag and reason where it is unusable;
 * :class:`SolverBackend` -- the interface a back-end offers to the closed loop;
+* :class:`BackendBase` -- that interface's ``solve`` and ``solve_batch`` written once, around
+  the one method a back-end implements (its solving of a batch of parameter vectors);
 * :data:`FALLBACK` -- what the policy does when a solve fails.
 
 Failures never raise mid-run and never leak NaN: a problem that did not converge is marked
@@ -21,8 +23,10 @@ controller keeps soc inside [0, 1].
 
 from __future__ import annotations
 
+import logging
+import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
@@ -31,7 +35,14 @@ from .config import MPCConfig
 from .mpc import MPC
 from .theta import Theta
 
-__all__ = ["FALLBACK", "BatchSolution", "MPCSolution", "Sensitivity", "SolverBackend"]
+__all__ = [
+    "FALLBACK",
+    "BackendBase",
+    "BatchSolution",
+    "MPCSolution",
+    "Sensitivity",
+    "SolverBackend",
+]
 
 #: Description of the action used when a solve fails.
 FALLBACK = "idle: b = s = 0 for every battery (the low-level controller still guards soc)"
@@ -121,7 +132,9 @@ class BatchSolution:
                 "their batteries idle (the fallback action)")
 
     @staticmethod
-    def stack(solutions: list[MPCSolution], solve_time: float, backend: str) -> BatchSolution:
+    def stack(
+        solutions: list[MPCSolution], solve_time: float = 0.0, backend: str = ""
+    ) -> BatchSolution:
         """Gather single solutions into a batch."""
         return BatchSolution(
             action=np.stack([s.action for s in solutions]),
@@ -185,3 +198,85 @@ class SolverBackend(Protocol):
     ) -> BatchSolution: ...
 
     def sensitivity(self, solution: MPCSolution | BatchSolution) -> Sensitivity: ...
+
+
+class BackendBase:
+    """The public half of a back-end: :meth:`solve` and :meth:`solve_batch` of
+    :class:`SolverBackend`, written once around :meth:`_solve_parameters`.
+
+    A back-end sets ``name``, ``mpc`` and ``config`` and implements
+    :meth:`_solve_parameters`, the solving of a batch of parameter vectors. This class builds
+    those vectors from the states and price windows (checking their shapes before any work),
+    applies ``config.warm_start`` to a guess ``x0``, times the call, and logs one warning per
+    call with failures (:meth:`BatchSolution.failure_summary`) on the logger of the
+    back-end's own module.
+    """
+
+    name: str = ""
+    mpc: MPC
+    config: MPCConfig
+
+    def solve(
+        self, soc0: np.ndarray, buy: np.ndarray, sell: np.ndarray, theta: Theta,
+        x0: np.ndarray | None = None,
+    ) -> MPCSolution:
+        """Solve one MPC: soc0 (n,), buy and sell (N,), theta; optional primal guess x0 (nx,).
+
+        The one row of :meth:`solve_batch`: the warm start and a failure are handled as
+        there.
+        """
+        batch = self.solve_batch(
+            np.asarray(soc0, float)[None], np.asarray(buy, float)[None],
+            np.asarray(sell, float)[None], theta,
+            None if x0 is None else np.asarray(x0, float)[None],
+        )
+        return batch[0]
+
+    def solve_batch(
+        self, soc0: np.ndarray, buy: np.ndarray, sell: np.ndarray, theta: Theta,
+        x0: np.ndarray | None = None,
+    ) -> BatchSolution:
+        """Solve one MPC per row, e.g. all days of a month at one hour.
+
+        Parameters
+        ----------
+        soc0
+            States, shape (days, n).
+        buy, sell
+            Price windows, shape (days, N).
+        theta
+            MPC parameters, shared by all rows.
+        x0
+            Optional primal warm start (days, nx), e.g. the previous hour's solutions shifted
+            by one stage (:meth:`mpcrl_lite.mpc.MPC.shift`); used only when
+            ``config.warm_start`` is set. What a back-end takes from it is its own affair.
+
+        Returns
+        -------
+        BatchSolution
+            Rows that failed have ``success = False``, the back-end's status string and the
+            fallback action zeros (:data:`FALLBACK`); a call with failures logs one warning.
+
+        Raises
+        ------
+        ValueError
+            For inputs of the wrong shape or non-finite parameters (before any work).
+        """
+        t_start = time.perf_counter()
+        P = self.mpc.parameters(soc0, buy, sell, theta)
+        if P.ndim != 2:
+            raise ValueError(f"solve_batch expects soc0 (days, n); got soc0 {np.shape(soc0)}")
+        if x0 is not None:
+            x0 = np.asarray(x0, float).reshape(P.shape[0], self.mpc.nx)
+            if not self.config.warm_start:
+                x0 = None
+        batch = replace(self._solve_parameters(P, x0),
+                        solve_time=time.perf_counter() - t_start, backend=self.name)
+        if batch.failures:
+            logging.getLogger(type(self).__module__).warning("%s", batch.failure_summary())
+        return batch
+
+    def _solve_parameters(self, P: np.ndarray, x0: np.ndarray | None) -> BatchSolution:
+        """The problems of the parameter vectors ``P`` (days, np), with the warm start ``x0``
+        (days, nx) or None; ``solve_time`` and ``backend`` are filled in by the caller."""
+        raise NotImplementedError(f"{type(self).__name__} does not implement _solve_parameters")

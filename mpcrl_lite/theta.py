@@ -29,7 +29,7 @@ import numpy as np
 
 from .config import SystemConfig
 
-__all__ = ["PARTS", "CONSTANT_PARTS", "Theta"]
+__all__ = ["CONSTANT_PARTS", "PARTS", "Theta"]
 
 #: Names of theta's parts in vector order.
 PARTS: tuple[str, ...] = ("alpha", "delta", "b", "s", "phi1", "phi2", "phi3", "T1", "T2", "T3")
@@ -69,7 +69,7 @@ class Theta:
 
     # -- construction ---------------------------------------------------------------------
     @classmethod
-    def nominal(cls, system: SystemConfig | None = None) -> "Theta":
+    def nominal(cls, system: SystemConfig | None = None) -> Theta:
         """theta0: the nominal model (``theta_alpha = alpha``, ``theta_delta = alpha *
         noise_mean``) and no cost corrections."""
         system = system or SystemConfig()
@@ -82,7 +82,7 @@ class Theta:
         )
 
     @classmethod
-    def from_vector(cls, vector: np.ndarray, n: int) -> "Theta":
+    def from_vector(cls, vector: np.ndarray, n: int) -> Theta:
         """Inverse of :meth:`to_vector`; ``vector`` has shape ``(10 n,)``."""
         vector = np.asarray(vector, dtype=float).reshape(-1)
         if vector.size != len(PARTS) * n:
@@ -93,7 +93,7 @@ class Theta:
         return cls(**{name: vector[i * n : (i + 1) * n] for i, name in enumerate(PARTS)})
 
     @classmethod
-    def from_dict(cls, data: dict[str, list[float]]) -> "Theta":
+    def from_dict(cls, data: dict[str, list[float]]) -> Theta:
         """Inverse of :meth:`to_dict`."""
         missing = set(PARTS) - set(data)
         if missing:
@@ -119,7 +119,7 @@ class Theta:
         """``{part: [value per agent]}``, JSON-friendly."""
         return {name: getattr(self, name).tolist() for name in PARTS}
 
-    def replace(self, **parts: np.ndarray) -> "Theta":
+    def replace(self, **parts: np.ndarray) -> Theta:
         """A copy with some parts replaced."""
         data = {name: getattr(self, name) for name in PARTS}
         unknown = set(parts) - set(PARTS)

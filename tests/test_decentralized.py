@@ -116,7 +116,7 @@ def test_unconverged_coordination_falls_back_to_projection():
     assert np.all(np.maximum(a, 0).sum(1) <= TIGHT.P_bar + 1e-12)
     assert np.all(np.maximum(-a, 0).sum(1) <= TIGHT.P_bar + 1e-12)
     assert np.all(np.abs(a) <= TIGHT.U_bar + 1e-12)
-    grad, ok = policy.sensitivity(sol)  # local IPOPT solutions: exact local KKT points
+    _grad, ok = policy.sensitivity(sol)  # local IPOPT solutions: exact local KKT points
     assert ok.all()
 
 

@@ -488,6 +488,19 @@ def test_invalid_guess_is_a_failure_not_an_exception(mpc, ipopt, system):
     np.testing.assert_array_equal(sol.action, np.zeros(system.n))
 
 
+def test_guess_is_ignored_without_warm_start(mpc, system):
+    """With ``warm_start=False`` a single solve starts cold whatever ``x0`` is, as a batch
+    does: the invalid guess that fails the solve above is not used."""
+    solver = IpoptSolver(mpc, MPCConfig(backend="ipopt", warm_start=False))
+    guess = solver.default_guess()
+    guess[7] = np.nan
+    buy = np.full(system.N, 50.0)
+    args = (np.full(system.n, 0.5), buy, 0.5 * buy, Theta.nominal(system))
+    sol = solver.solve(*args, x0=guess)
+    assert sol.success
+    np.testing.assert_array_equal(sol.x, solver.solve(*args).x)
+
+
 def test_solve_batch_equals_single_solves(mpc, ipopt, system, month_prices):
     rng = np.random.default_rng(7)
     theta = random_theta(rng, system.n)
@@ -561,6 +574,10 @@ def test_polish_error_marks_the_solve_failed(mpc, system, monkeypatch, caplog):
     assert sol.status == "kkt_polish_failed: Newton step failed (Evaluation failed)"
     np.testing.assert_array_equal(sol.action, np.zeros(system.n))
     assert np.all(np.isfinite(sol.x)) and np.isfinite(sol.cost)
+    # one warning per call, for a single solve as for a batch
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "1 of 1 MPC problems failed" in warnings[0]
+    caplog.clear()
     with caplog.at_level(logging.WARNING, logger="mpcrl_lite"):
         batch = solver.solve_batch(np.full((2, system.n), 0.5), np.stack([buy] * 2),
                                    np.stack([0.5 * buy] * 2), Theta.nominal(system))

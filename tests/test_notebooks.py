@@ -19,12 +19,11 @@ import sys
 from pathlib import Path
 
 import nbformat
+import nbref
 import papermill
 import pytest
 
-import nbref
-from mpcrl_lite.report import (check_parameters, execute_notebook, notebook_parameters,
-                               read_summary)
+from mpcrl_lite.report import check_parameters, execute_notebook, notebook_parameters, read_summary
 
 STEMS = nbref.stems()
 TOOLS = nbref.ROOT / "tools"

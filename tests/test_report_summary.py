@@ -1,4 +1,5 @@
-"""The summary a notebook shows (mpcrl_lite.report.show_summary): JSON with rounded floats."""
+"""The summary a notebook shows (mpcrl_lite.report.show_summary): JSON with rounded floats,
+made of JSON types by mpcrl_lite.json_values."""
 
 from __future__ import annotations
 
@@ -7,7 +8,9 @@ import math
 
 import IPython.display
 import numpy as np
+import pytest
 
+from mpcrl_lite.json_values import plain_json
 from mpcrl_lite.report import SUMMARY_DIGITS, SUMMARY_MIME, show_summary
 
 
@@ -33,3 +36,21 @@ def test_show_summary_rounds_floats_to_significant_digits(monkeypatch):
     text = data["text/plain"]
     assert json.loads(text.replace("NaN", "null"))["J"] == 1833.91
     assert "1833.9135" not in text and "0.30000000000000004" not in text
+
+
+def test_plain_json_turns_numpy_values_into_json_types():
+    value = {"a": np.arange(3), "x": np.float32(0.5), "k": np.int64(7), "ok": np.bool_(True),
+             "list": [np.float64(1.5), {"m": np.ones((2, 1))}], "s": "text"}
+    plain = plain_json(value)
+    assert plain == {"a": [0, 1, 2], "x": 0.5, "k": 7, "ok": True,
+                     "list": [1.5, {"m": [[1.0], [1.0]]}], "s": "text"}
+    assert type(plain["k"]) is int and type(plain["ok"]) is bool and type(plain["x"]) is float
+    # the input is not changed
+    assert isinstance(value["a"], np.ndarray)
+
+
+def test_values_json_cannot_hold_are_refused_by_name():
+    with pytest.raises(TypeError, match="cannot store set in JSON"):
+        plain_json({"bad": {1, 2}})
+    with pytest.raises(TypeError, match="cannot store set in JSON"):
+        show_summary({"bad": {1, 2}})

@@ -91,7 +91,7 @@ def test_alt_text_hook_adds_the_description_to_figure_outputs_only():
     def fmt(obj, include=None, exclude=None):
         return {"image/png": "AAAA", "text/plain": repr(obj)}, {"image/png": {"width": 400}}
 
-    data, metadata = _with_alt(fmt)(fig)
+    _data, metadata = _with_alt(fmt)(fig)
     assert metadata["image/png"] == {"width": 400, "alt": "Figure: prices."}
     assert _with_alt(fmt)("not a figure")[1] == {"image/png": {"width": 400}}
 
@@ -306,7 +306,7 @@ def test_pages_render_offline_in_a_real_browser(built_site):
     assert dom.count('class="MathJax_Display"') >= display > 0, "display equations typeset"
     assert dom.count('class="MathJax"') > display, "inline equations typeset"
     assert 'class="MathJax_Error"' not in dom and "Math Processing Error" not in dom
-    text = re.sub(r"<script.*?</script>", "", dom, flags=re.S)
+    text = re.sub(r"<script.*?</script>", "", dom, flags=re.DOTALL)
     assert "$$" not in text, "no raw TeX left on the page"
     assert dom.count("mpcrl-static-widget") == 2  # the two explorers of notebook 01
     index = _dump_dom((built_site / "index.html").resolve().as_uri())

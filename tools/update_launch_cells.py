@@ -25,7 +25,7 @@ import nbformat
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from mpcrl_lite.launch import apply_launch_cells  # noqa: E402
+from mpcrl_lite.launch import apply_launch_cells
 
 NOTEBOOK_DIR = ROOT / "notebooks"
 

@@ -25,7 +25,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
 
-import nbref  # noqa: E402
+import nbref
 
 
 def main(argv: list[str] | None = None) -> int:
