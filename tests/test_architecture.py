@@ -43,14 +43,14 @@ LAYERS: list[set[str]] = [
     # what learners, coordination and bounds share
     {"learner", "coordination", "causal_grid", "causal_dual", "causal"},
     # learners, baselines and evaluation
-    {"experiment", "decentralized", "baselines", "evaluation"},
+    {"experiment", "decentralized", "baselines", "evaluation", "transfer"},
     # figures
     {"plot_style", "paper_figures", "plots"},
     # classroom and reports
     {"explore", "controls", "widgets", "alt_text", "html_export", "report", "launch", "site"},
     # orchestration: studies, sweeps and the command line
     {"sweep_grid", "sweep_store", "sweep_table", "sweep_run", "sweep_schedule", "sweep",
-     "study", "lockstep", "cli", "__main__", "__init__"},
+     "study", "lockstep", "cli", "cli_inputs", "__main__", "__init__"},
 ]
 RANK = {module: rank for rank, layer in enumerate(LAYERS) for module in layer}
 
