@@ -247,15 +247,31 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_eval_draws(out: Path) -> int | None:
+    """``learning.eval_draws`` of the run in ``out`` (None if there is none to read: the
+    resume then reports what is wrong)."""
+    for name in ("checkpoint.json", "history.json"):
+        try:
+            learning = json.loads((out / name).read_text())["learning"]
+            return LearningConfig.from_dict(learning).eval_draws
+        except (OSError, ValueError, TypeError, KeyError, AttributeError):
+            continue
+    return None
+
+
 def cmd_learn(args: argparse.Namespace) -> int:
     """The ``learn`` command. Everything about ``--out`` is checked before any month runs:
     a directory holding results (a run, a History, a summary or figures of ``learn``) is
     continued with ``--resume``, replaced with ``--force`` and refused otherwise; a run that
     does not verify is refused (one line: what is wrong, how to recover)."""
+    eval_draws = args.eval_draws
+    if args.resume and eval_draws is None:
+        # a resumed run keeps its evaluation draws (1 for runs from before the option)
+        eval_draws = _run_eval_draws(Path(args.out))
     system, mpc_config, learning = _configs(
         args, months=args.months, days_per_month=args.days, step_size=args.step_size,
         optimizer=args.optimizer, exploration_std=args.exploration_std,
-        eval_draws=args.eval_draws,
+        eval_draws=eval_draws,
     )
     from . import rundir
 
