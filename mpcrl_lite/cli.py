@@ -332,6 +332,7 @@ def cmd_learn(args: argparse.Namespace) -> int:
         "J_eval_first": history.J_eval[0] if history.J_eval else None,
         "J_eval_last": history.J_eval[-1] if history.J_eval else None,
         "max_P_mpc": max(history.max_P_mpc),
+        "max_P_applied": max(history.max_P_applied),
         "skipped_steps": int(sum(history.skipped_steps)),
         "wall_time_s": float(sum(history.wall_time_s)),
     })))

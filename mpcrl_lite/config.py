@@ -80,7 +80,7 @@ Choices the paper leaves open (each is a field below, with the reason in its com
   with a 95 % confidence interval) shows the learning trend of the paper's Fig. 2.
 
 With these defaults the 100-month run (30 days, n = 3) takes about 75 s with the batch
-back-end on two cores, and in all 6 seeds tried J on a fixed evaluation draw fell from about
+back-end on two cores, and in all 6 seeds tried J on one fixed evaluation draw (draw 0) fell from about
 1500 to between -185 and -275 NOK/day (a profit), with the agent-hours at soc < 0.1 down by
 about 90 % and theta_delta settled near -0.04.
 
