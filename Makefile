@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 export MPLBACKEND ?= Agg
 
-.PHONY: setup report test test-fast lab bench clean student site
+.PHONY: setup report test test-fast lab bench clean student site study
 
 $(STAMP): environment-requirements.txt pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -56,6 +56,16 @@ SITE_PROFILE ?= classroom
 SITE_FROM ?=
 site: $(STAMP)
 	$(BIN)/python -m mpcrl_lite.site --out site --profile $(SITE_PROFILE) $(if $(SITE_FROM),--report $(SITE_FROM))
+
+## multi-seed study: SEEDS runs of MONTHS months (seeds from SEED_START) into STUDY_OUT
+## (study.csv, study.json, study_curves.png; resumes an interrupted study)
+SEEDS ?= 20
+MONTHS ?= 100
+SEED_START ?= 0
+STUDY_OUT ?= study
+study: $(STAMP)
+	$(BIN)/python -m mpcrl_lite study --seeds $(SEEDS) --months $(MONTHS) \
+		--seed-start $(SEED_START) --out $(STUDY_OUT)
 
 clean:
 	rm -rf reports site .pytest_cache

@@ -8,6 +8,7 @@ report     execute every notebook into a report directory (papermill)
 baselines  clairvoyant / nominal / rule-based policies on the same draws as a History
 evaluate   a learned theta and the nominal MPC on K noise draws of a (new) month
 sweep      a grid of learning runs on Dask
+study      one learning run per seed (through sweep); convergence, spread, learning curves
 
 ``learn``, ``simulate``, ``baselines`` and ``evaluate`` read another month of prices with
 ``--prices EXPORT.csv --area AREA --month YYYY-MM`` (a Nord Pool export).
@@ -145,6 +146,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"DPG update rule (default {_LEARNING.optimizer}; sgd is the "
                         "paper's plain gradient step)")
     p.add_argument("--exploration-std", type=_float, default=None)
+    p.add_argument("--eval-draws", type=_positive_int, default=None,
+                   help=f"noise draws of each evaluation (default {_LEARNING.eval_draws}; "
+                        "runs from before the option were evaluated on 1)")
     p.add_argument("--decentralized", action="store_true",
                    help="one MPC and one learner per battery; the MPCs are coordinated on the "
                         "grid limit by per-stage grid prices found with a decomposed Newton "
@@ -193,6 +197,24 @@ def build_parser() -> argparse.ArgumentParser:
                    help="execute only this run id (repeatable); a rerun executes failed/unfinished runs")
     p.add_argument("--notebooks", action="store_true",
                    help="also execute notebook 05 per grid point into DIR/reports/")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+    p = sub.add_parser("study", help="one learning run per seed, judged on J_eval")
+    p.add_argument("--seeds", type=_positive_int, required=True, help="number of seeds")
+    p.add_argument("--months", type=_positive_int, required=True, help="months per run")
+    p.add_argument("--out", type=Path, required=True, help="output directory")
+    p.add_argument("--seed-start", type=_nonneg_int, default=0, help="first seed (default 0)")
+    p.add_argument("--days", type=_positive_int, default=None,
+                   help=f"days per month (default {_LEARNING.days_per_month})")
+    p.add_argument("--eval-draws", type=_positive_int, default=None,
+                   help=f"evaluation draws (default {_LEARNING.eval_draws})")
+    p.add_argument("--j-star", type=_float, default=None,
+                   help="J of the best causal policy (default: the best J_eval reached)")
+    p.add_argument("--threshold", type=_float, default=None,
+                   help="share of the gap nominal -> target a converged seed closes "
+                        "(default 0.9)")
+    p.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
+    p.add_argument("--workers", type=_nonneg_int, default=None, help="local workers (0: serial)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
 
@@ -337,14 +359,31 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _run_eval_draws(out: Path) -> int | None:
+    """``learning.eval_draws`` of the run in ``out`` (None if there is none to read: the
+    resume then reports what is wrong)."""
+    for name in ("checkpoint.json", "history.json"):
+        try:
+            learning = json.loads((out / name).read_text())["learning"]
+            return LearningConfig.from_dict(learning).eval_draws
+        except (OSError, ValueError, TypeError, KeyError, AttributeError):
+            continue
+    return None
+
+
 def cmd_learn(args: argparse.Namespace) -> int:
     """The ``learn`` command. Everything about ``--out`` is checked before any month runs:
     a directory holding results (a run, a History, a summary or figures of ``learn``) is
     continued with ``--resume``, replaced with ``--force`` and refused otherwise; a run that
     does not verify is refused (one line: what is wrong, how to recover)."""
+    eval_draws = args.eval_draws
+    if args.resume and eval_draws is None:
+        # a resumed run keeps its evaluation draws (1 for runs from before the option)
+        eval_draws = _run_eval_draws(Path(args.out))
     system, mpc_config, learning = _configs(
         args, months=args.months, days_per_month=args.days, step_size=args.step_size,
         optimizer=args.optimizer, exploration_std=args.exploration_std,
+        eval_draws=eval_draws,
     )
     prices = _prices(args, system, args.days)
     if prices is not None:  # the month's days
@@ -413,6 +452,7 @@ def cmd_learn(args: argparse.Namespace) -> int:
         "J_eval_first": history.J_eval[0] if history.J_eval else None,
         "J_eval_last": history.J_eval[-1] if history.J_eval else None,
         "max_P_mpc": max(history.max_P_mpc),
+        "max_P_applied": max(history.max_P_applied),
         "skipped_steps": int(sum(history.skipped_steps)),
         "wall_time_s": float(sum(history.wall_time_s)),
     })))
@@ -521,6 +561,29 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_study(args: argparse.Namespace) -> int:
+    from .study import THRESHOLD, run_study
+
+    base = {}
+    if args.days is not None:
+        base["learning.days_per_month"] = args.days
+    if args.eval_draws is not None:
+        base["learning.eval_draws"] = args.eval_draws
+    try:
+        summary = run_study(
+            args.seeds, args.months, args.out, seed_start=args.seed_start, base=base,
+            workers=args.workers, scheduler=args.scheduler, J_star=args.j_star,
+            threshold=THRESHOLD if args.threshold is None else args.threshold,
+            progress=not args.quiet)
+    except (ValueError, FileNotFoundError) as err:
+        raise UsageError(str(err)) from None
+    keys = ("done", "fraction_converged", "J_eval_final_median", "J_eval_final_iqr",
+            "worst_seed", "largest_late_regression")
+    print(json.dumps({**{k: summary[k] for k in keys}, "study": str(args.out / "study.json")},
+                     default=str))
+    return 0
+
+
 COMMANDS = {
     "simulate": cmd_simulate,
     "learn": cmd_learn,
@@ -528,6 +591,7 @@ COMMANDS = {
     "baselines": cmd_baselines,
     "evaluate": cmd_evaluate,
     "sweep": cmd_sweep,
+    "study": cmd_study,
 }
 
 

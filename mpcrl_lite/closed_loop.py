@@ -53,7 +53,9 @@ __all__ = [
     "Policy",
     "Projection",
     "SensitivityRecorder",
+    "draw_J",
     "evaluate_mpc",
+    "evaluation_rng",
     "rollout",
     "run_month",
     "simulate",
@@ -466,6 +468,33 @@ def run_month(
     return MonthRecord.from_record(record, None if recorder is None else recorder.grad_pi)
 
 
+def evaluation_rng(seed: int, draw: int) -> np.random.Generator:
+    """The generator of evaluation draw ``draw`` (0, 1, ...) of ``seed``.
+
+    Draw 0 is ``numpy.random.default_rng(seed)`` (the single draw of earlier versions);
+    draw ``k > 0`` is seeded with the entropy ``[seed, k]``, so the draws are independent and
+    the first ``K`` draws are the same whatever the number of draws asked for.
+    """
+    if isinstance(draw, bool) or not isinstance(draw, (int, np.integer)) or draw < 0:
+        raise ValueError(f"draw={draw!r}: expected an integer >= 0")
+    return np.random.default_rng(seed if draw == 0 else [int(seed), int(draw)])
+
+
+class _TiledPrices:
+    """``prices`` with its days repeated ``times`` times (``(times * days, ...)``): the
+    forecast window of a copy's last day continues with day 0, as in the cyclic month."""
+
+    def __init__(self, prices: Any, times: int) -> None:
+        self.prices, self.times = prices, times
+        self.buy = np.tile(np.asarray(prices.buy), (times, 1))
+        self.sell = np.tile(np.asarray(prices.sell), (times, 1))
+        self.days = self.buy.shape[0]
+
+    def window(self, hour: int, N: int) -> tuple[np.ndarray, np.ndarray]:
+        buy, sell = self.prices.window(hour, N)
+        return np.tile(buy, (self.times, 1)), np.tile(sell, (self.times, 1))
+
+
 def evaluate_mpc(
     theta: Theta,
     solver: Any,
@@ -473,12 +502,48 @@ def evaluate_mpc(
     system: SystemConfig,
     seed: int,
     soc0: float | np.ndarray | None = None,
+    draws: int = 1,
 ) -> MonthRecord:
-    """The MPC at ``theta`` on the noise drawn from ``numpy.random.default_rng(seed)``, without
-    exploration and without sensitivities: the same seed gives every theta the same noise
-    (common random numbers), so differences of :meth:`Record.J_per_day` are paired."""
-    return run_month(theta, solver, prices, system, np.random.default_rng(seed),
-                     exploration_std=0.0, sensitivities=False, soc0=soc0)
+    """The MPC at ``theta`` on ``draws`` fixed noise draws, without exploration and without
+    sensitivities, all in one batched closed loop.
+
+    Draw ``k`` is a month of the days of ``prices`` with the noise
+    ``sample_noise(evaluation_rng(seed, k), (H, days, n))``; the draws are stacked as
+    ``draws * days`` days (day ``d`` of draw ``k`` is day ``k * days + d`` of the record).
+    The same seed gives every theta the same noise (common random numbers), so differences
+    of :meth:`Record.J_per_day` are paired; :func:`draw_J` gives each draw's J. With
+    ``draws=1`` the noise is that of ``numpy.random.default_rng(seed)`` used hour by hour.
+
+    Returns
+    -------
+    MonthRecord
+        Of ``draws * days`` days, ``grad_pi`` None.
+    """
+    if isinstance(draws, bool) or not isinstance(draws, (int, np.integer)) or draws < 1:
+        raise ValueError(f"draws={draws!r}: expected an integer >= 1")
+    if draws == 1:
+        return run_month(theta, solver, prices, system, np.random.default_rng(seed),
+                         exploration_std=0.0, sensitivities=False, soc0=soc0)
+    H, D, n = system.hours_per_day, prices.days, system.n
+    noise = np.concatenate([sample_noise(evaluation_rng(seed, k), (H, D, n), system)
+                            for k in range(draws)], axis=1)
+    if soc0 is not None and np.ndim(soc0) == 2:
+        soc0 = np.tile(np.asarray(soc0, dtype=float), (draws, 1))
+    tiled = _TiledPrices(prices, draws)
+    record = simulate(MPCPolicy(solver, theta, tiled), tiled.buy[:, :H], tiled.sell[:, :H],
+                      system, noise=noise, soc0=soc0)
+    return MonthRecord.from_record(record)
+
+
+def draw_J(record: Record, draws: int) -> np.ndarray:
+    """J of each draw of an :func:`evaluate_mpc` record: the mean over each draw's days of
+    :meth:`Record.J_per_day`, shape ``(draws,)``."""
+    per_day = record.J_per_day()
+    if isinstance(draws, bool) or not isinstance(draws, (int, np.integer)) or draws < 1 \
+            or per_day.size % draws:
+        raise ValueError(f"draws={draws!r}: expected an integer >= 1 dividing the record's "
+                         f"{per_day.size} days")
+    return per_day.reshape(draws, -1).mean(axis=1)
 
 
 def rollout(

@@ -16,16 +16,17 @@ Every month (paper, Section IV):
 3. the policy gradient ``mean(grad pi grad pi^T w)`` moves theta
    (:class:`mpcrl_lite.dpg.DPGUpdater`);
 4. every ``LearningConfig.eval_every`` months the parameters of the month are evaluated:
-   one more month of the same days on a fixed noise draw (``LearningConfig.eval_seed``),
-   without exploration and without sensitivities (:meth:`Experiment.evaluate`). Its J is
-   recorded as ``History.J_eval``: the month's own J moves by +-200 from month to month with
-   its new noise and exploration, J_eval only with the parameters.
+   the month's days once more on each of ``LearningConfig.eval_draws`` fixed noise draws
+   (derived from ``eval_seed``, all draws in one batched closed loop), without exploration
+   and without sensitivities (:meth:`Experiment.evaluate`). The mean of the draws' J is
+   recorded as ``History.J_eval``, with its 95 % confidence interval over the draws
+   (``J_eval_ci_low``, ``J_eval_ci_high``): the month's own J moves by +-200 from month to
+   month with its new noise and exploration, J_eval only with the parameters.
 
 Random draws come from one ``numpy.random.Generator`` seeded with ``LearningConfig.seed``,
 in a fixed order (per hour: exploration, then noise), so a seed fixes a run; the evaluation
-draws from its own generator, created anew from ``eval_seed`` each time, so it never changes
-the learning run. After every
-month the run can be committed to a run directory (History, theta, the updater's state and
+draws from its own generators, created anew from ``eval_seed`` each time, so it never
+changes the learning run (J and theta of the learning months). After every month the run can be committed to a run directory (History, theta, the updater's state and
 the generator's state, all as JSON/npz, :mod:`mpcrl_lite.rundir`) and resumed with identical
 results; the month loop, the checkpoints and the learning step are shared with the
 decentralized learner (:mod:`mpcrl_lite.learner`).
@@ -72,8 +73,9 @@ class Experiment(Learner):
     """The paper's learning run: months x days, LSTD critic, DPG update at each month's end.
 
     With the default configurations (:mod:`mpcrl_lite.config`) every month's parameters are
-    also evaluated on a fixed noise draw (:meth:`evaluate`, ``History.J_eval``), which shows
-    the learning trend without the month-to-month noise of ``History.J``.
+    also evaluated on ``LearningConfig.eval_draws`` fixed noise draws (:meth:`evaluate`,
+    ``History.J_eval`` and its confidence interval), which shows the learning trend without
+    the month-to-month noise of ``History.J``.
 
     Parameters
     ----------
@@ -125,16 +127,23 @@ class Experiment(Learner):
 
     # -- evaluation -----------------------------------------------------------------------
     def evaluate(self, theta: Theta | None = None) -> MonthRecord:
-        """J of ``theta`` (default: the current parameters) on the fixed evaluation draw.
+        """``theta`` (default: the current parameters) on the fixed evaluation draws.
 
-        The month's days are run once more with noise from a generator seeded with
-        ``LearningConfig.eval_seed`` (the same draw every time), without exploration and
-        without sensitivities. The learning generator is not touched.
+        The month's days are run once more on each of ``LearningConfig.eval_draws`` noise
+        draws (:func:`mpcrl_lite.closed_loop.evaluate_mpc` with ``eval_seed``: the same draws
+        every time), without exploration and without sensitivities, all draws in one batched
+        closed loop. The learning generator is not touched.
+
+        Returns
+        -------
+        MonthRecord
+            Of ``eval_draws * days_per_month`` days, draw by draw
+            (:func:`mpcrl_lite.closed_loop.draw_J` gives each draw's J).
         """
         theta = self.theta if theta is None else theta
         self._check_solver(theta)
         return evaluate_mpc(theta, self.solver, self.prices, self.system,
-                            self.learning.eval_seed)
+                            self.learning.eval_seed, draws=self.learning.eval_draws)
 
     def evaluation_due(self, month: int) -> bool:
         """True when month ``month`` (counted from 0) is evaluated: every
@@ -167,7 +176,8 @@ class Experiment(Learner):
         wall_time = time.perf_counter() - t0
         if self.evaluation_due(month):
             t1 = time.perf_counter()
-            self.history.append_evaluation(month, self.evaluate(theta_used))
+            self.history.append_evaluation(month, self.evaluate(theta_used),
+                                           draws=self.learning.eval_draws)
             info["eval_time_s"] = time.perf_counter() - t1
         self.history.append(record, theta_used, grad, skipped, wall_time, info)
         self.history.theta_final = self.theta.to_vector().tolist()

@@ -4,13 +4,15 @@ A :class:`History` is saved as two plain files, never as pickle:
 
 * ``history.json`` -- the configurations, theta's entry names, and every per-month scalar
   series (human-readable), including the evaluation series (``J_eval`` and friends: the
-  parameters of a month evaluated on one fixed noise draw without exploration, see
-  :meth:`mpcrl_lite.experiment.Experiment.evaluate`);
+  parameters of a month evaluated on ``LearningConfig.eval_draws`` fixed noise draws without
+  exploration, see :meth:`mpcrl_lite.experiment.Experiment.evaluate`);
 * ``history.npz`` -- the arrays (theta per month, J per agent, and the full trajectories of
   the first and last month), loaded with ``allow_pickle=False``.
 
 A number that is not finite (e.g. ``eval_bound_share`` of a month whose every MPC solve
-failed) is written as ``null`` -- JSON has no NaN -- and read back as NaN.
+failed) is written as ``null`` -- JSON has no NaN -- and read back as NaN. Series added
+later (:data:`History.LATER_SERIES`, e.g. the confidence interval of ``J_eval`` and
+``hours_above_P_bar``) are optional: files without them read back with NaN entries.
 :meth:`History.load` checks that the files agree with each other (every series one entry per
 month, the arrays of the first and last month present) and refuses them otherwise.
 """
@@ -28,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy import stats
 
 from . import rundir
 from .config import LearningConfig, MPCConfig, SystemConfig
@@ -36,7 +39,29 @@ from .rundir import RECOVER, RunDirError
 from .theta import PARTS, Theta
 
 # MonthRecord and MONTH_ARRAYS live in mpcrl_lite.record; they stay importable from here.
-__all__ = ["MONTH_ARRAYS", "History", "MonthRecord"]
+__all__ = ["MONTH_ARRAYS", "History", "MonthRecord", "mean_ci"]
+
+
+def mean_ci(values: Any, level: float = 0.95) -> tuple[float, float, float]:
+    r"""Mean of ``values`` and its Student-t confidence interval.
+
+    ``mean -+ t_{(1+level)/2, K-1} * sd / sqrt(K)`` for ``K`` values (``sd`` with ``K - 1``
+    degrees of freedom); with fewer than 2 values the interval is ``(nan, nan)``.
+
+    Returns
+    -------
+    mean, low, high : float
+    """
+    if not (isinstance(level, float) and 0.0 < level < 1.0):
+        raise ValueError(f"level={level!r}: expected a float in (0, 1)")
+    x = np.asarray(values, dtype=float).reshape(-1)
+    if x.size == 0:
+        raise ValueError("values: expected at least one value")
+    mean = float(x.mean())
+    if x.size < 2:
+        return mean, math.nan, math.nan
+    half = float(stats.t.ppf(0.5 + level / 2, x.size - 1) * x.std(ddof=1) / math.sqrt(x.size))
+    return mean, mean - half, mean + half
 
 
 @dataclass(eq=False)
@@ -46,13 +71,24 @@ class History:
     Lists grow by one entry per month; ``theta`` holds the parameters *used* in each month
     and ``theta_final`` those after the last update.
 
-    The evaluation series (:data:`EVAL_SERIES`) grow by one entry per evaluated month:
-    ``eval_month[j]`` is the month whose parameters were evaluated, ``J_eval[j]`` their J on
-    the fixed evaluation draw (no exploration), ``J_eval_per_agent[j]`` the per-agent J^i,
-    ``eval_hours_soc_below_0_1[j]`` the agent-hours with soc < 0.1, ``eval_max_P_mpc[j]`` the
+    The evaluation series (:data:`EVAL_SERIES` and :data:`EVAL_CI_SERIES`) grow by one entry
+    per evaluated month: ``eval_month[j]`` is the month whose parameters were evaluated on
+    the ``K = LearningConfig.eval_draws`` fixed noise draws (no exploration; each draw a month
+    of ``days_per_month`` days), ``J_eval[j]`` the mean over the draws of each draw's J,
+    ``J_eval_ci_low[j]``, ``J_eval_ci_high[j]`` its 95 % Student-t confidence interval over
+    the K draws (:func:`mean_ci`; NaN for K = 1 and in files written before it existed),
+    ``J_eval_per_agent[j]`` the per-agent J^i, ``eval_hours_soc_below_0_1[j]`` the
+    agent-hours with soc < 0.1 per draw (mean over the draws), ``eval_max_P_mpc[j]`` the
     largest planned grid power and ``eval_bound_share[j]`` the share of actions within 0.05 of
     a constraint (:meth:`MonthRecord.bound_share`). Unlike ``J``, these are not disturbed by
     the month's own noise and exploration, so they show the learning trend.
+
+    The grid limit: ``max_P_mpc[m]`` is the largest grid power the MPC *planned* in month
+    ``m`` -- the paper's claim ``P <= P_bar`` is about these planned powers, which respect it
+    by construction. The low-level controller may push the *applied* power above ``P_bar``
+    (its corrections follow the noise, not the MPC): ``max_P_applied[m]`` is the largest
+    applied grid power and ``hours_above_P_bar[m]`` the number of (hour, day) pairs whose
+    applied power exceeds ``P_bar`` (:meth:`Record.hours_above_P_bar`).
     """
 
     system: SystemConfig
@@ -78,6 +114,9 @@ class History:
     eval_hours_soc_below_0_1: list[int] = field(default_factory=list)
     eval_max_P_mpc: list[float] = field(default_factory=list)
     eval_bound_share: list[float] = field(default_factory=list)
+    J_eval_ci_low: list[float] = field(default_factory=list)
+    J_eval_ci_high: list[float] = field(default_factory=list)
+    hours_above_P_bar: list[float] = field(default_factory=list)
     first_month: Record | None = None
     last_month: Record | None = None
     backend: str = ""
@@ -93,10 +132,18 @@ class History:
         "eval_max_P_mpc", "eval_bound_share",
     )
 
+    #: The confidence interval of ``J_eval`` over the evaluation draws (one per evaluation).
+    EVAL_CI_SERIES = ("J_eval_ci_low", "J_eval_ci_high")
+    #: Per-month series added after files existed (optional when reading).
+    MONTH_LATER_SERIES = ("hours_above_P_bar",)
+    #: Series a file may lack (older versions): read back as NaN entries.
+    LATER_SERIES = EVAL_CI_SERIES + MONTH_LATER_SERIES
+
     #: Series holding numbers (possibly nested in lists): ``null`` in the file is NaN here.
     NUMBER_SERIES = (
         "J", "J_per_agent", "grad_norm", "theta", "max_P_mpc", "max_P_applied", "wall_time_s",
         "J_eval", "J_eval_per_agent", "eval_max_P_mpc", "eval_bound_share",
+        "J_eval_ci_low", "J_eval_ci_high", "hours_above_P_bar",
     )
     FORMAT = "mpcrl_lite.History/1"
 
@@ -125,6 +172,7 @@ class History:
         self.hours_soc_above_0_9.append(s["hours_soc_above_0_9"])
         self.max_P_mpc.append(s["max_P_mpc"])
         self.max_P_applied.append(s["max_P_applied"])
+        self.hours_above_P_bar.append(s["hours_above_P_bar"])
         self.solver_failures.append(s["solver_failures"])
         self.skipped_steps.append(int(skipped))
         self.low_level_interventions.append(s["low_level_interventions"])
@@ -134,16 +182,26 @@ class History:
             self.first_month = record
         self.last_month = record
 
-    def append_evaluation(self, month: int, record: Record) -> None:
-        """Record the evaluation of month ``month``'s parameters (a month on the fixed
-        evaluation draw, without exploration)."""
+    def append_evaluation(self, month: int, record: Record, draws: int = 1) -> None:
+        """Record the evaluation of month ``month``'s parameters: ``record`` holds ``draws``
+        months on the fixed evaluation draws, stacked as ``draws * days`` days
+        (:func:`mpcrl_lite.closed_loop.evaluate_mpc`), without exploration."""
         if isinstance(month, bool) or not isinstance(month, (int, np.integer)) or month < 0:
             raise ValueError(f"month={month!r}: expected an integer >= 0")
+        if isinstance(draws, bool) or not isinstance(draws, (int, np.integer)) or draws < 1 \
+                or record.days % draws:
+            raise ValueError(f"draws={draws!r}: expected an integer >= 1 dividing the "
+                             f"record's {record.days} days")
         s = record.summary()
+        per_draw = record.J_per_day().reshape(draws, -1).mean(axis=1)
+        mean, low, high = mean_ci(per_draw)
         self.eval_month.append(int(month))
-        self.J_eval.append(s["J"])
+        self.J_eval.append(mean)
+        self.J_eval_ci_low.append(low)
+        self.J_eval_ci_high.append(high)
         self.J_eval_per_agent.append(s["J_per_agent"])
-        self.eval_hours_soc_below_0_1.append(s["hours_soc_below_0_1"])
+        below = s["hours_soc_below_0_1"]
+        self.eval_hours_soc_below_0_1.append(below if draws == 1 else below / draws)
         self.eval_max_P_mpc.append(s["max_P_mpc"])
         self.eval_bound_share.append(record.bound_share())
 
@@ -177,11 +235,12 @@ class History:
             "max_P_mpc": self.max_P_mpc,
             "max_P_applied": self.max_P_applied,
             "P_bar": self.system.P_bar,
+            "hours_above_P_bar": self.hours_above_P_bar,
             "solver_failures": self.solver_failures,
             "skipped_steps": self.skipped_steps,
             "wall_time_s": self.wall_time_s,
             "backend": self.backend,
-            **{k: getattr(self, k) for k in self.EVAL_SERIES},
+            **{k: getattr(self, k) for k in self.EVAL_SERIES + self.EVAL_CI_SERIES},
         }
 
     # -- storage --------------------------------------------------------------------------
@@ -197,7 +256,8 @@ class History:
             **self.configs(),
             "theta_final": self.theta_final,
             "backend": self.backend,
-            **{k: getattr(self, k) for k in self.SERIES + self.EVAL_SERIES},
+            **{k: getattr(self, k)
+               for k in self.SERIES + self.EVAL_SERIES + self.LATER_SERIES},
         }
         arrays: dict[str, np.ndarray] = {}
         if self.first_month is not None:
@@ -277,6 +337,10 @@ class History:
             raise RunDirError(f"{path}: bad configuration ({err}); {RECOVER}") from None
         series = {k: meta[k] for k in cls.SERIES}
         series.update({k: meta.get(k, []) for k in cls.EVAL_SERIES})
+        for key in cls.LATER_SERIES:
+            like = "J" if key in cls.MONTH_LATER_SERIES else "J_eval"
+            default = [None] * len(series[like]) if isinstance(series[like], list) else []
+            series[key] = meta.get(key, default)
         _check_series(path, series, system.n)
         theta_final = meta["theta_final"]
         n_theta = len(PARTS) * system.n
@@ -359,10 +423,11 @@ def _check_series(path: Path, series: dict[str, Any], n: int) -> None:
 
     months = usual_length(History.SERIES)
     evals = usual_length(History.EVAL_SERIES)
+    eval_keys = History.EVAL_SERIES + History.EVAL_CI_SERIES
     n_theta = len(PARTS) * n
     shapes = {"J_per_agent": (n,), "theta": (n_theta,), "J_eval_per_agent": (n,)}
     for key, value in series.items():
-        count = evals if key in History.EVAL_SERIES else months
+        count = evals if key in eval_keys else months
         if not isinstance(value, list) or count < 0 or len(value) != count:
             raise RunDirError(
                 f"{path}: series {key!r} has {_length(value)} entries, expected {count} "

@@ -215,8 +215,11 @@ def fig2_performance(
     ``J = mean over days of sum_k gamma^k L~(s_k, a_k)`` (paper eq. 4, each day an
     episode). The first month's point is red, the last month's blue. When the history holds
     an evaluation series (``history.J_eval`` at ``history.eval_month``: the parameters of a
-    month on one fixed noise draw, without exploration), it is drawn as a second line with
-    square markers; it is not disturbed by each month's own noise and shows the trend.
+    month on ``K = learning.eval_draws`` fixed noise draws, without exploration, the mean of
+    the draws' J), it is drawn as a second line with square markers; it is not disturbed by
+    each month's own noise and shows the trend. Where the history holds its 95 % confidence
+    interval over the K draws (``J_eval_ci_low``, ``J_eval_ci_high``; K >= 2), the interval is
+    drawn as a band around it.
 
     Parameters
     ----------
@@ -233,7 +236,7 @@ def fig2_performance(
     Notes
     -----
     Line gids: ``"J"``, ``"J_rolling"`` and ``"J_eval"`` (months counted from 1, as for
-    ``"J"``).
+    ``"J"``); the band's gid is ``"J_eval_ci"``.
     """
     months = _history_months(history)
     if rolling is not None:
@@ -253,9 +256,17 @@ def fig2_performance(
                 f"{len(history.eval_month)} eval_month entries"
             )
         x_eval = np.asarray(history.eval_month, dtype=float) + 1.0  # months counted from 1
+        draws = history.learning.eval_draws
+        low = np.asarray(getattr(history, "J_eval_ci_low", []), dtype=float)
+        high = np.asarray(getattr(history, "J_eval_ci_high", []), dtype=float)
+        if low.shape == high.shape == x_eval.shape and np.isfinite(low).any():
+            ax.fill_between(x_eval, low, high, color="0.6", alpha=0.35, lw=0, zorder=1,
+                            gid="J_eval_ci", label=f"95 % CI over the {draws} draws")
+        label = ("evaluation (fixed draw)" if draws == 1
+                 else f"evaluation (mean of {draws} fixed draws)")
         ax.plot(x_eval, np.asarray(history.J_eval, dtype=float), color="black", ls="--",
                 lw=1.4, marker="s", ms=4.5, mfc="white", mec="black", mew=1.0, zorder=2.5,
-                gid="J_eval", label="evaluation (fixed draw)")
+                gid="J_eval", label=label)
     _first_and_last(ax, x, J)
     _month_axis(ax, months, f"closed-loop cost J ({COST_UNIT})", "Closed-loop performance")
     return fig
@@ -306,7 +317,11 @@ def fig4_grid_power(
     * planned (dotted): the largest ``sum_i b`` or ``sum_i s`` the MPC planned over its
       horizon at hour ``k``, the quantity its constraint ``P <= P_bar`` acts on.
 
-    Hours where the applied power exceeds ``P_bar`` are shaded.
+    Hours where the applied power exceeds ``P_bar`` are shaded, and a note (text gid
+    ``"P_applied_months"``) gives, over all months, the largest applied power
+    (``history.max_P_applied``) and the share of hour-days above ``P_bar`` in the first and
+    the last month (``history.hours_above_P_bar``). The paper's claim ``P <= P_bar`` is about
+    the MPC's planned powers; the applied ones can exceed it through the low-level controller.
 
     Parameters
     ----------
@@ -352,7 +367,28 @@ def fig4_grid_power(
                  loc="left", fontsize=11, pad=14)
     day_axis(ax, len(chosen), H, labels=chosen)
     ax.legend(fontsize=8, loc="upper right", ncol=2, framealpha=0.9)
+    note = _applied_power_note(history)
+    if note:
+        ax.text(0.01, 0.97, note, transform=ax.transAxes, fontsize=7.5, va="top", ha="left",
+                gid="P_applied_months",
+                bbox={"boxstyle": "round", "fc": "white", "ec": "0.8", "alpha": 0.9})
     return fig
+
+
+def _applied_power_note(history: History) -> str:
+    """Per-month applied grid power in one or two lines ('' without the series)."""
+    top = np.asarray(history.max_P_applied, dtype=float)
+    lines = []
+    if top.size and np.isfinite(top).any():
+        m = int(np.nanargmax(top))
+        lines.append(f"max applied P over all months: {top[m]:.2f} MW (month {m + 1})")
+    above = np.asarray(getattr(history, "hours_above_P_bar", []), dtype=float)
+    if above.size == history.months and np.isfinite(above[[0, -1]]).all():
+        hour_days = history.system.hours_per_day * history.learning.days_per_month
+        first, last = 100.0 * above[0] / hour_days, 100.0 * above[-1] / hour_days
+        lines.append(f"hour-days with applied P > P_bar: {first:.1f} % (month 1), "
+                     f"{last:.1f} % (month {history.months})")
+    return "\n".join(lines)
 
 
 def fig5_policy_and_agent_costs(

@@ -146,6 +146,12 @@ class Record:
         hit = (at_bound | grid)[self.solver_ok]
         return float(hit.mean()) if hit.size else float("nan")
 
+    def hours_above_P_bar(self, tol: float = 1e-9) -> int:
+        """Number of (hour, day) pairs whose applied grid power exceeds ``P_bar + tol``
+        (the low-level controller's corrections can push it there; the MPC's planned powers
+        respect ``P_bar``)."""
+        return int(np.count_nonzero(self.grid_power > self.system.P_bar + tol))
+
     def summary(self) -> dict[str, Any]:
         """The period's key figures as JSON-friendly values."""
         return {
@@ -155,6 +161,7 @@ class Record:
             "hours_soc_above_0_9": self.hours_soc_above(),
             "max_P_mpc": float(np.max(self.planned_power, initial=0.0, where=self.solver_ok)),
             "max_P_applied": float(np.max(self.grid_power)),
+            "hours_above_P_bar": self.hours_above_P_bar(),
             "solver_failures": int(np.count_nonzero(~self.solver_ok)),
             "low_level_interventions": int(np.count_nonzero(np.abs(self.correction) > 1e-12)),
         }

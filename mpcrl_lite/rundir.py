@@ -161,9 +161,18 @@ def plain(data: Any) -> Any:
     return json.loads(dumps(data, indent=None))
 
 
+#: Configuration fields added after run directories existed, with the value the older runs
+#: had: left out of :func:`config_sha256` at that value, so older manifests still match.
+LEGACY_VALUES: dict[str, dict[str, Any]] = {"learning": {"eval_draws": 1}}
+_NO = object()
+
+
 def config_sha256(configs: Mapping[str, Mapping[str, Any]]) -> str:
     """sha256 of configurations given as plain dicts (``{"system": {...}, ...}``), over
-    their canonical JSON (sorted keys, no spaces)."""
+    their canonical JSON (sorted keys, no spaces); a field at its :data:`LEGACY_VALUES`
+    value is left out."""
+    configs = {key: {k: v for k, v in cfg.items() if LEGACY_VALUES.get(key, {}).get(k, _NO) != v}
+               if isinstance(cfg, Mapping) else cfg for key, cfg in configs.items()}
     text = json.dumps(_finite_or_none(configs), sort_keys=True, separators=(",", ":"),
                       allow_nan=False, default=jsonable)
     return hashlib.sha256(text.encode("utf-8")).hexdigest()

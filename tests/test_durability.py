@@ -515,7 +515,9 @@ def test_runs_of_the_previous_version_load_and_resume(tmp_path, capsys, learner)
     out = legacy_copy(tmp_path, learner)
     assert cli(learn_args(out, 2, learner, "--resume"), capsys)[0] == 0
     reference = tmp_path / "reference"
-    assert cli(learn_args(reference, 2, learner), capsys)[0] == 0
+    # the previous version evaluated on one noise draw; the resumed run keeps it
+    assert History.load(out).learning.eval_draws == 1
+    assert cli(learn_args(reference, 2, learner, "--eval-draws", "1"), capsys)[0] == 0
     assert_same_run(out, reference)
     assert (out / "manifest.json").exists()
 

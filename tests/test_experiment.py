@@ -6,8 +6,10 @@ import json
 
 import numpy as np
 import pytest
+from scipy import stats
 
 from mpcrl_lite import LearningConfig, MPCConfig, SystemConfig, Theta
+from mpcrl_lite.closed_loop import draw_J, evaluate_mpc
 from mpcrl_lite.experiment import Experiment, run_month
 from mpcrl_lite.history import History
 from mpcrl_lite.mpc import MPC
@@ -208,15 +210,24 @@ def test_evaluation_series_and_schedule():
     assert h.eval_month == [0, 2, 3]  # every 2 months and the last month
     for key in History.EVAL_SERIES:
         assert len(getattr(h, key)) == 3, key
-    # J_eval[j] is J of that month's theta on the fixed draw: repeatable at will
+    # J_eval[j] is the mean over the K fixed draws of J of that month's theta: repeatable
+    K = exp.learning.eval_draws
+    assert K == 10  # the default
     theta0 = Theta.from_vector(np.asarray(h.theta[0]), SMALL.n)
     again = exp.evaluate(theta0)
-    assert again.J() == h.J_eval[0]
+    assert again.days == K * 3
+    per_draw = draw_J(again, K)
+    assert per_draw.mean() == h.J_eval[0]
+    assert again.J() == pytest.approx(h.J_eval[0], rel=1e-12)
     assert exp.evaluate(theta0).J() == again.J()
+    # the 95 % interval over the draws: mean -+ t(0.975, K-1) sd / sqrt(K)
+    half = stats.t.ppf(0.975, K - 1) * per_draw.std(ddof=1) / np.sqrt(K)
+    assert h.J_eval_ci_low[0] == pytest.approx(h.J_eval[0] - half, rel=1e-12)
+    assert h.J_eval_ci_high[0] == pytest.approx(h.J_eval[0] + half, rel=1e-12)
     assert np.all(again.a == again.policy)  # no exploration
     assert again.grad_pi is None
     np.testing.assert_allclose(h.J_eval_per_agent[0], again.J_per_agent())
-    assert h.eval_hours_soc_below_0_1[0] == again.summary()["hours_soc_below_0_1"]
+    assert h.eval_hours_soc_below_0_1[0] == again.summary()["hours_soc_below_0_1"] / K
     assert max(h.eval_max_P_mpc) <= SMALL.P_bar + 1e-9
     assert all(0.0 <= b <= 1.0 for b in h.eval_bound_share)
     # the evaluation never touches the learning run
@@ -230,6 +241,41 @@ def test_evaluation_series_and_schedule():
         LearningConfig(eval_every=-1)
 
 
+def test_evaluation_draws_are_independent_nested_and_leave_learning_alone():
+    one = small_experiment(months=2, eval_every=1, eval_draws=1).run(progress=False)
+    three = small_experiment(months=2, eval_every=1, eval_draws=3)
+    h3 = three.run(progress=False)
+    # learning (J, theta) does not depend on the evaluation
+    assert one.J == h3.J and one.theta == h3.theta and one.theta_final == h3.theta_final
+    # one draw: no interval; draw 0 of three is that draw (same noise, same J)
+    assert all(np.isnan(one.J_eval_ci_low)) and all(np.isnan(one.J_eval_ci_high))
+    theta0 = Theta.from_vector(np.asarray(h3.theta[0]), SMALL.n)
+    rec = three.evaluate(theta0)
+    J3 = draw_J(rec, 3)
+    assert J3[0] == pytest.approx(one.J_eval[0], rel=1e-9)
+    single = evaluate_mpc(theta0, three.solver, three.prices, SMALL, three.learning.eval_seed)
+    np.testing.assert_array_equal(rec.noise[:, :3], single.noise)
+    # the draws differ from each other (independent noise), the prices repeat
+    assert not np.allclose(rec.noise[:, :3], rec.noise[:, 3:6])
+    np.testing.assert_array_equal(rec.buy[:, :3], rec.buy[:, 6:9])
+    assert len(set(np.round(J3, 6))) == 3
+    assert h3.J_eval_ci_low[0] < h3.J_eval[0] < h3.J_eval_ci_high[0]
+    with pytest.raises(ValueError, match="eval_draws=0"):
+        LearningConfig(eval_draws=0)
+    with pytest.raises(ValueError, match="draws=2"):
+        draw_J(single, 2)
+
+
+def test_hours_above_P_bar_per_month():
+    h = small_experiment(months=2, eval_every=0).run(progress=False)
+    for m, rec in ((0, h.first_month), (1, h.last_month)):
+        above = np.count_nonzero(rec.grid_power > SMALL.P_bar + 1e-9)
+        assert h.hours_above_P_bar[m] == above
+        assert h.max_P_applied[m] == rec.grid_power.max()
+        assert (above > 0) == (h.max_P_applied[m] > SMALL.P_bar + 1e-9)
+    assert h.summary()["hours_above_P_bar"] == h.hours_above_P_bar
+
+
 def test_resume_reproduces_the_evaluation_series(tmp_path):
     # evaluate every month, so that the month the run stopped in is evaluated too
     full = small_experiment(months=3, eval_every=1).run(progress=False)
@@ -239,6 +285,8 @@ def test_resume_reproduces_the_evaluation_series(tmp_path):
     assert resumed.eval_month == full.eval_month == [0, 1, 2]
     assert resumed.J_eval == full.J_eval
     assert resumed.J_eval_per_agent == full.J_eval_per_agent
+    assert resumed.J_eval_ci_low == full.J_eval_ci_low
+    assert resumed.J_eval_ci_high == full.J_eval_ci_high
 
 
 def test_history_roundtrip_keeps_the_evaluation_and_reads_older_files(tmp_path):
@@ -251,11 +299,28 @@ def test_history_roundtrip_keeps_the_evaluation_and_reads_older_files(tmp_path):
     # a history written before the evaluation series (and the manifest) existed still loads
     (tmp_path / "manifest.json").unlink()
     meta = json.loads((tmp_path / "history.json").read_text())
-    for key in History.EVAL_SERIES:
+    for key in History.EVAL_SERIES + History.EVAL_CI_SERIES:
         del meta[key]
     (tmp_path / "history.json").write_text(json.dumps(meta))
     old = History.load(tmp_path)
     assert old.J == h.J and old.J_eval == [] and old.eval_month == []
+
+
+
+def test_history_from_before_the_interval_loads_as_one_draw(tmp_path):
+    h = small_experiment(months=2, eval_every=1, eval_draws=2).run(progress=False)
+    h.save(tmp_path)
+    (tmp_path / "manifest.json").unlink()
+    meta = json.loads((tmp_path / "history.json").read_text())
+    for key in History.LATER_SERIES:
+        del meta[key]
+    del meta["learning"]["eval_draws"]
+    (tmp_path / "history.json").write_text(json.dumps(meta))
+    old = History.load(tmp_path)
+    assert old.learning.eval_draws == 1  # what runs were evaluated on before
+    assert old.J_eval == h.J_eval and len(old.J_eval_ci_low) == 2
+    assert all(np.isnan(old.J_eval_ci_low + old.J_eval_ci_high + old.hours_above_P_bar))
+    assert len(old.hours_above_P_bar) == old.months
 
 
 def test_bound_share_by_hand():

@@ -278,9 +278,26 @@ def test_fig2_performance(history):
     evaluation = one_line(fig, "J_eval")
     np.testing.assert_allclose(evaluation.get_ydata(), history.J_eval)
     np.testing.assert_allclose(evaluation.get_xdata(), np.asarray(history.eval_month) + 1)
-    assert evaluation.get_label() == "evaluation (fixed draw)"
-    no_eval = dataclasses.replace(history, eval_month=[], J_eval=[])
+    K = history.learning.eval_draws
+    assert K > 1 and evaluation.get_label() == f"evaluation (mean of {K} fixed draws)"
+    # the band is the confidence interval over the draws, around the mean
+    band = [c for c in fig.axes[0].collections if c.get_gid() == "J_eval_ci"]
+    assert len(band) == 1
+    y = band[0].get_paths()[0].vertices[:, 1]
+    np.testing.assert_allclose([y.min(), y.max()],
+                               [min(history.J_eval_ci_low), max(history.J_eval_ci_high)])
+    assert all(lo < J < hi for lo, J, hi in zip(history.J_eval_ci_low, history.J_eval,
+                                                history.J_eval_ci_high))
+    no_eval = dataclasses.replace(history, eval_month=[], J_eval=[], J_eval_ci_low=[],
+                                  J_eval_ci_high=[])
     assert find_lines(fig2_performance(no_eval), "J_eval") == []
+    # one draw (or a file from before the interval): the line without a band
+    one = dataclasses.replace(history, learning=history.learning.replace(eval_draws=1),
+                              J_eval_ci_low=[float("nan")] * len(history.J_eval),
+                              J_eval_ci_high=[float("nan")] * len(history.J_eval))
+    fig = fig2_performance(one)
+    assert one_line(fig, "J_eval").get_label() == "evaluation (fixed draw)"
+    assert [c for c in fig.axes[0].collections if c.get_gid() == "J_eval_ci"] == []
 
 
 def test_fig2_rolling_mean_on_a_longer_history(history):
@@ -319,6 +336,13 @@ def test_fig4_grid_power_against_P_bar(history):
     over = np.count_nonzero(rec.grid_power > history.system.P_bar + 1e-9)
     shaded = [p for p in fig.axes[0].patches if p.get_gid() == "P_over"]
     assert (len(shaded) > 0) == (over > 0)
+    # the per-month applied power: the largest over all months, the share above P_bar
+    note = [t for t in fig.axes[0].texts if t.get_gid() == "P_applied_months"]
+    assert len(note) == 1
+    top = int(np.argmax(history.max_P_applied))
+    assert f"{history.max_P_applied[top]:.2f} MW (month {top + 1})" in note[0].get_text()
+    last = 100.0 * over / (rec.grid_power.size)
+    assert f"{last:.1f} % (month {MONTHS})" in note[0].get_text()
 
 
 def test_fig4_days(history):
