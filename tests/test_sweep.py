@@ -474,8 +474,15 @@ _NEAR_AXES = st.dictionaries(
              max_size=3),
     min_size=1, max_size=3,
 )
+#: Grids that are valid by construction (seeds, grid limits), so the fuzz reaches the runs.
+_VALID_AXES = st.fixed_dictionaries(
+    {"learning.seed": st.lists(st.integers(0, 10**6), min_size=1, max_size=3, unique=True)},
+    optional={"system.P_bar": st.lists(st.sampled_from([1.0, 1.5, 2.0]), min_size=1,
+                                       max_size=3, unique=True)},
+)
 _DOCUMENTS = (
-    st.fixed_dictionaries({"grid": _NEAR_AXES}, optional={"base": _BASE})
+    st.fixed_dictionaries({"grid": _VALID_AXES})
+    | st.fixed_dictionaries({"grid": _NEAR_AXES}, optional={"base": _BASE})
     | st.fixed_dictionaries({"grid": _AXES}, optional={"base": _BASE, "extra": _VALUES})
     | st.dictionaries(_KEYS, _VALUES, max_size=3)
     | _VALUES
