@@ -31,25 +31,38 @@ Eliminating ``b, s, soc`` leaves the symmetric positive definite block-tridiagon
           (W_{b,j}^{-1} + W_{s,j}^{-1})\,\mathrm{diag}(\alpha),\qquad
           T_{j,j+1} = -\mathrm{diag}(V_j),
 
-factored by block Cholesky (``Sigma_j = T_jj - diag(V_{j-1}) G_{j-1}``,
-``G_j = Sigma_j^{-1} diag(V_j)``): ``O(N n^3)`` per step.
+eliminated stage by stage, ``Sigma_j = T_jj - diag(V_{j-1}) Sigma_{j-1}^{-1}
+diag(V_{j-1})``, keeping ``Sigma_j^{-1}`` (an ``L D L'`` factorisation of the small block and
+its inverse): the solves are then matrix-vector products, ``O(N n^3)`` per step.
 
 ``AGENT`` (many agents): as in the batch solver, per-agent tridiagonal systems in
-``d lambda_i`` plus the ``2N x 2N`` Schur complement ``M`` of the grid forces:
-``O(n N^2 + N^3)`` per step.
+``d lambda_i`` (backward pivots, ``O(N)`` per solve) plus the ``2N x 2N`` Schur complement
+``M`` of the grid forces (Jacobi-scaled Cholesky): ``O(n N^2 + N^3)`` per step.
 
 Both restore the exact relation ``sum_i db_i = g_b / D_grid`` where a grid limit is hard
 (``D_grid sum vb > 1``; see the batch solver's docstring for why).
 
-Sensitivity: the adjoint ``(dR/dy)' Z = S_y'`` is the same reduced system with the ``n``
-right-hand sides ``(+1 at b_0, -1 at s_0)`` of each agent, solved column by column with the
-factorisation at the solution; with ``STAGE`` every column gets at least one step of
-iterative refinement (as the batch solver's full adjoint), with ``AGENT`` refinement is done
-where the backward error is above ``_BACKWARD_ERROR_GOOD``. ``grad = -(dR/dtheta)' Z`` with
-``dR/dtheta`` in closed form (the table in :mod:`mpcrl_lite.batch_solver`).
+Sensitivity
+-----------
+The adjoint ``(dR/dy)' Z = S_y'`` is the same reduced system with the ``n`` right-hand sides
+``(+1 at b_0, -1 at s_0)`` of each agent, solved with a factorisation at the solution; then
+``grad = -(dR/dtheta)' Z`` with ``dR/dtheta`` in closed form (the table in
+:mod:`mpcrl_lite.batch_solver`) and the conditioning proxy ``||K||_max ||Z||_max``. Column by
+column, every column gets at least one step of iterative refinement (as the batch solver's
+full adjoint: where a grid limit binds, an agent's own response and the grid's nearly cancel
+and small entries lose digits that the normwise backward error does not show). For many
+agents (:func:`_adjoint_structured`, ``AGENT`` only) all columns are formed at once,
+``O(n^2 N)``, without refinement, as the batch solver's structured adjoint.
 
-Every function is compiled with ``cache=True``; see :mod:`mpcrl_lite.kernel_solver` for where
-the cache lives and how to fill it.
+Numerics
+--------
+IEEE arithmetic (``error_model="numpy"``): a division by zero gives inf or NaN, which the
+checks turn into a failure status, never an exception mid-run. Non-finite directions are
+detected in :func:`_solve` (``0 * v`` is NaN exactly when ``v`` is not finite), the residual
+in :func:`_residual`.
+
+Every function is compiled with numba's on-disk cache; see :mod:`mpcrl_lite.kernel_solver`
+for where the cache lives and how to fill it.
 """
 
 from __future__ import annotations
@@ -315,12 +328,16 @@ def _factor(S, Mu, IS, D, alpha, hsoc, method, F, FG, SI, AW, TI, MC, MS, tmp):
     for i in range(n):
         a = alpha[i]
         for j in range(N):
-            ishi = 1.0 / (DA[4, i, j] + DA[6, i, j])
-            islo = 1.0 / (DA[5, i, j] + DA[7, i, j])
+            # two reciprocals from one division (products of two D stay far inside the
+            # floating-point range)
+            whi, wlo = DA[4, i, j] + DA[6, i, j], DA[5, i, j] + DA[7, i, j]
+            wb, ws = DA[0, i, j] + DA[1, i, j], DA[2, i, j] + DA[3, i, j]
+            inv = 1.0 / (whi * wlo)
+            ishi, islo = wlo * inv, whi * inv
+            inv = 1.0 / (wb * ws)
+            vb, vs = ws * inv, wb * inv
             c4 = DA[4, i, j] * ishi
             c5 = DA[5, i, j] * islo
-            vb = 1.0 / (DA[0, i, j] + DA[1, i, j])
-            vs = 1.0 / (DA[2, i, j] + DA[3, i, j])
             F[F_ISHI, i, j] = ishi
             F[F_ISLO, i, j] = islo
             F[F_C4, i, j] = c4
@@ -380,20 +397,20 @@ def _factor_stage(alpha, F, FG, SI, A, dv):
                     v -= A[i, l] * A[k, l] * dv[l]
                 A[i, k] = v * inv
             dv[n + k] = inv
-        # L^{-1} (unit lower) in place of L, then Sigma^{-1} = L^{-T} D^{-1} L^{-1}
-        for c in range(n - 1):
+        # L^{-1} (unit lower, its diagonal stored) in place of L, then
+        # Sigma^{-1} = L^{-T} D^{-1} L^{-1}
+        for c in range(n):
+            A[c, c] = 1.0
             for i in range(c + 1, n):
                 v = -A[i, c]
                 for l in range(c + 1, i):
                     v -= A[i, l] * A[l, c]
                 A[i, c] = v
-        for k in range(n):
-            dv[k] = dv[n + k]
         for i in range(n):
             for k in range(i + 1):
-                v = dv[i] * (A[i, k] if i > k else 1.0)
-                for l in range(i + 1, n):
-                    v += A[l, i] * dv[l] * A[l, k]
+                v = 0.0
+                for l in range(i, n):
+                    v += A[l, i] * dv[n + l] * A[l, k]
                 SI[j, i, k] = v
                 SI[j, k, i] = v
     return True
@@ -550,27 +567,29 @@ def _solve_stage(r1, r2, dx, dl, alpha, F, FG, DG, SI, rsp, w):
             dl[i, j] = v
     # db = W_b^{-1} (r_b + alpha dl), ds = W_s^{-1} (r_s - alpha dl)
     for j in range(N):
-        for v in range(2):
-            sgn = 1.0 if v == 0 else -1.0
-            fv = F_VB if v == 0 else F_VS
-            kap = FG[G_KB, j] if v == 0 else FG[G_KS, j]
-            sv = FG[G_SVB, j] if v == 0 else FG[G_SVS, j]
-            t = 0.0
-            for i in range(n):
-                w[i] = r1[v, i, j] + sgn * alpha[i] * dl[i, j]
-                t += F[fv, i, j] * w[i]
-            tot = 0.0
-            for i in range(n):
-                d = F[fv, i, j] * (w[i] - kap * t)
-                dx[v, i, j] = d
-                tot += d
-            # the exact flow is sum_i d_i = t / (1 + D_grid sum v): restore it where the
-            # limit is hard (its rounding error times D_grid would spoil the step)
-            dg = DG[v, j]
-            if dg * sv > 1.0:
-                delta = t / (1.0 + dg * sv) - tot
-                for i in range(n):
-                    dx[v, i, j] += F[fv, i, j] / sv * delta
+        _grid_block(r1, dl, alpha, F, dx, 0, F_VB, 1.0, FG[G_KB, j], FG[G_SVB, j], DG[0, j], j)
+        _grid_block(r1, dl, alpha, F, dx, 1, F_VS, -1.0, FG[G_KS, j], FG[G_SVS, j], DG[1, j], j)
+
+
+@_inline
+def _grid_block(r1, dl, alpha, F, dx, v, fv, sgn, kap, sv, dg, j):
+    """``d = W^{-1} (r + sgn alpha dl)`` of the ``b`` (``v = 0``) or ``s`` block of stage
+    ``j`` by Sherman-Morrison, ``W^{-1} = diag(vb) - kappa vb vb'``."""
+    n = alpha.shape[0]
+    t = 0.0
+    for i in range(n):
+        t += F[fv, i, j] * (r1[v, i, j] + sgn * alpha[i] * dl[i, j])
+    tot = 0.0
+    for i in range(n):
+        d = F[fv, i, j] * (r1[v, i, j] + sgn * alpha[i] * dl[i, j] - kap * t)
+        dx[v, i, j] = d
+        tot += d
+    # the exact flow is sum_i d_i = t / (1 + D_grid sum v): restore it where the limit is
+    # hard (its rounding error times D_grid would spoil the step)
+    if dg * sv > 1.0:
+        delta = (t / (1.0 + dg * sv) - tot) / sv
+        for i in range(n):
+            dx[v, i, j] += F[fv, i, j] * delta
 
 
 @_jit
@@ -1239,9 +1258,9 @@ def sensitivity_batch(P, x, lam, mu, solved, opts, stagew, n, N, method, structu
             r1[1, o, 0] = -1.0
             usable &= _solve(r1, r2, zx, zl, alpha, F, FG, _gr(D, n, N), method, SI, AW, MC,
                              MS, rsp, w, wg, o)
-            # iterative refinement: at least one step (where the grid limit binds, an agent's
-            # own response and the grid's nearly cancel and small entries lose digits that
-            # the normwise backward error does not see), more while that error is above the
+            # iterative refinement: at least one step (where a grid limit binds, an agent's own
+            # response and the grid's nearly cancel and small entries lose digits that the
+            # normwise backward error does not see), more while that error is above the
             # rounding level
             bcol = np.inf
             for step in range(_REFINE_MAX + 1):
