@@ -129,6 +129,7 @@ N_F = 11
 G_KB, G_KS, G_SVB, G_SVS = range(4)
 
 _ETA = 0.995
+_TINY = 1e-300
 _REFINE_MAX = 4
 _BACKWARD_ERROR_GOOD = 1e-14
 
@@ -230,23 +231,51 @@ def _slacks(X, U, P, hi, lo, S):
 
 
 @_jit
-def _residual(X, L, Mu, S, alpha, qb, qs, hsoc, qsoc, stagew, e, tau, scale, base, rp):
-    """``base = H x + q + A' lam`` (5, n, N) and ``rp = A x - e`` (n, N) in place; returns
-    the scaled KKT residual ``max(max(|r_d|, |mu S - tau|) / scale, |r_p|)`` of the batch
-    solver (inf if anything is not finite) and ``sum(mu S)``."""
+def _residual(X, L, Mu, S, alpha, qb, qs, hsoc, qsoc, stagew, e, opts, scale, base, rp):
+    """The slacks ``S = d - C x`` (flat), ``base = H x + q + A' lam`` (5, n, N) and
+    ``rp = A x - e`` (n, N) in place; returns the scaled KKT residual
+    ``max(max(|r_d|, |mu S - tau|) / scale, |r_p|)`` of the batch solver (inf if anything
+    is not finite) and ``sum(mu S)``."""
     n, N = L.shape
-    MuA, MuG = _ag(Mu, n, N), _gr(Mu, n, N)
+    U, P, hi, lo, tau = opts[O_U], opts[O_P], opts[O_HI], opts[O_LO], opts[O_TAU]
+    MuA, MuG, SA, SG = _ag(Mu, n, N), _gr(Mu, n, N), _ag(S, n, N), _gr(S, n, N)
     ed = 0.0
     ep = 0.0
     ec = 0.0
+    comp = 0.0
     check = 0.0  # 0 * v is NaN exactly when v is not finite
+    for j in range(N):
+        tb = 0.0
+        ts = 0.0
+        for i in range(n):
+            tb += X[0, i, j]
+            ts += X[1, i, j]
+        for v, t in ((0, tb), (1, ts)):
+            sg = P - t
+            SG[v, j] = sg
+            c = MuG[v, j] * sg
+            comp += c
+            ec = max(ec, abs(c - tau))
     for i in range(n):
         a = alpha[i]
         for j in range(N):
+            b, sl, soc, shi, slo = X[0, i, j], X[1, i, j], X[2, i, j], X[3, i, j], X[4, i, j]
+            SA[0, i, j] = b
+            SA[1, i, j] = U - b
+            SA[2, i, j] = sl
+            SA[3, i, j] = U - sl
+            SA[4, i, j] = (shi - soc) + hi
+            SA[5, i, j] = (soc + slo) - lo
+            SA[6, i, j] = shi
+            SA[7, i, j] = slo
+            for g in range(8):
+                c = MuA[g, i, j] * SA[g, i, j]
+                comp += c
+                ec = max(ec, abs(c - tau))
             aL = a * L[i, j]
             b0 = qb[i, j] - aL
             b1 = qs[i, j] + aL
-            b2 = hsoc[i, j] * X[2, i, j] + qsoc[i, j] + L[i, j]
+            b2 = hsoc[i, j] * soc + qsoc[i, j] + L[i, j]
             if j < N - 1:
                 b2 -= L[i, j + 1]
             base[0, i, j] = b0
@@ -260,18 +289,13 @@ def _residual(X, L, Mu, S, alpha, qb, qs, hsoc, qsoc, stagew, e, tau, scale, bas
             d3 = stagew[W_QSHI, j] - (MuA[4, i, j] + MuA[6, i, j])
             d4 = stagew[W_QSLO, j] - (MuA[5, i, j] + MuA[7, i, j])
             ed = max(ed, abs(d0), abs(d1), abs(d2), abs(d3), abs(d4))
-            r = X[2, i, j] - a * (X[0, i, j] - X[1, i, j])
+            r = soc - a * (b - sl)
             if j > 0:
                 r -= X[2, i, j - 1]
             r -= e[i, j]
             rp[i, j] = r
             ep = max(ep, abs(r))
             check += 0.0 * (d0 + d1 + d2 + d3 + d4 + r)
-    comp = 0.0
-    for k in range(S.size):
-        c = Mu[k] * S[k]
-        comp += c
-        ec = max(ec, abs(c - tau))
     err = max(max(ed, ec) / scale, ep)
     if check != 0.0 or not math.isfinite(err) or math.isnan(comp):
         return np.inf, comp
@@ -648,11 +672,9 @@ def _solve_agent(r1, r2, dx, dl, alpha, F, DG, MC, MS, rsp, w, wg, only):
 # ----------------------------------------------------------------------- Newton steps ----
 @_inline
 def _ratio(x, dx, a):
-    """``min(a, x / -dx)`` if ``dx < 0`` (the step to the boundary), dividing only for a new
-    minimum."""
-    if dx < 0.0 and x < -a * dx:
-        return x / -dx
-    return a
+    """``min(a, x / max(-dx, tiny))``: the step to the boundary (the batch solver's formula;
+    without a branch, which the signs of real directions would mispredict half the time)."""
+    return min(a, x / max(-dx, _TINY))
 
 
 @_jit
@@ -661,7 +683,7 @@ def _direction(t, has_corr, Cr, S, IS, Mu, D, base, rp, alpha, F, FG, method, SI
     """Newton direction for the barrier target ``t`` (with Mehrotra's corrector ``Cr`` when
     ``has_corr``); fills ``dX, dL, dS, dMu`` and returns ``(ok, ap, ad)``: False when not
     finite, and the largest primal and dual steps keeping ``S`` and ``mu`` positive
-    (``min S / -dS``, ``min mu / -dmu``; inf if nothing decreases)."""
+    (``min S / -dS``, ``min mu / -dmu``; huge if nothing decreases)."""
     n, N = alpha.shape[0], FG.shape[1]
     # U = (t - corr) / S, kept in dMu until dMu = U - mu - D dS overwrites it
     if has_corr:
@@ -822,7 +844,6 @@ def solve_batch(P, x0, warm, opts, stagew, n, N, method, x_out, lam_out, mu_out,
     tau, tol = opts[O_TAU], opts[O_TOL]
     floor = tol * 1e-5
     max_iter = int(opts[O_MAX_ITER])
-    U, Pb, hi, lo = opts[O_U], opts[O_P], opts[O_HI], opts[O_LO]
     switch = opts[O_SWITCH]
     m = S.size
     Xf, dXf, Lf, dLf = X.reshape(X.size), dX.reshape(dX.size), L.reshape(L.size), \
@@ -838,8 +859,7 @@ def solve_batch(P, x0, warm, opts, stagew, n, N, method, x_out, lam_out, mu_out,
         failed = False
         err_prev = np.inf
         while True:
-            _slacks(X, U, Pb, hi, lo, S)
-            err, comp = _residual(X, L, Mu, S, alpha, qb, qs, hsoc, qsoc, stagew, e, tau,
+            err, comp = _residual(X, L, Mu, S, alpha, qb, qs, hsoc, qsoc, stagew, e, opts,
                                   scale, base, rp)
             # at the rounding floor, or one Newton step after reaching tol (quadratic
             # convergence), or no more progress
@@ -920,66 +940,60 @@ def solve_batch(P, x0, warm, opts, stagew, n, N, method, x_out, lam_out, mu_out,
 
 # ------------------------------------------------------------------------- sensitivity ----
 @_jit
-def _apply(zx, zl, absolute, D, alpha, hsoc, outx, outl):
-    """The reduced KKT matrix applied to ``(zx, zl)``. With ``absolute`` every coefficient is
-    replaced by its absolute value (pass ``|z|`` to get the magnitudes ``|K| |z|`` of a
-    backward error)."""
+def _backward_error(zx, zl, r1, D, alpha, hsoc, rx, rl, magnitudes):
+    """Residual ``(rx, rl) = K z - (r1, 0)`` of an adjoint column (``K`` the reduced KKT
+    matrix) and, with ``magnitudes``, its normwise backward error
+    ``max |K z - r| / (max |K| |z| + 1)`` (inf if not finite, or without ``magnitudes``)."""
     n, N = zl.shape
     DA, DG = _ag(D, n, N), _gr(D, n, N)
-    sg = 1.0 if absolute else -1.0  # sign of the negative coefficients
+    res = 0.0
+    mag = 0.0
+    check = 0.0
     for j in range(N):
         tb = 0.0
         ts = 0.0
+        ab = 0.0
+        at = 0.0
         for i in range(n):
             tb += zx[0, i, j]
             ts += zx[1, i, j]
+            ab += abs(zx[0, i, j])
+            at += abs(zx[1, i, j])
         for i in range(n):
-            a = abs(alpha[i]) if absolute else alpha[i]
-            h = abs(hsoc[i, j]) if absolute else hsoc[i, j]
+            a = alpha[i]
             b, s, soc, shi, slo = zx[0, i, j], zx[1, i, j], zx[2, i, j], zx[3, i, j], \
                 zx[4, i, j]
-            u4 = DA[4, i, j] * (soc + sg * shi)  # D_4 C_4 z, C_4 z = soc - shi
-            u5 = DA[5, i, j] * (soc + slo)  # -D_5 C_5 z, C_5 z = -soc - slo
-            zn = zl[i, j + 1] if j < N - 1 else 0.0
-            outx[0, i, j] = (DA[0, i, j] + DA[1, i, j]) * b + DG[0, j] * tb + sg * a * zl[i, j]
-            outx[1, i, j] = (DA[2, i, j] + DA[3, i, j]) * s + DG[1, j] * ts + a * zl[i, j]
-            outx[2, i, j] = h * soc + u4 + u5 + zl[i, j] + sg * zn
-            outx[3, i, j] = DA[6, i, j] * shi + sg * u4
-            outx[4, i, j] = DA[7, i, j] * slo + u5
-            r = soc + sg * a * b + a * s
-            if j > 0:
-                r += sg * zx[2, i, j - 1]
-            outl[i, j] = r
-
-
-@_jit
-def _backward_error(zx, zl, r1, D, alpha, hsoc, rx, rl, cx, cl, ax, al, magnitudes):
-    """Residual ``(rx, rl) = K z - r`` of an adjoint column and its normwise backward error
-    ``max |K z - r| / (max |K| |z| + 1)`` (inf if not finite, or without ``magnitudes``:
-    the residual only); ``cx, cl, ax, al`` are scratch."""
-    _apply(zx, zl, False, D, alpha, hsoc, rx, rl)
-    rxf, rlf, r1f = rx.reshape(rx.size), rl.reshape(rl.size), r1.reshape(r1.size)
-    res = 0.0
-    for k in range(rxf.size):
-        rxf[k] -= r1f[k]
-        res = _amax(res, rxf[k])
-    for k in range(rlf.size):
-        res = _amax(res, rlf[k])
-    if not magnitudes:
+            lam = zl[i, j]
+            nxt = zl[i, j + 1] if j < N - 1 else 0.0
+            prev = zx[2, i, j - 1] if j > 0 else 0.0
+            u4 = DA[4, i, j] * (soc - shi)  # D_4 C_4 z
+            u5 = DA[5, i, j] * (soc + slo)  # -D_5 C_5 z
+            x0 = (DA[0, i, j] + DA[1, i, j]) * b + DG[0, j] * tb - a * lam - r1[0, i, j]
+            x1 = (DA[2, i, j] + DA[3, i, j]) * s + DG[1, j] * ts + a * lam - r1[1, i, j]
+            x2 = hsoc[i, j] * soc + u4 + u5 + lam - nxt - r1[2, i, j]
+            x3 = DA[6, i, j] * shi - u4 - r1[3, i, j]
+            x4 = DA[7, i, j] * slo + u5 - r1[4, i, j]
+            xl = soc - a * b + a * s - prev
+            rx[0, i, j] = x0
+            rx[1, i, j] = x1
+            rx[2, i, j] = x2
+            rx[3, i, j] = x3
+            rx[4, i, j] = x4
+            rl[i, j] = xl
+            res = max(res, abs(x0), abs(x1), abs(x2), abs(x3), abs(x4), abs(xl))
+            check += 0.0 * (x0 + x1 + x2 + x3 + x4 + xl)
+            if magnitudes:
+                aa, asoc = abs(a), abs(soc)
+                m4 = DA[4, i, j] * (asoc + abs(shi))
+                m5 = DA[5, i, j] * (asoc + abs(slo))
+                mag = max(mag,
+                          (DA[0, i, j] + DA[1, i, j]) * abs(b) + DG[0, j] * ab + aa * abs(lam),
+                          (DA[2, i, j] + DA[3, i, j]) * abs(s) + DG[1, j] * at + aa * abs(lam),
+                          abs(hsoc[i, j]) * asoc + m4 + m5 + abs(lam) + abs(nxt),
+                          DA[6, i, j] * abs(shi) + m4, DA[7, i, j] * abs(slo) + m5,
+                          asoc + aa * (abs(b) + abs(s)) + abs(prev))
+    if not magnitudes or check != 0.0:
         return np.inf
-    zxf, zlf = zx.reshape(zx.size), zl.reshape(zl.size)
-    cxf, clf = cx.reshape(cx.size), cl.reshape(cl.size)
-    for k in range(zxf.size):
-        cxf[k] = abs(zxf[k])
-    for k in range(zlf.size):
-        clf[k] = abs(zlf[k])
-    _apply(cx, cl, True, D, alpha, hsoc, ax, al)
-    axf, alf = ax.reshape(ax.size), al.reshape(al.size)
-    mag = 0.0
-    for k in range(axf.size):
-        mag = _amax(mag, axf[k])
-    for k in range(alf.size):
-        mag = _amax(mag, alf[k])
     back = res / (mag + 1.0)
     return np.inf if math.isnan(back) else back
 
@@ -1209,8 +1223,7 @@ def sensitivity_batch(P, x, lam, mu, solved, opts, stagew, n, N, method, structu
     days = P.shape[0]
     (X, zx, rx, r1, L, zl, rl, r2, rsp, Mu, S, IS, D, _ds, _dmu, _cr, F, FG, SI, AW, TI, MC,
      MS, w, wg) = _work(n, N, method)
-    cx, ax = np.empty((5, n, N)), np.empty((5, n, N))
-    cl, al = np.empty((n, N)), np.empty((n, N))
+    cx, cl = np.empty((5, n, N)), np.empty((n, N))
     structured = structured and method == AGENT
     ns = n if structured else 1
     Y, Q, RL, acc = np.empty((ns, N)), np.empty((2 * N, ns)), np.empty((N + 1, ns)), np.empty(ns)
@@ -1264,8 +1277,7 @@ def sensitivity_batch(P, x, lam, mu, solved, opts, stagew, n, N, method, structu
             # rounding level
             bcol = np.inf
             for step in range(_REFINE_MAX + 1):
-                bcol = _backward_error(zx, zl, r1, D, alpha, hsoc, rx, rl, cx, cl, ax, al,
-                                       step > 0)
+                bcol = _backward_error(zx, zl, r1, D, alpha, hsoc, rx, rl, step > 0)
                 if step == _REFINE_MAX or (step > 0 and bcol <= _BACKWARD_ERROR_GOOD):
                     break
                 for k in range(rxf.size):
