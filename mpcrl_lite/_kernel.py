@@ -685,17 +685,17 @@ def _direction(t, has_corr, Cr, S, IS, Mu, D, base, rp, alpha, F, FG, method, SI
     finite, and the largest primal and dual steps keeping ``S`` and ``mu`` positive
     (``min S / -dS``, ``min mu / -dmu``; huge if nothing decreases)."""
     n, N = alpha.shape[0], FG.shape[1]
-    # U = (t - corr) / S, kept in dMu until dMu = U - mu - D dS overwrites it
-    if has_corr:
-        for k in range(IS.size):
-            dMu[k] = (t - Cr[k]) * IS[k]
-    else:
-        for k in range(IS.size):
-            dMu[k] = t * IS[k]
-    UA, UG = _ag(dMu, n, N), _gr(dMu, n, N)
+    # U = (t - corr) / S, kept in dMu until dMu = U - mu - D dS overwrites it;
     # r1 = -(base + C' U), r2 = -rp
+    UA, UG = _ag(dMu, n, N), _gr(dMu, n, N)
+    IA, IG, CA, CG = _ag(IS, n, N), _gr(IS, n, N), _ag(Cr, n, N), _gr(Cr, n, N)
+    for v in range(2):
+        for j in range(N):
+            UG[v, j] = ((t - CG[v, j]) if has_corr else t) * IG[v, j]
     for i in range(n):
         for j in range(N):
+            for g in range(8):
+                UA[g, i, j] = ((t - CA[g, i, j]) if has_corr else t) * IA[g, i, j]
             u4, u5 = UA[4, i, j], UA[5, i, j]
             r1[0, i, j] = -(base[0, i, j] + (UG[0, j] - (UA[0, i, j] - UA[1, i, j])))
             r1[1, i, j] = -(base[1, i, j] + (UG[1, j] - (UA[2, i, j] - UA[3, i, j])))
@@ -1055,9 +1055,11 @@ def _grad_column(X, L, zx, zl, stagew, grad, o):
 @_jit
 def _zmax(zx, zl, IS, zmax):
     """``max(zmax, |Z|)`` over the primal, dual and multiplier rows of an adjoint column,
-    with ``Z_mu = C Z_x / S`` (``IS = 1 / S``; the conditioning proxy's ``||Z||_max``)."""
+    with ``Z_mu = C Z_x / S`` (``IS = 1 / S``; the conditioning proxy's ``||Z||_max``; NaN
+    if not finite)."""
     n, N = zl.shape
     IA, IG = _ag(IS, n, N), _gr(IS, n, N)
+    check = 0.0
     for j in range(N):
         tb = 0.0
         ts = 0.0
@@ -1066,17 +1068,14 @@ def _zmax(zx, zl, IS, zmax):
                 zx[4, i, j]
             tb += zb
             ts += zs
-            zmax = _amax(zmax, zb * max(1.0, IA[0, i, j], IA[1, i, j]))
-            zmax = _amax(zmax, zs * max(1.0, IA[2, i, j], IA[3, i, j]))
-            zmax = _amax(zmax, zsoc)
-            zmax = _amax(zmax, zshi * max(1.0, IA[6, i, j]))
-            zmax = _amax(zmax, zslo * max(1.0, IA[7, i, j]))
-            zmax = _amax(zmax, zl[i, j])
-            zmax = _amax(zmax, (zsoc - zshi) * IA[4, i, j])
-            zmax = _amax(zmax, (zsoc + zslo) * IA[5, i, j])
-        zmax = _amax(zmax, tb * IG[0, j])
-        zmax = _amax(zmax, ts * IG[1, j])
-    return zmax
+            zmax = max(zmax, abs(zb) * max(1.0, IA[0, i, j], IA[1, i, j]),
+                       abs(zs) * max(1.0, IA[2, i, j], IA[3, i, j]), abs(zsoc),
+                       abs(zshi) * max(1.0, IA[6, i, j]), abs(zslo) * max(1.0, IA[7, i, j]),
+                       abs(zl[i, j]), abs(zsoc - zshi) * IA[4, i, j],
+                       abs(zsoc + zslo) * IA[5, i, j])
+            check += 0.0 * (zb + zs + zsoc + zshi + zslo + zl[i, j])
+        zmax = max(zmax, abs(tb) * IG[0, j], abs(ts) * IG[1, j])
+    return zmax if check == 0.0 else np.nan
 
 
 @_jit
