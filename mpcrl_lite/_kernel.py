@@ -125,8 +125,10 @@ W_DISC, W_WSOC, W_TERM, W_QSHI, W_QSLO = range(5)
 # rows of the per-agent-stage factor array ``F`` (11, n, N); F_IPIV, F_RAT: agent method
 F_VB, F_VS, F_V, F_C4, F_C5, F_ISHI, F_ISLO, F_BB, F_BS, F_IPIV, F_RAT = range(11)
 N_F = 11
-# rows of the per-stage grid factor array ``FG`` (4, N)
-G_KB, G_KS, G_SVB, G_SVS = range(4)
+# rows of the per-stage grid factor array ``FG`` (6, N): kappa, sum of vb or vs, D of the
+# grid rows
+G_KB, G_KS, G_SVB, G_SVS, G_DB, G_DS = range(6)
+N_G = 6
 
 _ETA = 0.995
 _TINY = 1e-300
@@ -235,10 +237,12 @@ def _residual(X, L, Mu, S, alpha, qb, qs, hsoc, qsoc, stagew, e, opts, scale, ba
     """The slacks ``S = d - C x`` (flat), ``base = H x + q + A' lam`` (5, n, N) and
     ``rp = A x - e`` (n, N) in place; returns the scaled KKT residual
     ``max(max(|r_d|, |mu S - tau|) / scale, |r_p|)`` of the batch solver (inf if anything
-    is not finite) and ``sum(mu S)``."""
+    is not finite) and ``sum(mu S)``. (Flat indices: group ``g``, agent ``i``, stage ``j``
+    at ``g n N + i N + j``, grid row ``v`` at ``8 n N + v N + j``.)"""
     n, N = L.shape
+    nN = n * N
+    go = 8 * nN
     U, P, hi, lo, tau = opts[O_U], opts[O_P], opts[O_HI], opts[O_LO], opts[O_TAU]
-    MuA, MuG, SA, SG = _ag(Mu, n, N), _gr(Mu, n, N), _ag(S, n, N), _gr(S, n, N)
     ed = 0.0
     ep = 0.0
     ec = 0.0
@@ -250,26 +254,27 @@ def _residual(X, L, Mu, S, alpha, qb, qs, hsoc, qsoc, stagew, e, opts, scale, ba
         for i in range(n):
             tb += X[0, i, j]
             ts += X[1, i, j]
-        for v, t in ((0, tb), (1, ts)):
-            sg = P - t
-            SG[v, j] = sg
-            c = MuG[v, j] * sg
+        S[go + j] = P - tb
+        S[go + N + j] = P - ts
+        for k in (go + j, go + N + j):
+            c = Mu[k] * S[k]
             comp += c
             ec = max(ec, abs(c - tau))
     for i in range(n):
         a = alpha[i]
         for j in range(N):
+            k = i * N + j
             b, sl, soc, shi, slo = X[0, i, j], X[1, i, j], X[2, i, j], X[3, i, j], X[4, i, j]
-            SA[0, i, j] = b
-            SA[1, i, j] = U - b
-            SA[2, i, j] = sl
-            SA[3, i, j] = U - sl
-            SA[4, i, j] = (shi - soc) + hi
-            SA[5, i, j] = (soc + slo) - lo
-            SA[6, i, j] = shi
-            SA[7, i, j] = slo
+            S[k] = b
+            S[nN + k] = U - b
+            S[2 * nN + k] = sl
+            S[3 * nN + k] = U - sl
+            S[4 * nN + k] = (shi - soc) + hi
+            S[5 * nN + k] = (soc + slo) - lo
+            S[6 * nN + k] = shi
+            S[7 * nN + k] = slo
             for g in range(8):
-                c = MuA[g, i, j] * SA[g, i, j]
+                c = Mu[g * nN + k] * S[g * nN + k]
                 comp += c
                 ec = max(ec, abs(c - tau))
             aL = a * L[i, j]
@@ -283,11 +288,12 @@ def _residual(X, L, Mu, S, alpha, qb, qs, hsoc, qsoc, stagew, e, opts, scale, ba
             base[2, i, j] = b2
             base[3, i, j] = stagew[W_QSHI, j]
             base[4, i, j] = stagew[W_QSLO, j]
-            d0 = b0 + (MuG[0, j] - (MuA[0, i, j] - MuA[1, i, j]))
-            d1 = b1 + (MuG[1, j] - (MuA[2, i, j] - MuA[3, i, j]))
-            d2 = b2 + (MuA[4, i, j] - MuA[5, i, j])
-            d3 = stagew[W_QSHI, j] - (MuA[4, i, j] + MuA[6, i, j])
-            d4 = stagew[W_QSLO, j] - (MuA[5, i, j] + MuA[7, i, j])
+            m4, m5 = Mu[4 * nN + k], Mu[5 * nN + k]
+            d0 = b0 + (Mu[go + j] - (Mu[k] - Mu[nN + k]))
+            d1 = b1 + (Mu[go + N + j] - (Mu[2 * nN + k] - Mu[3 * nN + k]))
+            d2 = b2 + (m4 - m5)
+            d3 = stagew[W_QSHI, j] - (m4 + Mu[6 * nN + k])
+            d4 = stagew[W_QSLO, j] - (m5 + Mu[7 * nN + k])
             ed = max(ed, abs(d0), abs(d1), abs(d2), abs(d3), abs(d4))
             r = soc - a * (b - sl)
             if j > 0:
@@ -344,29 +350,32 @@ def _factor(S, Mu, IS, D, alpha, hsoc, method, F, FG, SI, AW, TI, MC, MS, tmp):
     """Factorise the reduced KKT matrix at ``S, mu`` (``IS = 1 / S``, ``D = mu / S`` are
     filled too); False on breakdown."""
     n, N = alpha.shape[0], FG.shape[1]
+    nN = n * N
+    go = 8 * nN
     for k in range(S.size):
         inv = 1.0 / S[k]
         IS[k] = inv
         D[k] = Mu[k] * inv
-    DA, DG = _ag(D, n, N), _gr(D, n, N)
     for i in range(n):
         a = alpha[i]
         for j in range(N):
+            k = i * N + j
+            d4, d5, d6, d7 = D[4 * nN + k], D[5 * nN + k], D[6 * nN + k], D[7 * nN + k]
             # two reciprocals from one division (products of two D stay far inside the
             # floating-point range)
-            whi, wlo = DA[4, i, j] + DA[6, i, j], DA[5, i, j] + DA[7, i, j]
-            wb, ws = DA[0, i, j] + DA[1, i, j], DA[2, i, j] + DA[3, i, j]
+            whi, wlo = d4 + d6, d5 + d7
+            wb, ws = D[k] + D[nN + k], D[2 * nN + k] + D[3 * nN + k]
             inv = 1.0 / (whi * wlo)
             ishi, islo = wlo * inv, whi * inv
             inv = 1.0 / (wb * ws)
             vb, vs = ws * inv, wb * inv
-            c4 = DA[4, i, j] * ishi
-            c5 = DA[5, i, j] * islo
+            c4 = d4 * ishi
+            c5 = d5 * islo
             F[F_ISHI, i, j] = ishi
             F[F_ISLO, i, j] = islo
             F[F_C4, i, j] = c4
             F[F_C5, i, j] = c5
-            F[F_V, i, j] = 1.0 / (hsoc[i, j] + c4 * DA[6, i, j] + c5 * DA[7, i, j])
+            F[F_V, i, j] = 1.0 / (hsoc[i, j] + c4 * d6 + c5 * d7)
             F[F_VB, i, j] = vb
             F[F_VS, i, j] = vs
             F[F_BB, i, j] = a * vb
@@ -377,13 +386,16 @@ def _factor(S, Mu, IS, D, alpha, hsoc, method, F, FG, SI, AW, TI, MC, MS, tmp):
         for i in range(n):
             svb += F[F_VB, i, j]
             svs += F[F_VS, i, j]
+        db, ds = D[go + j], D[go + N + j]
         FG[G_SVB, j] = svb
         FG[G_SVS, j] = svs
-        FG[G_KB, j] = DG[0, j] / (1.0 + DG[0, j] * svb)
-        FG[G_KS, j] = DG[1, j] / (1.0 + DG[1, j] * svs)
+        FG[G_DB, j] = db
+        FG[G_DS, j] = ds
+        FG[G_KB, j] = db / (1.0 + db * svb)
+        FG[G_KS, j] = ds / (1.0 + ds * svs)
     if method == STAGE:
         return _factor_stage(alpha, F, FG, SI, AW, tmp)
-    return _factor_agent(alpha, F, FG, DG, TI, MC, MS)
+    return _factor_agent(alpha, F, FG, TI, MC, MS)
 
 
 @_jit
@@ -441,7 +453,7 @@ def _factor_stage(alpha, F, FG, SI, A, dv):
 
 
 @_jit
-def _factor_agent(alpha, F, FG, DG, TI, MC, MS):
+def _factor_agent(alpha, F, FG, TI, MC, MS):
     """Per-agent tridiagonal factors (reciprocal backward pivots ``F_IPIV``, ratios
     ``F_RAT``) and the Jacobi-scaled Cholesky factor ``MC`` of the grid Schur complement
     (scaling ``MS``); the scaled ``M`` itself is kept in ``TI`` (lower triangle)."""
@@ -497,8 +509,8 @@ def _factor_agent(alpha, F, FG, DG, TI, MC, MS):
                 if k > j:
                     MC[N + j, k] += bbk * bsj * t
     for j in range(N):
-        MC[j, j] += 1.0 / DG[0, j] + FG[G_SVB, j]
-        MC[N + j, N + j] += 1.0 / DG[1, j] + FG[G_SVS, j]
+        MC[j, j] += 1.0 / FG[G_DB, j] + FG[G_SVB, j]
+        MC[N + j, N + j] += 1.0 / FG[G_DS, j] + FG[G_SVS, j]
     for a in range(m):
         d = MC[a, a]
         if not d > 0.0 or not math.isfinite(d):
@@ -525,7 +537,7 @@ def _tri_solve(F, i, x):
 
 
 @_jit
-def _solve(r1, r2, dx, dl, alpha, F, FG, DG, method, SI, AW, MC, MS, rsp, w, wg, only):
+def _solve(r1, r2, dx, dl, alpha, F, FG, method, SI, AW, MC, MS, rsp, w, wg, only):
     """Solve the reduced system for ``(r1 (5, n, N), r2 (n, N))`` into ``dx, dl``.
 
     ``only >= 0`` says that ``r1, r2`` vanish outside agent ``only`` (adjoint columns; the
@@ -537,9 +549,9 @@ def _solve(r1, r2, dx, dl, alpha, F, FG, DG, method, SI, AW, MC, MS, rsp, w, wg,
         for j in range(N):
             rsp[i, j] = r1[2, i, j] + F[F_C4, i, j] * r1[3, i, j] - F[F_C5, i, j] * r1[4, i, j]
     if method == STAGE:
-        _solve_stage(r1, r2, dx, dl, alpha, F, FG, DG, SI, rsp, w)
+        _solve_stage(r1, r2, dx, dl, alpha, F, FG, SI, rsp, w)
     else:
-        _solve_agent(r1, r2, dx, dl, alpha, F, DG, MC, MS, rsp, w, wg, only)
+        _solve_agent(r1, r2, dx, dl, alpha, F, FG, MC, MS, rsp, w, wg, only)
     check = 0.0
     for i in range(n):
         for j in range(N):
@@ -556,7 +568,7 @@ def _solve(r1, r2, dx, dl, alpha, F, FG, DG, method, SI, AW, MC, MS, rsp, w, wg,
 
 
 @_jit
-def _solve_stage(r1, r2, dx, dl, alpha, F, FG, DG, SI, rsp, w):
+def _solve_stage(r1, r2, dx, dl, alpha, F, FG, SI, rsp, w):
     """Block-tridiagonal solve (``STAGE``), then ``db, ds``."""
     n, N = alpha.shape[0], r2.shape[1]
     # forward: w_j = Sigma_j^{-1} (rho_j + V_{j-1} w_{j-1}), kept in dl[:, j]
@@ -591,8 +603,10 @@ def _solve_stage(r1, r2, dx, dl, alpha, F, FG, DG, SI, rsp, w):
             dl[i, j] = v
     # db = W_b^{-1} (r_b + alpha dl), ds = W_s^{-1} (r_s - alpha dl)
     for j in range(N):
-        _grid_block(r1, dl, alpha, F, dx, 0, F_VB, 1.0, FG[G_KB, j], FG[G_SVB, j], DG[0, j], j)
-        _grid_block(r1, dl, alpha, F, dx, 1, F_VS, -1.0, FG[G_KS, j], FG[G_SVS, j], DG[1, j], j)
+        _grid_block(r1, dl, alpha, F, dx, 0, F_VB, 1.0, FG[G_KB, j], FG[G_SVB, j], FG[G_DB, j],
+                    j)
+        _grid_block(r1, dl, alpha, F, dx, 1, F_VS, -1.0, FG[G_KS, j], FG[G_SVS, j],
+                    FG[G_DS, j], j)
 
 
 @_inline
@@ -617,7 +631,7 @@ def _grid_block(r1, dl, alpha, F, dx, v, fv, sgn, kap, sv, dg, j):
 
 
 @_jit
-def _solve_agent(r1, r2, dx, dl, alpha, F, DG, MC, MS, rsp, w, wg, only):
+def _solve_agent(r1, r2, dx, dl, alpha, F, FG, MC, MS, rsp, w, wg, only):
     """Per-agent local solves, grid forces from ``M``, every agent's response (``AGENT``)."""
     n, N = alpha.shape[0], r2.shape[1]
     for a in range(2 * N):
@@ -663,8 +677,9 @@ def _solve_agent(r1, r2, dx, dl, alpha, F, DG, MC, MS, rsp, w, wg, only):
             for i in range(n):
                 sv += F[fv, i, j]
                 tot += dx[v, i, j]
-            if DG[v, j] * sv > 1.0:
-                delta = wg[v * N + j] / DG[v, j] - tot
+            dg = FG[G_DB + v, j]
+            if dg * sv > 1.0:
+                delta = wg[v * N + j] / dg - tot
                 for i in range(n):
                     dx[v, i, j] += F[fv, i, j] / sv * delta
 
@@ -704,48 +719,50 @@ def _direction(t, has_corr, Cr, S, IS, Mu, D, base, rp, alpha, F, FG, method, SI
     finite, and the largest primal and dual steps keeping ``S`` and ``mu`` positive
     (``min S / -dS``, ``min mu / -dmu``; huge if nothing decreases)."""
     n, N = alpha.shape[0], FG.shape[1]
-    # U = (t - corr) / S, kept in dMu until dMu = U - mu - D dS overwrites it;
+    nN = n * N
+    go = 8 * nN
+    # U = (t - corr) / S, kept in dMu until dMu = U - mu - D dS overwrites it
+    if has_corr:
+        for k in range(IS.size):
+            dMu[k] = (t - Cr[k]) * IS[k]
+    else:
+        for k in range(IS.size):
+            dMu[k] = t * IS[k]
     # r1 = -(base + C' U), r2 = -rp
-    UA, UG = _ag(dMu, n, N), _gr(dMu, n, N)
-    IA, IG, CA, CG = _ag(IS, n, N), _gr(IS, n, N), _ag(Cr, n, N), _gr(Cr, n, N)
-    for v in range(2):
-        for j in range(N):
-            UG[v, j] = ((t - CG[v, j]) if has_corr else t) * IG[v, j]
     for i in range(n):
         for j in range(N):
-            for g in range(8):
-                UA[g, i, j] = ((t - CA[g, i, j]) if has_corr else t) * IA[g, i, j]
-            u4, u5 = UA[4, i, j], UA[5, i, j]
-            r1[0, i, j] = -(base[0, i, j] + (UG[0, j] - (UA[0, i, j] - UA[1, i, j])))
-            r1[1, i, j] = -(base[1, i, j] + (UG[1, j] - (UA[2, i, j] - UA[3, i, j])))
+            k = i * N + j
+            u4, u5 = dMu[4 * nN + k], dMu[5 * nN + k]
+            r1[0, i, j] = -(base[0, i, j] + (dMu[go + j] - (dMu[k] - dMu[nN + k])))
+            r1[1, i, j] = -(base[1, i, j] + (dMu[go + N + j] - (dMu[2 * nN + k]
+                                                               - dMu[3 * nN + k])))
             r1[2, i, j] = -(base[2, i, j] + (u4 - u5))
-            r1[3, i, j] = -(base[3, i, j] - (u4 + UA[6, i, j]))
-            r1[4, i, j] = -(base[4, i, j] - (u5 + UA[7, i, j]))
+            r1[3, i, j] = -(base[3, i, j] - (u4 + dMu[6 * nN + k]))
+            r1[4, i, j] = -(base[4, i, j] - (u5 + dMu[7 * nN + k]))
             r2[i, j] = -rp[i, j]
-    ok = _solve(r1, r2, dX, dL, alpha, F, FG, _gr(D, n, N), method, SI, AW, MC, MS, rsp, w, wg,
-                -1)
+    ok = _solve(r1, r2, dX, dL, alpha, F, FG, method, SI, AW, MC, MS, rsp, w, wg, -1)
     # dS = -C dX, dMu = U - mu - D dS
-    dSA, dSG = _ag(dS, n, N), _gr(dS, n, N)
     for i in range(n):
         for j in range(N):
+            k = i * N + j
             db, ds, dsoc, dshi, dslo = dX[0, i, j], dX[1, i, j], dX[2, i, j], dX[3, i, j], \
                 dX[4, i, j]
-            dSA[0, i, j] = db
-            dSA[1, i, j] = -db
-            dSA[2, i, j] = ds
-            dSA[3, i, j] = -ds
-            dSA[4, i, j] = dshi - dsoc
-            dSA[5, i, j] = dsoc + dslo
-            dSA[6, i, j] = dshi
-            dSA[7, i, j] = dslo
+            dS[k] = db
+            dS[nN + k] = -db
+            dS[2 * nN + k] = ds
+            dS[3 * nN + k] = -ds
+            dS[4 * nN + k] = dshi - dsoc
+            dS[5 * nN + k] = dsoc + dslo
+            dS[6 * nN + k] = dshi
+            dS[7 * nN + k] = dslo
     for j in range(N):
         tb = 0.0
         ts = 0.0
         for i in range(n):
             tb += dX[0, i, j]
             ts += dX[1, i, j]
-        dSG[0, j] = -tb
-        dSG[1, j] = -ts
+        dS[go + j] = -tb
+        dS[go + N + j] = -ts
     for k in range(dMu.size):
         dMu[k] = dMu[k] - Mu[k] - D[k] * dS[k]
     return ok, _to_boundary(S, dS, tmp), _to_boundary(Mu, dMu, tmp)
@@ -820,7 +837,7 @@ def _work(n, N, method):
                           np.empty((n, N)), np.empty((n, N)))
     Mu, S, IS, D, dS, dMu, Cr, R = (np.empty(m), np.empty(m), np.empty(m), np.empty(m),
                                     np.empty(m), np.empty(m), np.empty(m), np.empty(m))
-    F, FG = np.empty((N_F, n, N)), np.empty((4, N))
+    F, FG = np.empty((N_F, n, N)), np.empty((N_G, N))
     SI, AW = np.empty((Nb, nb, nb)), np.empty((nb, nb))
     TI, MC, MS = np.empty((m2, m2)), np.empty((m2, m2)), np.empty(m2)
     w, wg = np.empty(max(2 * n, N)), np.empty(2 * N)
@@ -951,7 +968,8 @@ def _backward_error(zx, zl, r1, D, alpha, hsoc, rx, rl, magnitudes):
     matrix) and, with ``magnitudes``, its normwise backward error
     ``max |K z - r| / (max |K| |z| + 1)`` (inf if not finite, or without ``magnitudes``)."""
     n, N = zl.shape
-    DA, DG = _ag(D, n, N), _gr(D, n, N)
+    nN = n * N
+    go = 8 * nN
     res = 0.0
     mag = 0.0
     check = 0.0
@@ -965,20 +983,24 @@ def _backward_error(zx, zl, r1, D, alpha, hsoc, rx, rl, magnitudes):
             ts += zx[1, i, j]
             ab += abs(zx[0, i, j])
             at += abs(zx[1, i, j])
+        dgb, dgs = D[go + j], D[go + N + j]
         for i in range(n):
+            k = i * N + j
             a = alpha[i]
             b, s, soc, shi, slo = zx[0, i, j], zx[1, i, j], zx[2, i, j], zx[3, i, j], \
                 zx[4, i, j]
             lam = zl[i, j]
             nxt = zl[i, j + 1] if j < N - 1 else 0.0
             prev = zx[2, i, j - 1] if j > 0 else 0.0
-            u4 = DA[4, i, j] * (soc - shi)  # D_4 C_4 z
-            u5 = DA[5, i, j] * (soc + slo)  # -D_5 C_5 z
-            x0 = (DA[0, i, j] + DA[1, i, j]) * b + DG[0, j] * tb - a * lam - r1[0, i, j]
-            x1 = (DA[2, i, j] + DA[3, i, j]) * s + DG[1, j] * ts + a * lam - r1[1, i, j]
+            wb, ws = D[k] + D[nN + k], D[2 * nN + k] + D[3 * nN + k]
+            d4, d5, d6, d7 = D[4 * nN + k], D[5 * nN + k], D[6 * nN + k], D[7 * nN + k]
+            u4 = d4 * (soc - shi)  # D_4 C_4 z
+            u5 = d5 * (soc + slo)  # -D_5 C_5 z
+            x0 = wb * b + dgb * tb - a * lam - r1[0, i, j]
+            x1 = ws * s + dgs * ts + a * lam - r1[1, i, j]
             x2 = hsoc[i, j] * soc + u4 + u5 + lam - nxt - r1[2, i, j]
-            x3 = DA[6, i, j] * shi - u4 - r1[3, i, j]
-            x4 = DA[7, i, j] * slo + u5 - r1[4, i, j]
+            x3 = d6 * shi - u4 - r1[3, i, j]
+            x4 = d7 * slo + u5 - r1[4, i, j]
             xl = soc - a * b + a * s - prev
             rx[0, i, j] = x0
             rx[1, i, j] = x1
@@ -990,13 +1012,12 @@ def _backward_error(zx, zl, r1, D, alpha, hsoc, rx, rl, magnitudes):
             check += 0.0 * (x0 + x1 + x2 + x3 + x4 + xl)
             if magnitudes:
                 aa, asoc = abs(a), abs(soc)
-                m4 = DA[4, i, j] * (asoc + abs(shi))
-                m5 = DA[5, i, j] * (asoc + abs(slo))
-                mag = max(mag,
-                          (DA[0, i, j] + DA[1, i, j]) * abs(b) + DG[0, j] * ab + aa * abs(lam),
-                          (DA[2, i, j] + DA[3, i, j]) * abs(s) + DG[1, j] * at + aa * abs(lam),
+                m4 = d4 * (asoc + abs(shi))
+                m5 = d5 * (asoc + abs(slo))
+                mag = max(mag, wb * abs(b) + dgb * ab + aa * abs(lam),
+                          ws * abs(s) + dgs * at + aa * abs(lam),
                           abs(hsoc[i, j]) * asoc + m4 + m5 + abs(lam) + abs(nxt),
-                          DA[6, i, j] * abs(shi) + m4, DA[7, i, j] * abs(slo) + m5,
+                          d6 * abs(shi) + m4, d7 * abs(slo) + m5,
                           asoc + aa * (abs(b) + abs(s)) + abs(prev))
     if not magnitudes or check != 0.0:
         return np.inf
@@ -1064,23 +1085,25 @@ def _zmax(zx, zl, IS, zmax):
     with ``Z_mu = C Z_x / S`` (``IS = 1 / S``; the conditioning proxy's ``||Z||_max``; NaN
     if not finite)."""
     n, N = zl.shape
-    IA, IG = _ag(IS, n, N), _gr(IS, n, N)
+    nN = n * N
+    go = 8 * nN
     check = 0.0
     for j in range(N):
         tb = 0.0
         ts = 0.0
         for i in range(n):
+            k = i * N + j
             zb, zs, zsoc, zshi, zslo = zx[0, i, j], zx[1, i, j], zx[2, i, j], zx[3, i, j], \
                 zx[4, i, j]
             tb += zb
             ts += zs
-            zmax = max(zmax, abs(zb) * max(1.0, IA[0, i, j], IA[1, i, j]),
-                       abs(zs) * max(1.0, IA[2, i, j], IA[3, i, j]), abs(zsoc),
-                       abs(zshi) * max(1.0, IA[6, i, j]), abs(zslo) * max(1.0, IA[7, i, j]),
-                       abs(zl[i, j]), abs(zsoc - zshi) * IA[4, i, j],
-                       abs(zsoc + zslo) * IA[5, i, j])
+            zmax = max(zmax, abs(zb) * max(1.0, IS[k], IS[nN + k]),
+                       abs(zs) * max(1.0, IS[2 * nN + k], IS[3 * nN + k]), abs(zsoc),
+                       abs(zshi) * max(1.0, IS[6 * nN + k]),
+                       abs(zslo) * max(1.0, IS[7 * nN + k]), abs(zl[i, j]),
+                       abs(zsoc - zshi) * IS[4 * nN + k], abs(zsoc + zslo) * IS[5 * nN + k])
             check += 0.0 * (zb + zs + zsoc + zshi + zslo + zl[i, j])
-        zmax = max(zmax, abs(tb) * IG[0, j], abs(ts) * IG[1, j])
+        zmax = max(zmax, abs(tb) * IS[go + j], abs(ts) * IS[go + N + j])
     return zmax if check == 0.0 else np.nan
 
 
@@ -1274,8 +1297,8 @@ def sensitivity_batch(P, x, lam, mu, solved, opts, stagew, n, N, method, structu
             r2[:] = 0.0
             r1[0, o, 0] = 1.0
             r1[1, o, 0] = -1.0
-            usable &= _solve(r1, r2, zx, zl, alpha, F, FG, _gr(D, n, N), method, SI, AW, MC,
-                             MS, rsp, w, wg, o)
+            usable &= _solve(r1, r2, zx, zl, alpha, F, FG, method, SI, AW, MC, MS, rsp, w, wg,
+                             o)
             # iterative refinement: at least one step (where a grid limit binds, an agent's own
             # response and the grid's nearly cancel and small entries lose digits that the
             # normwise backward error does not see), more while that error is above the
@@ -1289,8 +1312,8 @@ def sensitivity_batch(P, x, lam, mu, solved, opts, stagew, n, N, method, structu
                     rxf[k] = -rxf[k]
                 for k in range(rlf.size):
                     rlf[k] = -rlf[k]
-                usable &= _solve(rx, rl, cx, cl, alpha, F, FG, _gr(D, n, N), method, SI, AW,
-                                 MC, MS, rsp, w, wg, -1)
+                usable &= _solve(rx, rl, cx, cl, alpha, F, FG, method, SI, AW, MC, MS, rsp, w,
+                                 wg, -1)
                 for k in range(zxf.size):
                     zxf[k] += cxf[k]
                 for k in range(zlf.size):
