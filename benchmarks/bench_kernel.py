@@ -1,0 +1,167 @@
+"""The compiled back-end against the batch interior point, on the same closed-loop problems.
+
+For each size (n agents, horizon N) a month of ``days`` days runs in closed loop for a few
+hours (as ``run_month``: warm start from the shifted previous plan, Gaussian exploration, the
+true system), once with :class:`~mpcrl_lite.kernel_solver.KernelSolver` and once with
+:class:`~mpcrl_lite.batch_solver.BatchSolver` from the same states, prices and random draws
+(their policies agree to 1e-14, so both see the same problems). Only the solver calls are
+timed: ``solve_batch`` + ``sensitivity`` of every hour. Reported per problem (one day-hour)
+in microseconds, wall (``time.perf_counter``) and CPU (``time.process_time``), the median
+over ``--repeats`` runs (and, ``*_min``, the least contended run: on a shared machine the
+closest figure to an idle one), the ratio batch / kernel from the same run, the largest
+differences of action and sensitivity, and the per-step figures (``days`` problems per
+call, ``*_ms_per_step``).
+
+Run ``python benchmarks/bench_kernel.py [--repeats 5] [--days 30] [--quick]``; prints one
+JSON line. The kernels are compiled (or loaded from numba's cache) before timing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _common import machine, median
+
+from mpcrl_lite.batch_solver import BatchSolver
+from mpcrl_lite.config import ConfigWarning, LearningConfig, MPCConfig, SystemConfig
+from mpcrl_lite.experiment import ClosedLoop
+from mpcrl_lite.kernel_solver import KernelSolver, warm_up
+from mpcrl_lite.mpc import MPC
+from mpcrl_lite.prices import Prices
+from mpcrl_lite.theta import Theta
+
+#: (n, N, hours per run): the paper's size, many agents, a long horizon
+SIZES = [(3, 12, 24), (100, 12, 3), (3, 48, 24)]
+#: per-step targets (days problems per call), milliseconds (reported, never asserted)
+TARGETS_US_PER_PROBLEM = {(3, 12): 60.0, (100, 12): 5000.0, (3, 48): 1000.0}
+
+
+def closed_loop(solver, system: SystemConfig, prices: Prices, hours: int, seed: int) -> dict:
+    """``hours`` closed-loop hours with ``solver``; times of its calls and what it returned."""
+    mpc = solver.mpc
+    theta = Theta.nominal(system)
+    loop = ClosedLoop(prices, system)
+    rng = np.random.default_rng(seed)
+    std = LearningConfig().exploration_std
+    ib, is_ = mpc.index("b"), mpc.index("s")
+    wall = cpu = 0.0
+    actions, grads, iters, ok = [], [], [], True
+    x_prev = None
+    for k in range(hours):
+        buy, sell = prices.window(k, system.N)
+        warm = None if x_prev is None else solver.shift(x_prev)
+        t0, c0 = time.perf_counter(), time.process_time()
+        sol = solver.solve_batch(loop.soc, buy, sell, theta, x0=warm)
+        sens = solver.sensitivity(sol)
+        wall += time.perf_counter() - t0
+        cpu += time.process_time() - c0
+        ok &= bool(sol.success.all() and sens.ok.all())
+        x_prev = np.where(sol.success[:, None], sol.x, warm) if warm is not None else sol.x
+        planned = np.maximum(sol.x[:, ib].sum(axis=2), sol.x[:, is_].sum(axis=2)).max(axis=1)
+        loop.advance(k, sol.action, planned, rng, std)
+        actions.append(sol.action)
+        grads.append(sens.grad)
+        iters.append(sol.iterations)
+    return {"wall": wall, "cpu": cpu, "action": np.stack(actions), "grad": np.stack(grads),
+            "iters": np.concatenate(iters), "ok": ok}
+
+
+def bench(n: int, N: int, hours: int, days: int, repeats: int) -> dict:
+    """Figures of one size (see the module docstring)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConfigWarning)
+        system = SystemConfig(n=n, N=N, P_bar=0.5 * n)
+    mpc = MPC(system)
+    prices = Prices.month(system, days)
+    config = MPCConfig()
+    kernel, batch = KernelSolver(mpc, config), BatchSolver(mpc, config)
+    closed_loop(kernel, system, prices, 1, 0)  # first calls (caches, allocations)
+    closed_loop(batch, system, prices, 1, 0)
+    runs = {"kernel": [], "batch": []}
+    for r in range(repeats):
+        # alternate the order so that a change of the machine's load hits both alike
+        for name in (("kernel", "batch") if r % 2 == 0 else ("batch", "kernel")):
+            runs[name].append(closed_loop(kernel if name == "kernel" else batch, system,
+                                          prices, hours, seed=1))
+    k, b = runs["kernel"][-1], runs["batch"][-1]
+    problems = hours * days
+    out = {"n": n, "N": N, "days": days, "hours": hours, "method": kernel.method,
+           "structured_adjoint": kernel.structured_adjoint}
+    for name, rs in runs.items():
+        out[f"{name}_us_per_problem"] = 1e6 * median([x["wall"] for x in rs]) / problems
+        out[f"{name}_cpu_us_per_problem"] = 1e6 * median([x["cpu"] for x in rs]) / problems
+        # the least contended run: closest to the cost on an idle machine
+        out[f"{name}_cpu_us_per_problem_min"] = 1e6 * min(x["cpu"] for x in rs) / problems
+        out[f"{name}_ms_per_step"] = 1e3 * median([x["wall"] for x in rs]) / hours
+        out[f"{name}_cpu_ms_per_step"] = 1e3 * median([x["cpu"] for x in rs]) / hours
+        out[f"{name}_iterations_mean"] = float(rs[-1]["iters"].mean())
+        out[f"{name}_all_ok"] = all(x["ok"] for x in rs)
+    out["ratio"] = out["batch_us_per_problem"] / out["kernel_us_per_problem"]
+    out["ratio_cpu"] = out["batch_cpu_us_per_problem"] / out["kernel_cpu_us_per_problem"]
+    out["ratio_cpu_min"] = (out["batch_cpu_us_per_problem_min"]
+                            / out["kernel_cpu_us_per_problem_min"])
+    out["max_action_diff"] = float(np.max(np.abs(k["action"] - b["action"])))
+    scale = np.maximum(np.abs(b["grad"]).max(axis=-2, keepdims=True), 1e-300)
+    out["max_sens_diff_column_relative"] = float(np.max(np.abs(k["grad"] - b["grad"]) / scale))
+    out["same_iterations"] = bool(np.array_equal(k["iters"], b["iters"]))
+    target = TARGETS_US_PER_PROBLEM.get((n, N))
+    if target is not None:
+        out["target_us_per_problem"] = target
+        out["target_met"] = out["kernel_us_per_problem"] <= target
+        out["target_met_cpu"] = out["kernel_cpu_us_per_problem"] <= target
+        out["target_met_cpu_min"] = out["kernel_cpu_us_per_problem_min"] <= target
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=5, help="runs per back-end and size")
+    parser.add_argument("--days", type=int, default=30, help="problems per call")
+    parser.add_argument("--quick", action="store_true", help="one repeat, fewer hours")
+    args = parser.parse_args(argv)
+    t0 = time.perf_counter()
+    compile_s = warm_up()
+    info = machine()
+    info["loadavg_start"] = info.pop("loadavg", None)
+    rows = []
+    for n, N, hours in SIZES:
+        rows.append(bench(n, N, max(1, hours // 4) if args.quick else hours, args.days,
+                          1 if args.quick else args.repeats))
+        print(f"[bench_kernel] n={n} N={N}: kernel {rows[-1]['kernel_us_per_problem']:.1f} us "
+              f"(cpu {rows[-1]['kernel_cpu_us_per_problem']:.1f}), batch "
+              f"{rows[-1]['batch_us_per_problem']:.1f} us per problem", file=sys.stderr)
+    main_row = rows[0]
+    result = {
+        "kernel_us_per_problem": main_row["kernel_us_per_problem"],
+        "batch_us_per_problem": main_row["batch_us_per_problem"],
+        "kernel_cpu_us_per_problem": main_row["kernel_cpu_us_per_problem"],
+        "batch_cpu_us_per_problem": main_row["batch_cpu_us_per_problem"],
+        "kernel_cpu_us_per_problem_min": main_row["kernel_cpu_us_per_problem_min"],
+        "batch_cpu_us_per_problem_min": main_row["batch_cpu_us_per_problem_min"],
+        "ratio": main_row["ratio"],
+        "ratio_cpu": main_row["ratio_cpu"],
+        "sizes": rows,
+        "warm_up_s": compile_s,
+        "total_s": time.perf_counter() - t0,
+        "machine": info,
+    }
+    try:
+        result["machine"]["loadavg_end"] = [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        pass
+    print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
