@@ -14,6 +14,7 @@ $(STAMP): environment-requirements.txt pyproject.toml
 	$(BIN)/python -m pip install --quiet -r environment-requirements.txt
 	$(BIN)/python -m pip install --quiet --no-deps -e .
 	$(BIN)/python -m ipykernel install --sys-prefix --name python3 --display-name "Python 3 (mpcrl_lite)" >/dev/null
+	$(BIN)/python -m mpcrl_lite.kernel_solver --warm
 	touch $(STAMP)
 
 setup: $(STAMP)

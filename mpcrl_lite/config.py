@@ -408,7 +408,7 @@ class SystemConfig(_Config):
 
 
 #: Solver back-ends known to :mod:`mpcrl_lite.solvers`.
-BACKENDS = ("auto", "ipopt", "batch")
+BACKENDS = ("auto", "ipopt", "batch", "kernel")
 
 #: A nearly exact barrier parameter: the policy is then practically the exact MPC's (the
 #: paper does not give the barrier value of its interior-point solver).
@@ -435,7 +435,8 @@ class MPCConfig(_Config):
     MPC."""
     backend: str = "auto"
     """'ipopt' (reference, IPOPT through nlpsol), 'batch' (numpy interior point over all days
-    at once) or 'auto' (batch when the MPC is convex, else ipopt; the choice is logged)."""
+    at once), 'kernel' (the same iteration compiled with numba) or 'auto' (kernel when the MPC
+    is convex, else ipopt; the choice is logged)."""
     tol: float = 1e-10
     """Tolerance on the barrier problem's KKT residual."""
     max_iter: int = 200

@@ -186,7 +186,7 @@ def cached_solver(
     mpc_config : MPCConfig, optional
         Default ``MPCConfig()``; a number is taken as ``tau`` (older calls).
     backend : str, optional
-        Replaces ``mpc_config.backend`` (``'auto'``, ``'ipopt'`` or ``'batch'``).
+        Replaces ``mpc_config.backend`` (a name of :data:`mpcrl_lite.config.BACKENDS`).
     tau : float, optional
         Replaces ``mpc_config.tau``.
 

@@ -40,8 +40,7 @@ import numpy as np
 from . import _kernel as K
 from .config import MPCConfig
 from .mpc import MPC
-from .sensitivity import Sensitivity
-from .solvers import BatchSolution, MPCSolution
+from .solution import BatchSolution, MPCSolution, Sensitivity
 from .theta import Theta
 
 __all__ = [

@@ -7,7 +7,9 @@ types of :mod:`mpcrl_lite.solution`):
   CasADi's ``nlpsol``, then Newton polishing to machine precision;
 * ``'batch'`` -- :class:`~mpcrl_lite.batch_solver.BatchSolver`, a numpy interior point that
   solves all days of a month at once;
-* ``'auto'`` -- ``'batch'`` when the MPC is a convex QP for the given theta, else ``'ipopt'``.
+* ``'kernel'`` -- :class:`~mpcrl_lite.kernel_solver.KernelSolver`, the batch solver's
+  iteration compiled with numba, one problem at a time (the same results to rounding);
+* ``'auto'`` -- ``'kernel'`` when the MPC is a convex QP for the given theta, else ``'ipopt'``.
 
 :data:`REGISTRY` maps the names of :data:`mpcrl_lite.config.BACKENDS` to the classes; adding a
 back-end is one entry there (and its name in the config). This module imports the back-ends;
@@ -26,6 +28,7 @@ from collections.abc import Callable
 from .batch_solver import BatchSolver
 from .config import BACKENDS, MPCConfig
 from .ipopt_solver import IpoptSolver
+from .kernel_solver import KernelSolver
 from .mpc import MPC
 from .solution import FALLBACK, BatchSolution, MPCSolution, SolverBackend
 from .theta import Theta
@@ -53,13 +56,14 @@ AUTO = "auto"
 REGISTRY: dict[str, Callable[[MPC, MPCConfig], SolverBackend]] = {
     "ipopt": IpoptSolver,
     "batch": BatchSolver,
+    "kernel": KernelSolver,
 }
 
 
 def _auto_backend(theta: Theta | None) -> str:
-    """The interior point for a convex QP (``phi1, T1 >= 0``), IPOPT otherwise."""
+    """The compiled interior point for a convex QP (``phi1, T1 >= 0``), IPOPT otherwise."""
     convex = theta is None or theta.is_convex()
-    return "batch" if convex else "ipopt"
+    return "kernel" if convex else "ipopt"
 
 
 def make_solver(
@@ -67,7 +71,7 @@ def make_solver(
 ) -> SolverBackend:
     """The back-end named by ``config.backend``, built for ``mpc``.
 
-    ``'auto'`` chooses the batch interior point when the MPC is a convex QP for ``theta``
+    ``'auto'`` chooses the compiled interior point when the MPC is a convex QP for ``theta``
     (``phi1, T1 >= 0``; always true with ``LearningConfig.keep_well_posed``) and IPOPT
     otherwise; the choice is logged at INFO level and readable from ``solver.name``.
 

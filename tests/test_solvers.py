@@ -17,6 +17,7 @@ import mpcrl_lite.solvers as solvers_module
 from mpcrl_lite import batch_solver, ipopt_solver, sensitivity, solution
 from mpcrl_lite.batch_solver import BatchSolver
 from mpcrl_lite.config import BACKENDS, MPCConfig
+from mpcrl_lite.kernel_solver import KernelSolver
 from mpcrl_lite.mpc import shift
 from mpcrl_lite.solvers import FALLBACK, BatchSolution, IpoptSolver, make_solver
 from mpcrl_lite.theta import Theta
@@ -54,18 +55,18 @@ def test_make_solver_auto_chooses_by_convexity(mpc, system, caplog):
     theta0 = Theta.nominal(system)
     concave = theta0.replace(phi1=np.full(system.n, -1.0))
     with caplog.at_level(logging.INFO, logger="mpcrl_lite.solvers"):
-        assert isinstance(make_solver(mpc, MPCConfig(backend="auto"), theta0), BatchSolver)
+        assert isinstance(make_solver(mpc, MPCConfig(backend="auto"), theta0), KernelSolver)
         assert isinstance(make_solver(mpc, MPCConfig(backend="auto"), concave), IpoptSolver)
-        assert make_solver(mpc, MPCConfig(backend="auto")).name == "batch"  # no theta
+        assert make_solver(mpc, MPCConfig(backend="auto")).name == "kernel"  # no theta
     assert [r.getMessage() for r in caplog.records] == [
-        "MPC back-end 'auto' chose 'batch'", "MPC back-end 'auto' chose 'ipopt'",
-        "MPC back-end 'auto' chose 'batch'"]
+        "MPC back-end 'auto' chose 'kernel'", "MPC back-end 'auto' chose 'ipopt'",
+        "MPC back-end 'auto' chose 'kernel'"]
 
 
 def test_make_solver_rejects_an_unregistered_backend(mpc, monkeypatch):
     monkeypatch.delitem(solvers_module.REGISTRY, "batch")
     with pytest.raises(ValueError, match=r"'batch' is not available; expected one of "
-                                         r"\('auto', 'ipopt'\)"):
+                                         r"\('auto', 'ipopt', 'kernel'\)"):
         make_solver(mpc, MPCConfig(backend="batch"))
 
 
@@ -90,7 +91,9 @@ SOLVER_LAYER = {
     "batch_solver": {"batch_adjoint", "batch_kkt", "batch_linalg", "config", "mpc", "solution",
                      "theta"},
     "ipopt_solver": {"config", "mpc", "sensitivity", "solution", "theta"},
-    "solvers": {"batch_solver", "config", "ipopt_solver", "mpc", "solution", "theta"},
+    "kernel_solver": {"_kernel", "config", "mpc", "solution", "theta"},
+    "solvers": {"batch_solver", "config", "ipopt_solver", "kernel_solver", "mpc", "solution",
+                "theta"},
 }
 
 
