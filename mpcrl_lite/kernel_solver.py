@@ -26,6 +26,12 @@ folder in the system's temporary directory (:func:`cache_dir` tells which).
 Shapes and layouts are those of every back-end (:class:`~mpcrl_lite.solvers.BatchSolution`,
 :class:`~mpcrl_lite.sensitivity.Sensitivity`); any ``n`` and ``N`` work with the same
 compiled code.
+
+Cost (``benchmarks/bench_kernel.py``, closed-loop hours of a 30-day month, solve plus
+sensitivity per problem, measured beside the batch solver in the same run): about 55 us
+for the paper's size (n = 3, N = 12; 8x faster than the batch solver), 2.8 ms for
+n = 100 (5x) and 0.2 ms for N = 48 (11x). Loading numba and the kernels adds about a second
+to the first use in a process and about 100 MB of resident memory.
 """
 
 from __future__ import annotations
