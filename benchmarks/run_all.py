@@ -24,10 +24,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import machine, run_json  # noqa: E402
-
-import bench_learning  # noqa: E402
-import bench_mpcrl  # noqa: E402
+import bench_learning
+import bench_mpcrl
+from _common import machine, run_json
 
 #: The targets quoted in README.md (reported, never asserted).
 TARGETS = {
@@ -37,6 +36,7 @@ TARGETS = {
     "n100_ms_per_step": ("<=", 50.0),
     "N48_ms_per_step": ("<=", 5.0),
     "cold_start_s": ("<=", 3.0),
+    "kernel_us_per_problem": ("<=", 60.0),
 }
 
 
@@ -116,6 +116,11 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
     paper_learn = _try("paper experiment (eval_every=0)",
                        lambda: bench_learning.paper_experiment(months=months, eval_every=0))
 
+    _log("compiled kernel vs batch interior point (same inputs)")
+    kernel = _try("kernel benchmark", lambda: run_json(
+        "import sys, bench_kernel; "
+        f"sys.exit(bench_kernel.main({['--quick'] if quick else []!r}))", timeout=3600))
+
     _log("cold start")
     cold = bench_learning.cold_start(trials=1 if quick else 3)
 
@@ -155,6 +160,13 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
         "mpcrl_first_day_s": None if mpcrl_cold is None else mpcrl_cold["first_day_s"],
         "mpcrl_first_day_cached_jit_s": None if mpcrl_cold_cached is None
         else mpcrl_cold_cached["first_day_s"],
+        "kernel_us_per_problem": None if kernel is None else kernel["kernel_us_per_problem"],
+        "batch_us_per_problem": None if kernel is None else kernel["batch_us_per_problem"],
+        "kernel_cpu_us_per_problem": None if kernel is None
+        else kernel["kernel_cpu_us_per_problem"],
+        "batch_cpu_us_per_problem": None if kernel is None
+        else kernel["batch_cpu_us_per_problem"],
+        "kernel_vs_batch": None if kernel is None else kernel["ratio"],
         "scaling": rows,
     })
     values = {
@@ -164,6 +176,7 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
         "n100_ms_per_step": _scaling_value(rows, 100, 12),
         "N48_ms_per_step": _scaling_value(rows, 3, 48),
         "cold_start_s": result["cold_start_s"],
+        "kernel_us_per_problem": result["kernel_us_per_problem"],
     }
     targets = {}
     for name, (op, bound) in TARGETS.items():
@@ -177,7 +190,7 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
         "ours": ours, "ours_no_warm_start": ours_cold, "mpcrl": mpcrl,
         "mpcrl_bounds_in_lbx": mpcrl_lbx, "mpcrl_cold_fresh_numba": mpcrl_cold,
         "mpcrl_cold_cached_numba": mpcrl_cold_cached, "paper": paper,
-        "paper_learning_only": paper_learn, "cold": cold,
+        "paper_learning_only": paper_learn, "cold": cold, "kernel": kernel,
         "figure": None if figure is None else str(figure),
     }
     result["total_s"] = time.perf_counter() - t_start

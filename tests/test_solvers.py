@@ -15,7 +15,6 @@ import pytest
 
 import mpcrl_lite.solvers as solvers_module
 from mpcrl_lite import batch_solver, ipopt_solver, sensitivity, solution
-from mpcrl_lite.batch_solver import BatchSolver
 from mpcrl_lite.config import BACKENDS, MPCConfig
 from mpcrl_lite.kernel_solver import KernelSolver
 from mpcrl_lite.mpc import shift
