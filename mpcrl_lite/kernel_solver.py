@@ -245,8 +245,10 @@ class KernelSolver(StartSettings, BackendBase):
         Returns
         -------
         Sensitivity
-            ``grad`` (days, n_theta, n), ``ok``, ``cond`` (the proxy ``||K||_max ||Z||_max``)
-            and ``reason``, as :class:`~mpcrl_lite.sensitivity.PolicySensitivity`.
+            As :class:`~mpcrl_lite.solution.Sensitivity` documents; a row is not ``ok``
+            (zero ``grad``, a ``reason``) where the solver failed, the point is not strictly
+            interior, or the KKT matrix is singular or ill-conditioned (``cond`` above
+            ``config.kkt_cond_max`` or an adjoint backward error above 1e-6).
         """
         solution = BatchSolution.of(solution)
         m = self.mpc
