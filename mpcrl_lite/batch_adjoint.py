@@ -84,8 +84,7 @@ def batch_sensitivity(
         ``grad`` (days, n_theta, n), ``ok``, ``cond`` (the proxy ``||K||_max ||Z||_max``)
         and ``reason``, as :class:`~mpcrl_lite.sensitivity.PolicySensitivity`.
     """
-    if isinstance(solution, MPCSolution):
-        solution = BatchSolution.stack([solution], 0.0, "")
+    solution = BatchSolution.of(solution)
     m = kkt.mpc
     days, n = len(solution), kkt.n
     grads = np.zeros((days, m.n_theta, n))

@@ -69,12 +69,13 @@ import numpy as np
 
 from .batch_linalg import cholesky, cholesky_solve, tridiag_inverse
 from .mpc import MPC
-from .solution import BatchSolution, MPCSolution
+from .solution import BatchSolution, MPCSolution, check_parameters
 from .theta import PARTS
 
 __all__ = ["TINY", "BatchData", "BatchKKT", "KKTFactor"]
 
 TINY = 1e-300  # guards divisions by quantities that may underflow to zero
+
 
 # Per-agent slacks S_agent = _SLACK_OFFSET + _SLACK_MAP @ (b, s, soc, sigma_hi, sigma_lo)
 _SLACK_MAP = np.array(
@@ -238,14 +239,7 @@ class BatchKKT:
         (products with random vectors, so no dense matrices are formed)."""
         m = self.mpc
         rng = np.random.default_rng(12345)
-        n, N = self.n, self.N
-        theta = np.concatenate([
-            rng.uniform(0.05, 0.12, n), rng.uniform(-0.01, 0.01, n), rng.uniform(-5, 5, 2 * n),
-            rng.uniform(0, 50, n), rng.uniform(-50, 50, 2 * n),
-            rng.uniform(0, 50, n), rng.uniform(-50, 50, 2 * n),
-        ])
-        p = m.parameters(rng.uniform(0.0, 1.0, n), rng.uniform(5, 130, N),
-                         rng.uniform(5, 60, N), theta)
+        p = check_parameters(m, rng)
         H, q, c, A, e, C, d = m.qp_function(p)
         data = self.batch_data(p[None, :])
         x = rng.standard_normal(m.nx)
@@ -401,8 +395,7 @@ class BatchKKT:
         Newton step after this is below ``config.tol`` (it ends near 1e-15). ``tau`` is the
         barrier parameter the problems were solved for.
         """
-        if isinstance(solution, MPCSolution):
-            solution = BatchSolution.stack([solution], 0.0, "")
+        solution = BatchSolution.of(solution)
         P = np.atleast_2d(solution.p)
         out = np.empty(P.shape[0])
         for idx in self.theta_groups(P, np.arange(P.shape[0])):

@@ -63,9 +63,20 @@ from .batch_adjoint import batch_sensitivity
 from .batch_kkt import TINY, BatchData, BatchKKT, KKTFactor
 from .config import MPCConfig
 from .mpc import MPC, shift
-from .solution import BackendBase, BatchSolution, MPCSolution, Sensitivity
+from .solution import (
+    STATUS_BREAKDOWN,
+    STATUS_CONVERGED,
+    STATUS_MAX_ITER,
+    STATUS_NON_FINITE,
+    BackendBase,
+    BatchSolution,
+    MPCSolution,
+    Sensitivity,
+    StartSettings,
+)
 
-# shift: the warm-start shift of mpcrl_lite.mpc, importable from here as before
+# shift (mpcrl_lite.mpc) and the STATUS_* strings (mpcrl_lite.solution), importable from
+# here as before
 __all__ = [
     "STATUS_BREAKDOWN",
     "STATUS_CONVERGED",
@@ -75,19 +86,10 @@ __all__ = [
     "shift",
 ]
 
-#: Status of a problem solved to the tolerance.
-STATUS_CONVERGED = "converged"
-#: Status of a problem that ran out of iterations.
-STATUS_MAX_ITER = "max_iter_reached"
-#: Status of a problem whose residual became NaN or infinite.
-STATUS_NON_FINITE = "non_finite"
-#: Status of a problem whose linear algebra broke down (singular or non-finite system).
-STATUS_BREAKDOWN = "linear_algebra_breakdown"
-
 _ETA = 0.995  # fraction to the boundary
 
 
-class BatchSolver(BackendBase):
+class BatchSolver(StartSettings, BackendBase):
     r"""Vectorised primal-dual interior point for the MPC's barrier problem.
 
     See the module docstring for the method.
@@ -114,23 +116,9 @@ class BatchSolver(BackendBase):
 
     name = "batch"
 
-    # Starting point and path-following settings (tuned on random states, prices and thetas;
-    # class attributes so that experiments can change them).
-    #: cold start: ``b = s = u0_fraction * min(U, P / n)``
-    u0_fraction: float = 0.5
-    #: initial barrier value ``mean(mu S)`` relative to the price scale ``1 + max |q|``
-    t0_cold: float = 0.1
-    t0_warm: float = 0.1
-    #: warm start: ``b, s`` of ``x0`` kept this far from their bounds (relative to
-    #: ``min(U, P / n)``) and blended with the cold start with this weight. A primal-only
-    #: warm start helps an interior point little (about 8 % fewer iterations on the
-    #: experiment's hour-to-hour problems); a full weight makes the slowest problems slower.
-    warm_margin: float = 1e-2
-    warm_weight: float = 0.3
-    #: initial distance of sigma_hi, sigma_lo above their kinks
-    slack_margin: float = 0.3
-    #: switch to pure Newton steps at tau once Mehrotra's target is below this times tau
-    switch_factor: float = 1.0
+    # The starting point and path-following settings (u0_fraction, t0_cold, t0_warm,
+    # warm_margin, warm_weight, slack_margin, switch_factor) are StartSettings' class
+    # attributes.
 
     def __init__(self, mpc: MPC, config: MPCConfig | None = None) -> None:
         self.mpc = mpc

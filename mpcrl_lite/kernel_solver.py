@@ -46,8 +46,18 @@ import numpy as np
 from . import _kernel as K
 from .config import MPCConfig
 from .mpc import MPC
-from .solution import BatchSolution, MPCSolution, Sensitivity
-from .theta import Theta
+from .solution import (
+    STATUS_BREAKDOWN,
+    STATUS_CONVERGED,
+    STATUS_MAX_ITER,
+    STATUS_NON_FINITE,
+    BackendBase,
+    BatchSolution,
+    MPCSolution,
+    Sensitivity,
+    StartSettings,
+    check_parameters,
+)
 
 __all__ = [
     "STATUS_BREAKDOWN",
@@ -61,15 +71,8 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-# The status strings of the batch solver (same meaning, same values).
-#: Status of a problem solved to the tolerance.
-STATUS_CONVERGED = "converged"
-#: Status of a problem that ran out of iterations.
-STATUS_MAX_ITER = "max_iter_reached"
-#: Status of a problem whose residual became NaN or infinite.
-STATUS_NON_FINITE = "non_finite"
-#: Status of a problem whose linear algebra broke down (singular or non-finite system).
-STATUS_BREAKDOWN = "linear_algebra_breakdown"
+# STATUS_* (those of every interior-point back-end, mpcrl_lite.solution) stay importable
+# from here.
 _STATUS = np.empty(4, dtype=object)  # status strings by the kernels' codes
 _STATUS[[K.CONVERGED, K.MAX_ITER, K.NON_FINITE, K.BREAKDOWN]] = (
     STATUS_CONVERGED, STATUS_MAX_ITER, STATUS_NON_FINITE, STATUS_BREAKDOWN)
@@ -101,7 +104,7 @@ def warm_up(verbose: bool = False) -> float:
     return took
 
 
-class KernelSolver:
+class KernelSolver(StartSettings, BackendBase):
     r"""Compiled primal-dual interior point for the MPC's barrier problem.
 
     Parameters
@@ -122,26 +125,18 @@ class KernelSolver:
 
     Notes
     -----
-    The interface is the batch solver's: :meth:`solve`, :meth:`solve_batch`,
+    The interface is the batch solver's: :meth:`solve` and :meth:`solve_batch` (from
+    :class:`~mpcrl_lite.solution.BackendBase`, around :meth:`_solve_parameters`; a warm
+    start ``x0`` is used exactly as by the batch solver: only ``b, s``, pushed into the
+    interior and blended with the cold start, non-finite entries ignored; failed rows have
+    the status :data:`STATUS_MAX_ITER`, :data:`STATUS_NON_FINITE` or
+    :data:`STATUS_BREAKDOWN` and keep their last iterate in ``x, lam, mu``),
     :meth:`sensitivity`, :meth:`shift`, :attr:`name`, :attr:`mpc`. The starting-point and
-    path-following settings are class attributes with the batch solver's names and values.
+    path-following settings are the batch solver's
+    (:class:`~mpcrl_lite.solution.StartSettings`).
     """
 
     name = "kernel"
-
-    #: cold start: ``b = s = u0_fraction * min(U, P / n)``
-    u0_fraction: float = 0.5
-    #: initial barrier value ``mean(mu S)`` relative to the price scale ``1 + max |q|``
-    t0_cold: float = 0.1
-    t0_warm: float = 0.1
-    #: warm start: ``b, s`` of ``x0`` kept this far from their bounds (relative to
-    #: ``min(U, P / n)``) and blended with the cold start with this weight
-    warm_margin: float = 1e-2
-    warm_weight: float = 0.3
-    #: initial distance of sigma_hi, sigma_lo above their kinks
-    slack_margin: float = 0.3
-    #: switch to pure Newton steps at tau once Mehrotra's target is below this times tau
-    switch_factor: float = 1.0
 
     def __init__(self, mpc: MPC, config: MPCConfig | None = None, method: str = "auto") -> None:
         if method not in ("auto", *_METHODS):
@@ -191,15 +186,8 @@ class KernelSolver:
         conditions of :attr:`MPC.qp_function <mpcrl_lite.mpc.MPC.qp_function>` there
         (sparse products, no dense matrices): the kernels' hand-written QP data and
         orderings must be the CasADi formulation's."""
-        m, n, N = self.mpc, self.n, self.N
-        rng = np.random.default_rng(12345)
-        theta = np.concatenate([
-            rng.uniform(0.05, 0.12, n), rng.uniform(-0.01, 0.01, n), rng.uniform(-5, 5, 2 * n),
-            rng.uniform(0, 50, n), rng.uniform(-50, 50, 2 * n),
-            rng.uniform(0, 50, n), rng.uniform(-50, 50, 2 * n),
-        ])
-        p = m.parameters(rng.uniform(0.0, 1.0, n), rng.uniform(5, 130, N),
-                         rng.uniform(5, 60, N), theta)
+        m = self.mpc
+        p = check_parameters(m, np.random.default_rng(12345))
         # with its own iteration limit: the check must not depend on config.max_iter
         sol = self._solve_parameters(p[None], None, self._opts(max_iter=500))[0]
         H, q, c, A, e, C, d = m.qp_function(sol.p)
@@ -225,78 +213,12 @@ class KernelSolver:
             )
 
     # ------------------------------------------------------------------ solving ----------
-    def solve(
-        self,
-        soc0: np.ndarray,
-        buy: np.ndarray,
-        sell: np.ndarray,
-        theta: Theta,
-        x0: np.ndarray | None = None,
-    ) -> MPCSolution:
-        """Solve one MPC: soc0 (n,), buy and sell (N,), theta; optional primal guess x0 (nx,)."""
-        sol = self.solve_batch(
-            np.asarray(soc0, float)[None], np.asarray(buy, float)[None],
-            np.asarray(sell, float)[None], theta,
-            None if x0 is None else np.asarray(x0, float)[None],
-        )
-        return sol[0]
-
-    def solve_batch(
-        self,
-        soc0: np.ndarray,
-        buy: np.ndarray,
-        sell: np.ndarray,
-        theta: Theta,
-        x0: np.ndarray | None = None,
-    ) -> BatchSolution:
-        """Solve one MPC per row.
-
-        Parameters
-        ----------
-        soc0
-            States, shape (days, n).
-        buy, sell
-            Price windows, shape (days, N).
-        theta
-            MPC parameters, shared by all rows.
-        x0
-            Optional primal warm start (days, nx), e.g. ``self.shift(previous.x)``; used when
-            ``config.warm_start`` is set, exactly as by the batch solver (only ``b, s``,
-            pushed into the interior and blended with the cold start; non-finite entries
-            ignored).
-
-        Returns
-        -------
-        BatchSolution
-            Exact barrier solutions in :mod:`mpcrl_lite.mpc`'s orderings; rows that failed
-            have ``success = False``, a status string (:data:`STATUS_MAX_ITER`,
-            :data:`STATUS_NON_FINITE`, :data:`STATUS_BREAKDOWN`) and the fallback action
-            zeros (:data:`~mpcrl_lite.solvers.FALLBACK`); their ``x, lam, mu`` are the last
-            iterate.
-
-        Raises
-        ------
-        ValueError
-            For inputs of the wrong shape or non-finite parameters (before any work).
-        """
-        t_start = time.perf_counter()
-        m = self.mpc
-        P = m.parameters(soc0, buy, sell, theta)
-        if P.ndim != 2:
-            raise ValueError(f"solve_batch expects soc0 (days, n); got soc0 {np.shape(soc0)}")
-        days = P.shape[0]
-        if x0 is not None:
-            x0 = np.asarray(x0, dtype=float)
-            if x0.size != days * m.nx:
-                raise ValueError(f"x0 has shape {x0.shape}; expected (days={days}, nx={m.nx})")
-            x0 = x0.reshape(days, m.nx) if self.config.warm_start else None
-        return self._solve_parameters(P, x0, self._opts(), t_start)
-
-    def _solve_parameters(self, P: np.ndarray, x0: np.ndarray | None, opts: np.ndarray,
-                          t_start: float | None = None) -> BatchSolution:
+    def _solve_parameters(self, P: np.ndarray, x0: np.ndarray | None,
+                          opts: np.ndarray | None = None) -> BatchSolution:
         """Run the kernel on parameter vectors ``P`` (days, np) from ``x0`` (days, nx) or
-        the cold start."""
-        t_start = time.perf_counter() if t_start is None else t_start
+        the cold start, with the option vector ``opts`` (default :meth:`_opts`)."""
+        t_start = time.perf_counter()
+        opts = self._opts() if opts is None else opts
         m, days = self.mpc, P.shape[0]
         warm = x0 is not None
         x0 = np.ascontiguousarray(x0) if warm else np.zeros((1, m.nx))
@@ -323,11 +245,12 @@ class KernelSolver:
         Returns
         -------
         Sensitivity
-            ``grad`` (days, n_theta, n), ``ok``, ``cond`` (the proxy ``||K||_max ||Z||_max``)
-            and ``reason``, as :class:`~mpcrl_lite.sensitivity.PolicySensitivity`.
+            As :class:`~mpcrl_lite.solution.Sensitivity` documents; a row is not ``ok``
+            (zero ``grad``, a ``reason``) where the solver failed, the point is not strictly
+            interior, or the KKT matrix is singular or ill-conditioned (``cond`` above
+            ``config.kkt_cond_max`` or an adjoint backward error above 1e-6).
         """
-        if isinstance(solution, MPCSolution):
-            solution = BatchSolution.stack([solution], 0.0, "")
+        solution = BatchSolution.of(solution)
         m = self.mpc
         days = len(solution)
         P = np.ascontiguousarray(np.atleast_2d(solution.p), dtype=float)

@@ -13,6 +13,11 @@ This module sits below all back-ends (:mod:`mpcrl_lite.ipopt_solver`,
 * :class:`SolverBackend` -- the interface a back-end offers to the closed loop;
 * :class:`BackendBase` -- that interface's ``solve`` and ``solve_batch`` written once, around
   the one method a back-end implements (its solving of a batch of parameter vectors);
+* :class:`StartSettings` -- the starting point and path-following settings of the barrier
+  interior point that the batch and compiled back-ends both run, with its status strings
+  ``STATUS_*``;
+* :func:`check_parameters` -- the parameter vector at which a back-end checks its own QP
+  data against the formulation;
 * :data:`FALLBACK` -- what the policy does when a solve fails.
 
 Failures never raise mid-run and never leak NaN: a problem that did not converge is marked
@@ -37,15 +42,31 @@ from .theta import Theta
 
 __all__ = [
     "FALLBACK",
+    "STATUS_BREAKDOWN",
+    "STATUS_CONVERGED",
+    "STATUS_MAX_ITER",
+    "STATUS_NON_FINITE",
     "BackendBase",
     "BatchSolution",
     "MPCSolution",
     "Sensitivity",
     "SolverBackend",
+    "StartSettings",
+    "check_parameters",
 ]
 
 #: Description of the action used when a solve fails.
 FALLBACK = "idle: b = s = 0 for every battery (the low-level controller still guards soc)"
+
+# Status strings of the interior-point back-ends (batch_solver, kernel_solver).
+#: Status of a problem solved to the tolerance.
+STATUS_CONVERGED = "converged"
+#: Status of a problem that ran out of iterations.
+STATUS_MAX_ITER = "max_iter_reached"
+#: Status of a problem whose residual became NaN or infinite.
+STATUS_NON_FINITE = "non_finite"
+#: Status of a problem whose linear algebra broke down (singular or non-finite system).
+STATUS_BREAKDOWN = "linear_algebra_breakdown"
 
 
 @dataclass(frozen=True)
@@ -149,6 +170,14 @@ class BatchSolution:
             solve_time=solve_time,
             backend=backend,
         )
+
+    @staticmethod
+    def of(solution: MPCSolution | BatchSolution) -> BatchSolution:
+        """``solution`` as a batch: a single solution becomes a batch of one, a batch is
+        returned as it is (what every sensitivity routine takes)."""
+        if isinstance(solution, MPCSolution):
+            return BatchSolution.stack([solution], 0.0, "")
+        return solution
 
 
 @dataclass(frozen=True)
@@ -267,9 +296,11 @@ class BackendBase:
         if P.ndim != 2:
             raise ValueError(f"solve_batch expects soc0 (days, n); got soc0 {np.shape(soc0)}")
         if x0 is not None:
-            x0 = np.asarray(x0, float).reshape(P.shape[0], self.mpc.nx)
-            if not self.config.warm_start:
-                x0 = None
+            days, nx = P.shape[0], self.mpc.nx
+            x0 = np.asarray(x0, float)
+            if x0.size != days * nx:
+                raise ValueError(f"x0 has shape {x0.shape}; expected (days={days}, nx={nx})")
+            x0 = x0.reshape(days, nx) if self.config.warm_start else None
         batch = replace(self._solve_parameters(P, x0),
                         solve_time=time.perf_counter() - t_start, backend=self.name)
         if batch.failures:
@@ -280,3 +311,43 @@ class BackendBase:
         """The problems of the parameter vectors ``P`` (days, np), with the warm start ``x0``
         (days, nx) or None; ``solve_time`` and ``backend`` are filled in by the caller."""
         raise NotImplementedError(f"{type(self).__name__} does not implement _solve_parameters")
+
+
+class StartSettings:
+    """Starting point and path-following settings of the barrier interior point, shared by
+    :class:`~mpcrl_lite.batch_solver.BatchSolver` and
+    :class:`~mpcrl_lite.kernel_solver.KernelSolver` (which run the same iteration).
+
+    Tuned on random states, prices and thetas; class attributes so that experiments can
+    change them on either solver class or instance.
+    """
+
+    #: cold start: ``b = s = u0_fraction * min(U, P / n)``
+    u0_fraction: float = 0.5
+    #: initial barrier value ``mean(mu S)`` relative to the price scale ``1 + max |q|``
+    t0_cold: float = 0.1
+    t0_warm: float = 0.1
+    #: warm start: ``b, s`` of ``x0`` kept this far from their bounds (relative to
+    #: ``min(U, P / n)``) and blended with the cold start with this weight. A primal-only
+    #: warm start helps an interior point little (about 8 % fewer iterations on the
+    #: experiment's hour-to-hour problems); a full weight makes the slowest problems slower.
+    warm_margin: float = 1e-2
+    warm_weight: float = 0.3
+    #: initial distance of sigma_hi, sigma_lo above their kinks
+    slack_margin: float = 0.3
+    #: switch to pure Newton steps at tau once Mehrotra's target is below this times tau
+    switch_factor: float = 1.0
+
+
+def check_parameters(mpc: MPC, rng: np.random.Generator) -> np.ndarray:
+    """A pseudo-random parameter vector (np,) of ``mpc`` -- state, price windows and a
+    convex theta away from theta0 -- at which a back-end checks its hand-written QP data
+    against :attr:`MPC.qp_function <mpcrl_lite.mpc.MPC.qp_function>`."""
+    n, N = mpc.n, mpc.N
+    theta = np.concatenate([
+        rng.uniform(0.05, 0.12, n), rng.uniform(-0.01, 0.01, n), rng.uniform(-5, 5, 2 * n),
+        rng.uniform(0, 50, n), rng.uniform(-50, 50, 2 * n),
+        rng.uniform(0, 50, n), rng.uniform(-50, 50, 2 * n),
+    ])
+    return mpc.parameters(rng.uniform(0.0, 1.0, n), rng.uniform(5, 130, N),
+                          rng.uniform(5, 60, N), theta)
