@@ -518,8 +518,34 @@ def test_runs_of_the_previous_version_load_and_resume(tmp_path, capsys, learner)
     # the previous version evaluated on one noise draw; the resumed run keeps it
     assert History.load(out).learning.eval_draws == 1
     assert cli(learn_args(reference, 2, learner, "--eval-draws", "1"), capsys)[0] == 0
-    assert_same_run(out, reference)
+    if learner:
+        assert_same_run(out, reference)
+    else:
+        # The previous version's 'auto' back-end was the numpy interior point; today's is the
+        # compiled kernel, which agrees with it to rounding (tests/test_kernel.py), not bit for
+        # bit: the resumed run equals a fresh one to the tolerance of that test (1e-8).
+        assert_close_run(out, reference, rtol=1e-8)
     assert (out / "manifest.json").exists()
+
+
+def assert_close_run(directory: Path, reference: Path, rtol: float) -> None:
+    """Every number of the two runs agrees to ``rtol`` (relative to each series' largest)."""
+    got, want = History.load(directory), History.load(reference)
+    for key in History.SERIES + History.EVAL_SERIES:
+        if key in ("wall_time_s", "update_info"):
+            continue
+        a = np.asarray(getattr(got, key), dtype=float)
+        b = np.asarray(getattr(want, key), dtype=float)
+        scale = max(1.0, float(np.nanmax(np.abs(b), initial=0.0)))
+        np.testing.assert_allclose(a, b, rtol=0, atol=rtol * scale, equal_nan=True,
+                                   err_msg=key)
+    np.testing.assert_allclose(got.theta_final, want.theta_final, rtol=0, atol=rtol)
+    for month in ("first_month", "last_month"):
+        for key in RECORD_ARRAYS:
+            a = np.asarray(getattr(getattr(got, month), key), dtype=float)
+            b = np.asarray(getattr(getattr(want, month), key), dtype=float)
+            np.testing.assert_allclose(a, b, rtol=0, atol=rtol * max(1.0, np.abs(b).max()),
+                                       err_msg=f"{month}.{key}")
 
 
 # -- defect 12: failed solves, NaN and overflow -------------------------------------------------
