@@ -25,6 +25,24 @@ def window(prices: np.ndarray, day: int, hour: int, N: int) -> np.ndarray:
     return flat[(day * prices.shape[1] + hour + np.arange(N)) % flat.size]
 
 
+def convex_theta(rng: np.random.Generator, n: int, quadratic: bool = False) -> Theta:
+    """A convex theta (phi1, T1 >= 0) away from theta0; ``quadratic`` gives strong soc
+    targets (phi1, T1 up to 1500), otherwise mild cost corrections."""
+    if quadratic:
+        target = rng.uniform(0.3, 0.7, (2, n))
+        phi1, T1 = rng.uniform(0.0, 1500.0, (2, n))
+        phi2, T2 = -2.0 * phi1 * target[0], -2.0 * T1 * target[1]
+    else:
+        phi1, T1 = rng.uniform(0.0, 20.0, n), rng.uniform(0.0, 50.0, n)
+        phi2, T2 = rng.uniform(-20.0, 20.0, n), rng.uniform(-50.0, 50.0, n)
+    return Theta(
+        alpha=rng.uniform(0.05, 0.12, n), delta=rng.uniform(-0.005, 0.005, n),
+        b=rng.uniform(-5.0, 5.0, n), s=rng.uniform(-5.0, 5.0, n),
+        phi1=phi1, phi2=phi2, phi3=rng.uniform(-5.0, 5.0, n),
+        T1=T1, T2=T2, T3=rng.uniform(-5.0, 5.0, n),
+    )
+
+
 def random_theta(
     rng: np.random.Generator, n: int, curvature: tuple[float, float] = (0.0, 1500.0)
 ) -> Theta:

@@ -16,6 +16,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import convex_theta
 
 import mpcrl_lite.batch_adjoint as adjoint
 from mpcrl_lite.batch_adjoint import grad_weights
@@ -53,24 +54,6 @@ def windows(prices: np.ndarray, hour: int, N: int, days: int) -> tuple[np.ndarra
     return buy, 0.5 * buy
 
 
-def scenario_theta(rng: np.random.Generator, n: int, quadratic: bool = False) -> Theta:
-    """A convex theta (phi1, T1 >= 0) away from theta0; ``quadratic`` gives strong soc
-    targets (phi1, T1 up to 1500), otherwise mild cost corrections."""
-    if quadratic:
-        target = rng.uniform(0.3, 0.7, (2, n))
-        phi1, T1 = rng.uniform(0.0, 1500.0, (2, n))
-        phi2, T2 = -2.0 * phi1 * target[0], -2.0 * T1 * target[1]
-    else:
-        phi1, T1 = rng.uniform(0.0, 20.0, n), rng.uniform(0.0, 50.0, n)
-        phi2, T2 = rng.uniform(-20.0, 20.0, n), rng.uniform(-50.0, 50.0, n)
-    return Theta(
-        alpha=rng.uniform(0.05, 0.12, n), delta=rng.uniform(-0.005, 0.005, n),
-        b=rng.uniform(-5.0, 5.0, n), s=rng.uniform(-5.0, 5.0, n),
-        phi1=phi1, phi2=phi2, phi3=rng.uniform(-5.0, 5.0, n),
-        T1=T1, T2=T2, T3=rng.uniform(-5.0, 5.0, n),
-    )
-
-
 def assert_sensitivities_match(grad: np.ndarray, ref: np.ndarray, rtol: float = 1e-5) -> None:
     """Entries larger than 1e-6 of their column's largest agree to ``rtol``."""
     colmax = np.abs(ref).max(axis=1, keepdims=True)
@@ -97,7 +80,7 @@ def test_qp_data_match_the_casadi_formulation(n, N, mpc_of):
     rng = np.random.default_rng(n * 100 + N)
     for soc0 in (rng.uniform(0, 1, n), np.full(n, 0.03), np.full(n, 0.97)):
         p = mpc.parameters(soc0, rng.uniform(5, 130, N), rng.uniform(5, 60, N),
-                           scenario_theta(rng, n, quadratic=True))
+                           convex_theta(rng, n, quadratic=True))
         ref = mpc.qp_data(p)
         data = kkt.batch_data(p[None])
         eye_x = kkt.to_internal_x(np.eye(mpc.nx))  # unit vectors as a batch
@@ -148,7 +131,7 @@ def test_dR_dtheta_matches_casadi(mpc_of):
     kkt = BatchSolver(mpc).kkt
     rng = np.random.default_rng(7)
     p = mpc.parameters(rng.uniform(0, 1, n), rng.uniform(5, 130, N), rng.uniform(5, 60, N),
-                       scenario_theta(rng, n))
+                       convex_theta(rng, n))
     y = rng.normal(size=mpc.kkt.ny)
     _, R_theta = mpc.kkt.jacobians(y, p, 1e-4)
     ref = -np.array(R_theta.full()).T  # (n_theta, ny)
@@ -193,7 +176,7 @@ def scenario(request, prices, mpc_of, ipopt_at):
     system = mpc.system
     rng = np.random.default_rng([SEED, sorted(SCENARIOS).index(name)])
     theta = (Theta.nominal(system) if kind == "nominal"
-             else scenario_theta(rng, system.n, quadratic=kind == "quadratic"))
+             else convex_theta(rng, system.n, quadratic=kind == "quadratic"))
     soc0 = rng.uniform(lo, hi, (days, system.n))
     buy, sell = windows(prices, hour, system.N, days)
     batch = BatchSolver(mpc, config)
@@ -256,7 +239,7 @@ def test_sensitivity_is_exact_where_the_grid_binds(prices, n, tau, mpc_of):
     residuals to 1e-8 relative (entries above 1e-6 of their column's largest)."""
     mpc = mpc_of(n=n, P_bar=0.5)
     rng = np.random.default_rng(30 + n)
-    theta = scenario_theta(rng, n, quadratic=n == 2)
+    theta = convex_theta(rng, n, quadratic=n == 2)
     buy, sell = windows(prices, 2 + 5 * n, mpc.N, 3)
     soc0 = rng.uniform(0.0, 0.5 if n == 2 else 1.0, (3, n))
     solver = BatchSolver(mpc, MPCConfig(tau=tau))
@@ -281,7 +264,7 @@ def test_structured_adjoint_for_many_agents(prices, monkeypatch, mpc_of):
     """The column-structured adjoint (used for many agents) agrees with the full one and,
     for n = 12, with the reference."""
     mpc = mpc_of(n=12, P_bar=6.0)
-    theta = scenario_theta(np.random.default_rng(12), 12)
+    theta = convex_theta(np.random.default_rng(12), 12)
     rng = np.random.default_rng(13)
     soc0 = rng.uniform(0.05, 0.95, (2, 12))
     buy, sell = windows(prices, 8, mpc.N, 2)
@@ -423,7 +406,7 @@ def test_sensitivity_of_mixed_thetas(prices, mpc_of):
     rng = np.random.default_rng(9)
     buy, sell = windows(prices, 14, mpc.N, 2)
     sols = [solver.solve_batch(rng.uniform(0.2, 0.8, (2, 3)), buy, sell, th)
-            for th in (Theta.nominal(mpc.system), scenario_theta(rng, 3))]
+            for th in (Theta.nominal(mpc.system), convex_theta(rng, 3))]
     mixed = BatchSolution.stack([sols[0][0], sols[1][0], sols[0][1]], 0.0, "batch")
     sens = solver.sensitivity(mixed)
     separate = [solver.sensitivity(s).grad for s in sols]

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import convex_theta
 
 from mpcrl_lite import _kernel
 from mpcrl_lite.batch_solver import BatchSolver
@@ -55,23 +56,6 @@ def windows(prices: np.ndarray, hour: int, N: int, days: int) -> tuple[np.ndarra
     idx = (np.arange(days)[:, None] * prices.shape[1] + hour + np.arange(N)) % flat.size
     buy = flat[idx]
     return buy, 0.5 * buy
-
-
-def random_theta(rng: np.random.Generator, n: int, quadratic: bool = False) -> Theta:
-    """A convex theta away from theta0 (strong soc targets with ``quadratic``)."""
-    if quadratic:
-        target = rng.uniform(0.3, 0.7, (2, n))
-        phi1, T1 = rng.uniform(0.0, 1500.0, (2, n))
-        phi2, T2 = -2.0 * phi1 * target[0], -2.0 * T1 * target[1]
-    else:
-        phi1, T1 = rng.uniform(0.0, 20.0, n), rng.uniform(0.0, 50.0, n)
-        phi2, T2 = rng.uniform(-20.0, 20.0, n), rng.uniform(-50.0, 50.0, n)
-    return Theta(
-        alpha=rng.uniform(0.05, 0.12, n), delta=rng.uniform(-0.005, 0.005, n),
-        b=rng.uniform(-5.0, 5.0, n), s=rng.uniform(-5.0, 5.0, n),
-        phi1=phi1, phi2=phi2, phi3=rng.uniform(-5.0, 5.0, n),
-        T1=T1, T2=T2, T3=rng.uniform(-5.0, 5.0, n),
-    )
 
 
 def column_relative(grad: np.ndarray, ref: np.ndarray) -> float:
@@ -123,7 +107,7 @@ def scenario(request, prices):
     system = mpc.system
     rng = np.random.default_rng([SEED, sorted(SCENARIOS).index(name)])
     theta = (Theta.nominal(system) if kind == "nominal"
-             else random_theta(rng, system.n, quadratic=kind == "quadratic"))
+             else convex_theta(rng, system.n, quadratic=kind == "quadratic"))
     soc0 = rng.uniform(lo, hi, (days, system.n))
     buy, sell = windows(prices, hour, system.N, days)
     batch = BatchSolver(mpc, config)
@@ -203,7 +187,7 @@ def test_sensitivity_is_exact_where_the_grid_binds(prices, n, tau, method):
     (entries above 1e-6 of their column's largest, to 1e-8 relative)."""
     mpc = cached_mpc(n=n, P_bar=0.5)
     rng = np.random.default_rng(30 + n)
-    theta = random_theta(rng, n, quadratic=n == 2)
+    theta = convex_theta(rng, n, quadratic=n == 2)
     buy, sell = windows(prices, 2 + 5 * n, mpc.N, 3)
     soc0 = rng.uniform(0.0, 0.5 if n == 2 else 1.0, (3, n))
     solver = KernelSolver(mpc, MPCConfig(tau=tau), method=method)
@@ -238,7 +222,7 @@ def test_factorisations_and_adjoints_agree(prices, n, N, P_bar):
     give the same solutions and sensitivities, also in sizes the tests above do not cover."""
     mpc = cached_mpc(n=n, N=N, P_bar=P_bar)
     rng = np.random.default_rng(n * 100 + N)
-    theta = random_theta(rng, n)
+    theta = convex_theta(rng, n)
     buy, sell = windows(prices, 8, N, 3)
     soc0 = rng.uniform(0.05, 0.95, (3, n))
     stage, agent = (KernelSolver(mpc, method=m) for m in METHODS)
@@ -365,7 +349,7 @@ def test_sensitivity_reports_unusable_solutions_and_mixed_thetas(prices):
     rng = np.random.default_rng(9)
     buy, sell = windows(prices, 14, mpc.N, 2)
     sols = [solver.solve_batch(rng.uniform(0.2, 0.8, (2, 3)), buy, sell, th)
-            for th in (Theta.nominal(mpc.system), random_theta(rng, 3))]
+            for th in (Theta.nominal(mpc.system), convex_theta(rng, 3))]
     mixed = BatchSolution.stack([sols[0][0], sols[1][0], sols[0][1]], 0.0, "kernel")
     sens = solver.sensitivity(mixed)
     separate = [solver.sensitivity(s).grad for s in sols]
