@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from .config import SystemConfig
+from .config import EXPLORATION_BOUNDS, SystemConfig, check_choice, check_real
 from .model import StepResult, project_action, sample_noise, step
 from .record import MonthRecord, Record
 from .theta import Theta
@@ -53,9 +53,12 @@ __all__ = [
     "Policy",
     "Projection",
     "SensitivityRecorder",
+    "bounded_exploration",
+    "check_margin",
     "draw_J",
     "evaluate_mpc",
     "evaluation_rng",
+    "exploration_center",
     "rollout",
     "run_month",
     "simulate",
@@ -125,28 +128,229 @@ DayHook = Callable[[Record], None]
 
 
 class GaussianExploration:
-    """Action hook: ``a = project_action(pi + std * N(0, I))``.
+    r"""Action hook: the policy's action plus a Gaussian exploration ``std * N(0, I)`` that
+    respects the input bounds and the grid limit.
 
-    The exploration is drawn from the loop's generator as one ``standard_normal`` of shape
-    ``(days, n)`` per hour, then projected onto the input bounds and the grid limit
-    (:func:`mpcrl_lite.model.project_action`).
+    The exploration ``e`` is drawn from the loop's generator as one ``standard_normal`` of
+    shape ``(days, n)`` per hour (times ``std``) and made feasible in one of three ways
+    (``bounds``, see :func:`bounded_exploration`):
+
+    * ``'symmetric'`` (default): each entry is clipped to the distance of :math:`\pi_i` to
+      its nearer input bound, then the vector is shrunk radially until both
+      :math:`\pi \pm e` respect the grid limit. The map is odd in ``e``, so the applied
+      exploration :math:`a - \pi` keeps a zero mean, as the compatible critic assumes
+      (:mod:`mpcrl_lite.lstd`);
+    * ``'radial'``: the whole vector is shrunk until both :math:`\pi \pm e` are feasible
+      (also odd, but one battery at a bound stops the exploration of all);
+    * ``'project'``: ``project_action(pi + e)``, the closest feasible action. Near a bound
+      this shifts the mean of :math:`a - \pi` inwards (+0.035 MW at theta0 with
+      ``std = 0.2``), which biases the critic.
 
     Parameters
     ----------
     std : float
         Standard deviation in MW, ``>= 0``.
     system : SystemConfig
+    bounds : {'symmetric', 'radial', 'project'}, default 'symmetric'
     """
 
-    def __init__(self, std: float, system: SystemConfig) -> None:
+    def __init__(
+        self, std: float, system: SystemConfig, bounds: str = "symmetric", margin: float = 0.0
+    ) -> None:
         if isinstance(std, bool) or not (np.isfinite(std) and std >= 0):
             raise ValueError(f"std={std!r}: expected a finite value >= 0")
         self.std, self.system = float(std), system
+        self.bounds = check_choice("bounds", bounds, EXPLORATION_BOUNDS)
+        self.margin = check_margin(margin, system)
+        if self.margin and self.bounds == "project":
+            raise ValueError(f"margin={margin!r} with bounds='project': a margin recentres a "
+                             "zero-mean exploration; expected margin=0 or another bounds")
+
+    def center(self, pi: np.ndarray) -> np.ndarray:
+        """The centre of the exploration for the policy's actions ``pi`` (days, n):
+        :func:`exploration_center` with this hook's margin."""
+        return exploration_center(pi, self.system, self.margin)
 
     def __call__(self, hour: int, pi: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
         if rng is None:
             raise ValueError("exploration needs rng: expected a numpy.random.Generator")
-        return project_action(pi + self.std * rng.standard_normal(pi.shape), self.system)
+        e = self.std * rng.standard_normal(pi.shape)
+        return bounded_exploration(self.center(pi), e, self.system, self.bounds)
+
+
+def check_margin(margin: float, system: SystemConfig) -> float:
+    """``margin`` as a float in ``[0, min(U_bar, P_bar) / 2]``, else an error naming it."""
+    limit = 0.5 * min(system.U_bar, system.P_bar)
+    return check_real("margin", margin, 0.0, limit)
+
+
+def exploration_center(pi: np.ndarray, system: SystemConfig, margin: float) -> np.ndarray:
+    r"""The point :math:`c(\pi)` the exploration is centred on: :math:`\pi` pulled inwards
+    so that it is at least ``margin`` away from every input bound and from both grid limits.
+
+    Each entry is clipped to :math:`\pm(U - m)`, then, on a side whose grid sum exceeds
+    :math:`P - m`, that side's entries are scaled down to the sum :math:`P - m`. A policy at
+    (or, with a barrier, very near) a bound still gets an exploration of about ``margin`` in
+    both directions around :math:`c`, with zero mean; with ``margin = 0``, :math:`c = \pi`.
+
+    The compatible critic then uses :math:`\psi = \nabla_\theta\pi\,(a - c(s))`, whose
+    mean is zero at every state, so the state part of the cost cannot leak into :math:`w`;
+    what it measures is :math:`\nabla_a Q_\pi` averaged over the actions explored around
+    :math:`c`, which differs from the value at :math:`\pi` by at most the curvature of
+    :math:`Q_\pi` times :math:`|c - \pi| \le` ``margin``-ish.
+
+    Parameters
+    ----------
+    pi : numpy.ndarray, shape ``(days, n)``
+        Feasible actions (an MPC's).
+    system : SystemConfig
+    margin : float
+        In MW, ``0 <= margin <= min(U_bar, P_bar) / 2``.
+
+    Returns
+    -------
+    numpy.ndarray, shape ``(days, n)``
+        ``pi`` itself when ``margin = 0``.
+    """
+    margin = check_margin(margin, system)
+    if margin == 0.0:
+        return pi
+    inner = system.U_bar - margin
+    c = np.clip(pi, -inner, inner)
+    room = system.P_bar - margin
+    for sign in (1.0, -1.0):
+        side = np.maximum(sign * c, 0.0)
+        total = side.sum(axis=-1, keepdims=True)
+        factor = np.where(total > room, room / np.maximum(total, room), 1.0)
+        c = np.where(side > 0.0, sign * side * factor, c)
+    return c
+
+
+def bounded_exploration(
+    pi: np.ndarray, e: np.ndarray, system: SystemConfig, bounds: str = "symmetric"
+) -> np.ndarray:
+    r"""The action :math:`a` commanded for the policy's :math:`\pi` and the exploration
+    :math:`e`, within the input bounds and the grid limit.
+
+    With ``U = U_bar``, ``P = P_bar`` and the feasible set
+    :math:`\mathcal A = \{x: |x_i| \le U,\ \sum_i x_i^+ \le P,\ \sum_i x_i^- \le P\}`:
+
+    * ``'radial'``: :math:`a = \pi + \min(1, t^\star(e))\, e` with
+      :math:`t^\star(e) = \max\{t: \pi + t e \in \mathcal A,\ \pi - t e \in \mathcal A\}`;
+    * ``'symmetric'``: the same radial step applied to :math:`e'`, where :math:`e'` is
+      :math:`e` slid along the grid faces it could reach (on such a face the batteries of the
+      face's side lose the mean of their :math:`e_i`, so the grid sum stays put, and idle
+      batteries, which could cross zero and join the sum, do not explore) and then clipped
+      entrywise to :math:`\pm(U - |\pi_i|)`; of this step and the radial one, the larger
+      (in norm) is taken. The grid limit is nearly active in most hours of an economic MPC
+      (84 % of the hours at theta0 have a slack below 0.1 MW), where the radial step keeps
+      2-12 % of the exploration's energy and this one about half;
+    * ``'project'``: :math:`a = \mathrm{proj}_{\mathcal A}(\pi + e)`
+      (:func:`mpcrl_lite.model.project_action`).
+
+    For the first two, :math:`a - \pi` is an odd function of :math:`e` (clipping to a
+    symmetric interval is odd, :math:`t^\star(-e) = t^\star(e)`, the sliding is linear in
+    :math:`e` on sets that depend on :math:`e` only through :math:`\max_i |e_i|`, and the
+    choice between two odd steps by their norms is even), so a symmetric
+    exploration (a Gaussian) stays symmetric, with zero mean, at every state; and
+    :math:`a \in \mathcal A` since :math:`\mathcal A` is convex and both :math:`\pi \pm t e`
+    lie in it. An infeasible :math:`\pi` (not an MPC's) is projected onto :math:`\mathcal A`
+    first and explored around that point.
+
+    Parameters
+    ----------
+    pi, e : numpy.ndarray, shape ``(days, n)``
+        The policy's action and the drawn exploration (MW).
+    system : SystemConfig
+        Provides ``U_bar`` and ``P_bar``.
+    bounds : {'symmetric', 'radial', 'project'}
+
+    Returns
+    -------
+    numpy.ndarray, shape ``(days, n)``
+    """
+    bounds = check_choice("bounds", bounds, EXPLORATION_BOUNDS)
+    if bounds == "project":
+        return project_action(pi + e, system)
+    base = project_action(pi, system)
+    step = _radial(base, e, system)
+    if bounds == "symmetric":
+        room = np.maximum(system.U_bar - np.abs(base), 0.0)  # distance to the nearer bound
+        along = _radial(base, np.clip(_along_grid_faces(base, e, system.P_bar), -room, room),
+                        system)
+        # the larger of two odd maps, judged by an even function of e, is odd
+        larger = (along**2).sum(axis=-1) > (step**2).sum(axis=-1)
+        step = np.where(larger[:, None], along, step)
+    # a guard against rounding only: base + step is feasible up to ~1e-16
+    return project_action(base + step, system)
+
+
+def _radial(base: np.ndarray, e: np.ndarray, system: SystemConfig) -> np.ndarray:
+    """``min(1, t*) e`` with ``t*`` the largest ``t`` for which both ``base + t e`` and
+    ``base - t e`` respect the input bounds and the grid limit (``base`` feasible)."""
+    room = np.maximum(system.U_bar - np.abs(base), 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.min(np.where(e != 0.0, room / np.abs(e), np.inf), axis=-1)
+    for c, d in ((base, e), (base, -e), (-base, e), (-base, -e)):
+        t = np.minimum(t, _largest_step(c, d, system.P_bar))
+    return np.minimum(t, 1.0)[:, None] * e
+
+
+def _along_grid_faces(base: np.ndarray, e: np.ndarray, total: float) -> np.ndarray:
+    """The exploration ``e`` (days, n) moved into the directions along which both
+    ``base + e`` and ``base - e`` keep the grid sums where they are, on the faces it could
+    reach.
+
+    With ``r = max_i |e_i|`` (per day), the buying face ``sum_i max(x_i, 0) <= total`` counts
+    as reachable when its slack at ``base`` is below ``r`` (likewise the selling face). On a
+    reachable face, the batteries at ``|base_i| <= r`` (they could cross zero and join the
+    sum) do not explore, and among those on the face's side (``base_i > r`` buying,
+    ``< -r`` selling) the mean of ``e`` is removed: ``e`` then slides along the face. The
+    sets depend on ``e`` only through ``r``, which is even in ``e``, and the map is linear
+    in ``e`` given them, so it is odd in ``e``.
+    """
+    r = np.abs(e).max(axis=-1, keepdims=True)
+    out = e.copy()
+    idle = np.abs(base) <= r
+    pinned = np.zeros(base.shape[0], dtype=bool)
+    for sign in (1.0, -1.0):
+        side = sign * base
+        reach = total - np.maximum(side, 0.0).sum(axis=-1) < r[:, 0]
+        pinned |= reach
+        members = reach[:, None] & (side > r)
+        count = members.sum(axis=-1, keepdims=True)
+        mean = np.where(members, out, 0.0).sum(axis=-1, keepdims=True) / np.maximum(count, 1)
+        out = np.where(members, out - mean, out)
+    return np.where(pinned[:, None] & idle, 0.0, out)
+
+
+def _largest_step(c: np.ndarray, d: np.ndarray, total: float) -> np.ndarray:
+    """Row-wise ``max{t in [0, 1]: sum_i max(c_i + t d_i, 0) <= total}`` for rows with
+    ``sum_i max(c_i, 0) <= total``.
+
+    ``f(t) = sum_i max(c_i + t d_i, 0)`` is convex and piecewise linear with kinks at
+    ``-c_i / d_i``; it is evaluated at 0, at the kinks inside ``(0, 1)`` and at 1, and the
+    crossing of ``total`` is found exactly by linear interpolation on the segment where it
+    happens. Shapes ``(days, n)`` -> ``(days,)``.
+    """
+    with np.errstate(divide="ignore", invalid="ignore"):
+        kinks = np.where(d != 0.0, -c / d, 1.0)
+    kinks = np.clip(np.where(np.isfinite(kinks), kinks, 1.0), 0.0, 1.0)
+    ts = np.sort(np.concatenate([np.zeros_like(kinks[:, :1]), kinks,
+                                 np.ones_like(kinks[:, :1])], axis=1), axis=1)  # (days, n+2)
+    f = np.maximum(c[:, None, :] + ts[:, :, None] * d[:, None, :], 0.0).sum(-1)
+    over = f > total
+    t = np.ones(c.shape[0])
+    rows = over.any(axis=1)
+    if rows.any():
+        j = np.argmax(over[rows], axis=1)  # first point above total; >= 1 as f(0) <= total
+        j = np.maximum(j, 1)
+        r = np.flatnonzero(rows)
+        t0, t1, f0, f1 = ts[r, j - 1], ts[r, j], f[r, j - 1], f[r, j]
+        slope = np.where(f1 > f0, f1 - f0, 1.0)
+        t[r] = np.clip(t0 + (total - f0) * (t1 - t0) / slope, 0.0, 1.0)
+        t[r] = np.where(f0 > total, t0, t[r])  # f(0) > total (rounding): no exploration
+    return t
 
 
 class Projection:
@@ -424,6 +628,8 @@ def run_month(
     sensitivities: bool = True,
     soc0: float | np.ndarray | None = None,
     on_hour: Sequence[HourHook] = (),
+    exploration_bounds: str = "symmetric",
+    exploration_margin: float = 0.0,
 ) -> MonthRecord:
     """One month of the MPC in closed loop; every day of ``prices`` advances together.
 
@@ -451,6 +657,9 @@ def run_month(
         Start of day soc (default ``system.soc0``), scalar, (n,) or (days, n).
     on_hour
         More hour hooks (see :func:`simulate`).
+    exploration_bounds, exploration_margin
+        How the exploration respects the bounds and where it is centred
+        (:class:`GaussianExploration`'s ``bounds`` and ``margin``).
 
     Returns
     -------
@@ -459,7 +668,8 @@ def run_month(
     """
     H = system.hours_per_day
     recorder = SensitivityRecorder() if sensitivities else None
-    explore = GaussianExploration(exploration_std, system) if exploration_std > 0 else None
+    explore = (GaussianExploration(exploration_std, system, exploration_bounds,
+                                   exploration_margin) if exploration_std > 0 else None)
     record = simulate(
         MPCPolicy(solver, theta, prices, sensitivities), prices.buy[:, :H], prices.sell[:, :H],
         system, rng=rng, soc0=soc0, explore=explore,

@@ -101,6 +101,7 @@ from typing import Any
 
 __all__ = [
     "BACKENDS",
+    "EXPLORATION_BOUNDS",
     "HOURS_PER_DAY",
     "OPTIMIZERS",
     "PAPER_EXPLORATION_STD",
@@ -464,9 +465,12 @@ class MPCConfig(_Config):
 
 
 #: Names of the DPG update rules (:data:`mpcrl_lite.update_rules.UPDATE_RULES`).
-OPTIMIZERS = ("sgd", "adam")
+OPTIMIZERS = ("sgd", "adam", "natural")
 #: Feature sets of the critic's value baseline (see :data:`mpcrl_lite.lstd.FEATURE_SETS`).
-VALUE_FEATURES = ("paper", "paper+hour", "hour")
+VALUE_FEATURES = ("paper", "paper+hour", "hour", "hour*paper")
+#: How the exploration respects the input bounds and the grid limit
+#: (:class:`mpcrl_lite.closed_loop.GaussianExploration`).
+EXPLORATION_BOUNDS = ("symmetric", "radial", "project")
 
 
 @dataclass(frozen=True)
@@ -490,6 +494,22 @@ class LearningConfig(_Config):
     """Std of the Gaussian noise added to the MPC action (projected onto the input bounds
     and the grid limit). The paper gives no value; with 0.05 or 0.1 the critic's action
     gradient is too noisy to learn from a month (its noise scales like 1 / std)."""
+    exploration_bounds: str = "symmetric"
+    """How the explored action respects the input bounds and the grid limit
+    (:func:`mpcrl_lite.closed_loop.bounded_exploration`). ``'symmetric'`` clips each entry
+    of the exploration to the distance of the policy's action to its nearer bound and shrinks
+    the vector until both ``pi + e`` and ``pi - e`` respect the grid limit: the map is odd in
+    ``e``, so the applied exploration keeps a zero mean, which the compatible critic assumes.
+    ``'project'`` (the closest feasible action to ``pi + e``, the earlier behaviour) shifts
+    the mean inwards near a bound (+0.035 MW in the first month at std 0.2) and biases the
+    critic; ``'radial'`` shrinks the whole vector (zero mean too, but one battery at a bound
+    stops the exploration of all)."""
+    exploration_margin: float = 0.0
+    """In MW: the exploration is centred on the policy's action pulled this far away from
+    the input bounds and the grid limits (:func:`mpcrl_lite.closed_loop.exploration_center`),
+    and the critic's compatible features use that centre. A battery whose action sits at a
+    bound then still explores both ways with zero mean. 0 centres on the action itself;
+    needs ``exploration_bounds`` other than ``'project'``."""
     ridge: float = 1e-6
     """Ridge (Tikhonov) term of the LSTD normal equations, relative to their scale."""
     value_features: str = "paper+hour"
@@ -504,6 +524,33 @@ class LearningConfig(_Config):
     step)."""
     grad_clip: float | None = None
     """If set, rescale each update so that ||step|| <= grad_clip."""
+    tie_agents: bool = False
+    """Learn one value of each part of theta for all batteries: the gradient is averaged
+    over the agents before the update, so batteries that start alike stay alike. The
+    batteries of :class:`SystemConfig` are identical, and so is the role of each in the
+    cost, so the best causal policy treats them alike; tying them triples the data behind
+    each parameter and rules out one battery drifting alone into a corner. False learns
+    every battery's own (the paper's 24 parameters)."""
+    natural_damping: float = 1e-3
+    """``optimizer='natural'`` only: relative damping ``lambda`` of the metric,
+    ``(F + lambda diag F)^-1 g`` (:func:`mpcrl_lite.update_rules.natural_direction`)."""
+    step_warmup: int = 0
+    """Months of a linear warm-up of the step size, ``step_size * min(1, t / step_warmup)``
+    at update ``t``: the first gradients are the noisiest relative to what they teach, and
+    Adam's first directions are close to their signs whatever their noise; 0 starts at the
+    full step size."""
+    step_decay: int = 0
+    """Months ``T`` of a harmonic decay of the step size, ``step_size / (1 + (t - 1) / T)``
+    at update ``t`` (it has halved after ``T`` updates); 0 keeps it constant."""
+    max_policy_change: float | None = None
+    """If set, a trust region on the change of the policy: each update is shrunk so that the
+    RMS change of the action it causes to first order, ``sqrt(step' F step)`` with
+    ``F = mean(grad_pi grad_pi')`` of the month, is at most this many MW."""
+    average_months: int = 0
+    """If > 0, the parameters in use are an exponential average of the optimizer's raw
+    iterates over about this many months (the running mean for the first ones): primal
+    (Polyak) averaging, which damps the month-to-month noise of theta. 0 uses the raw
+    iterates (the paper)."""
     keep_well_posed: bool = True
     """Project theta after each update: theta_alpha >= alpha_min and phi1, T1 >= 0 (the MPC
     then stays a convex QP with a unique solution)."""
@@ -533,12 +580,30 @@ class LearningConfig(_Config):
         set_("months", check_int("months", self.months, 1))
         set_("days_per_month", check_int("days_per_month", self.days_per_month, 1))
         set_("exploration_std", check_real("exploration_std", self.exploration_std, 0.0))
+        set_("exploration_bounds",
+             check_choice("exploration_bounds", self.exploration_bounds, EXPLORATION_BOUNDS))
+        set_("exploration_margin", check_real("exploration_margin", self.exploration_margin,
+                                              0.0))
+        if self.exploration_margin and self.exploration_bounds == "project":
+            raise ValueError(
+                f"exploration_margin={self.exploration_margin!r} with exploration_bounds="
+                "'project': the margin centres a zero-mean exploration; expected 0 or "
+                "exploration_bounds='symmetric' or 'radial'"
+            )
         set_("ridge", check_real("ridge", self.ridge, 0.0))
         set_("value_features", check_choice("value_features", self.value_features, VALUE_FEATURES))
         set_("learn_constants", check_bool("learn_constants", self.learn_constants))
         set_("optimizer", check_choice("optimizer", self.optimizer, OPTIMIZERS))
         if self.grad_clip is not None:
             set_("grad_clip", check_real("grad_clip", self.grad_clip, 0.0, low_open=True))
+        set_("tie_agents", check_bool("tie_agents", self.tie_agents))
+        set_("natural_damping", check_real("natural_damping", self.natural_damping, 0.0))
+        set_("step_warmup", check_int("step_warmup", self.step_warmup, 0))
+        set_("step_decay", check_int("step_decay", self.step_decay, 0))
+        if self.max_policy_change is not None:
+            set_("max_policy_change", check_real("max_policy_change", self.max_policy_change,
+                                                 0.0, low_open=True))
+        set_("average_months", check_int("average_months", self.average_months, 0))
         set_("keep_well_posed", check_bool("keep_well_posed", self.keep_well_posed))
         set_("alpha_min", check_real("alpha_min", self.alpha_min, 0.0, low_open=True))
         set_("seed", check_int("seed", self.seed, 0))

@@ -62,6 +62,7 @@ __all__ = [
     "learnable_mask",
     "part_scales",
     "policy_gradient",
+    "policy_metric",
 ]
 
 
@@ -129,6 +130,38 @@ def policy_gradient(grad_pi: np.ndarray, w: np.ndarray) -> np.ndarray:
     return np.einsum("sti,si->t", samples, action_gradient) / samples.shape[0]
 
 
+def policy_metric(grad_pi: np.ndarray) -> np.ndarray:
+    r"""Sample estimate of the metric :math:`F = \mathbb E[\nabla_\theta\pi\,
+    \nabla_\theta\pi^\top]` of the policy's actions.
+
+    A change :math:`\Delta\theta` moves the actions by :math:`\nabla_\theta\pi^\top
+    \Delta\theta` to first order, so :math:`\Delta\theta^\top F \Delta\theta` is the mean
+    square change of the action over the samples. With the compatible critic the policy
+    gradient is :math:`F w` (:func:`policy_gradient`), and :math:`F` plays the part of the
+    Fisher information in the natural gradient :math:`F^{-1}\nabla_\theta J = w`
+    (:class:`mpcrl_lite.update_rules.NaturalGradient`).
+
+    Parameters
+    ----------
+    grad_pi : array, shape ``(..., n_theta, n)``
+        Policy sensitivities of the samples; the leading dimensions are averaged over.
+
+    Returns
+    -------
+    F : array, shape ``(n_theta, n_theta)``
+        Symmetric positive semi-definite.
+    """
+    grad_pi = np.asarray(grad_pi, dtype=float)
+    if grad_pi.ndim < 2:
+        raise ValueError(f"grad_pi has shape {grad_pi.shape}; expected (..., n_theta, n)")
+    n_theta, n = grad_pi.shape[-2:]
+    samples = grad_pi.reshape(-1, n_theta, n)
+    if samples.shape[0] == 0:
+        raise ValueError(f"grad_pi has shape {grad_pi.shape}: no samples")
+    flat = samples.transpose(1, 0, 2).reshape(n_theta, -1)  # (n_theta, S n)
+    return flat @ flat.T / samples.shape[0]
+
+
 def learnable_mask(n: int, learn_constants: bool = False) -> np.ndarray:
     """Which entries of the flat theta vector are updated.
 
@@ -157,7 +190,9 @@ class DPGUpdater:
     ----------
     config : LearningConfig
         Uses ``step_size``, ``optimizer``, ``learn_constants``, ``grad_clip``,
-        ``keep_well_posed`` and ``alpha_min``.
+        ``keep_well_posed``, ``alpha_min``, ``tie_agents``, ``natural_damping``,
+        ``step_warmup``, ``step_decay``,
+        ``max_policy_change`` and ``average_months``.
     n : int
         Number of agents (theta has ``10 n`` entries).
     system_alpha : float
@@ -201,22 +236,47 @@ class DPGUpdater:
     update*, not a multiplier of the gradient: the paper's 5e-8 would leave theta
     practically unchanged; :data:`ADAM_STEP_SIZE` = 1e-2 is a sensible start.
 
-    **Mask.** Entries outside :func:`learnable_mask` have their gradient zeroed before
-    anything else, so they never change (and Adam's moments for them stay zero).
+    With ``'natural'`` (:class:`~mpcrl_lite.update_rules.NaturalGradient`) it is the
+    natural gradient in the metric of the policy's actions, normalised so that
+    ``step_size`` is the RMS change of the action per update in MW; the metric
+    :math:`F = \mathbb E[\nabla_\theta\pi\nabla_\theta\pi^\top]` of the month is given
+    with :meth:`observe` before each :meth:`step`.
+
+    **Mask.** Entries outside :func:`learnable_mask` have their gradient (and their rows and
+    columns of the metric) zeroed before anything else, so they never change (and Adam's
+    moments for them stay zero).
+
+    **Tying.** With ``tie_agents`` the gradient (and the metric) are projected onto the
+    parameters shared by all agents: each part's gradient is replaced by its mean over the
+    agents, so every agent's entry of a part moves alike.
+
+    **Step size.** ``step_size`` at update ``t``, times ``min(1, t / step_warmup)`` when
+    ``step_warmup > 0`` and divided by ``1 + (t - 1) / step_decay`` when ``step_decay > 0``.
 
     **Clipping.** If ``grad_clip`` is set and :math:`\|\text{step}\|_2 >` ``grad_clip``, the
     step is rescaled to norm ``grad_clip`` (direction kept). Adam's moments still see the
     raw gradient.
 
+    **Trust region.** If ``max_policy_change`` is set, the step is rescaled (direction kept)
+    so that :math:`\sqrt{\text{step}^\top F\,\text{step}}`, the RMS change of the action
+    to first order, is at most ``max_policy_change`` MW (needs :meth:`observe`).
+
     **Projection.** If ``keep_well_posed``: ``alpha >= alpha_min``, ``phi1 >= 0``,
     ``T1 >= 0`` entrywise, which keeps the MPC a convex QP with a unique solution.
 
-    After each :meth:`step`, :attr:`last_info` records ``step`` (count), ``grad_norm`` (of
-    the masked gradient), ``grad_norm_scaled`` (of the masked gradient times ``scale``: the
-    gradient with respect to theta measured in its parts' typical magnitudes, which does not
-    depend on their units), ``raw_step_norm``, ``step_norm`` (after clipping), ``clipped``,
-    ``projected`` (names like ``'phi1[2]'`` of the entries moved by the projection) and
-    ``projection_norm``.
+    **Averaging.** If ``average_months = M > 0``, the steps move a raw iterate
+    :math:`\rho` (kept in the state) and the parameters returned, the ones in use, are its
+    running average :math:`\theta_{t} = \theta_{t-1} + (\rho_t - \theta_{t-1}) /
+    \min(t + 1, M)`; the projected set is convex, so the average stays in it.
+
+    After each :meth:`step`, :attr:`last_info` records ``step`` (count), ``step_size`` (of
+    this update), ``grad_norm`` (of the masked gradient), ``grad_norm_scaled`` (of the
+    masked gradient times ``scale``: the gradient with respect to theta measured in its parts'
+    typical magnitudes, which does not depend on their units), ``raw_step_norm``,
+    ``step_norm`` (after clipping and the trust region), ``clipped``, ``projected`` (names
+    like ``'phi1[2]'`` of the entries moved by the projection), ``projection_norm`` and,
+    after :meth:`observe`, ``policy_change`` (the RMS change of the action, in MW, of the
+    parameters in use) and ``trust_region`` (True if it shrank the step).
     """
 
     def __init__(
@@ -235,9 +295,12 @@ class DPGUpdater:
         self.n = int(n)
         self.system_alpha = check_real("system_alpha", system_alpha, 0.0, low_open=True)
         self.scale = self._scale_vector(scale or {}, price_scale)
-        self.rule: UpdateRule = make_update_rule(
-            config.optimizer, len(PARTS) * self.n, scale=self.scale, betas=betas, eps=eps
-        )
+        options: dict[str, Any] = {"scale": self.scale, "eps": eps,
+                                   "damping": config.natural_damping}
+        if config.optimizer == "adam" or betas != ADAM_BETAS:
+            options["betas"] = betas
+        self.rule: UpdateRule = make_update_rule(config.optimizer, len(PARTS) * self.n,
+                                                 **options)
         if config.keep_well_posed and config.alpha_min >= system_alpha:
             warnings.warn(
                 f"alpha_min={config.alpha_min:g} >= system alpha={system_alpha:g}: the "
@@ -275,11 +338,33 @@ class DPGUpdater:
 
     # -- state ----------------------------------------------------------------------------
     def reset(self) -> None:
-        """Forget the optimizer state (step count and the rule's state, e.g. Adam's
-        moments)."""
+        """Forget the optimizer state (step count, the rule's state, e.g. Adam's moments,
+        the raw iterate of the averaging and an observed metric)."""
         self.step_count = 0
         self.rule.reset()
+        self.raw: np.ndarray | None = None
+        self._metric: np.ndarray | None = None
         self.last_info: dict[str, Any] = {}
+
+    def observe(self, grad_pi: np.ndarray) -> None:
+        r"""Give the next :meth:`step` the month's metric
+        :math:`F = \mathbb E[\nabla_\theta\pi\nabla_\theta\pi^\top]` (:func:`policy_metric`)
+        of the samples its gradient was estimated from.
+
+        Needed by ``optimizer='natural'`` and ``max_policy_change``; otherwise it only adds
+        ``policy_change`` to :attr:`last_info`. The metric is used by one step.
+
+        Parameters
+        ----------
+        grad_pi : array, shape ``(..., 10 n, n)``
+        """
+        metric = policy_metric(grad_pi)
+        if metric.shape != (self.mask.size, self.mask.size):
+            raise ValueError(f"grad_pi has shape {np.shape(grad_pi)}; expected "
+                             f"(..., {self.mask.size}, n) (10 n rows of theta)")
+        if not np.all(np.isfinite(metric)):
+            raise ValueError("grad_pi contains non-finite values (nan or inf)")
+        self._metric = np.where(np.outer(self.mask, self.mask), metric, 0.0)
 
     def state_dict(self) -> dict[str, Any]:
         """JSON-friendly state (lists, floats, ints, str): enough to resume exactly.
@@ -290,18 +375,24 @@ class DPGUpdater:
         """
         arrays = self.rule.state_arrays()
         zeros = np.zeros(len(PARTS) * self.n)
-        return {
+        state = {
             "optimizer": self.config.optimizer,
             "n": self.n,
             "step_count": int(self.step_count),
             **{key: arrays.get(key, zeros).tolist() for key in STATE_KEYS},
         }
+        if self.config.average_months:  # the raw iterate, only when averaging
+            state["theta_raw"] = None if self.raw is None else self.raw.tolist()
+        return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore a :meth:`state_dict` (same optimizer and ``n`` required)."""
+        """Restore a :meth:`state_dict` (same optimizer and ``n`` required). ``theta_raw``
+        (the averaging's raw iterate) is optional: without it the averaging restarts from
+        the parameters of the next step."""
         expected = {"optimizer", "n", "step_count", *STATE_KEYS}
-        if set(state) != expected:
-            raise ValueError(f"state has keys {sorted(state)}; expected {sorted(expected)}")
+        if not expected <= set(state) <= expected | {"theta_raw"}:
+            raise ValueError(f"state has keys {sorted(state)}; expected {sorted(expected)} "
+                             "(and optionally 'theta_raw')")
         if state["optimizer"] != self.config.optimizer:
             raise ValueError(
                 f"state optimizer={state['optimizer']!r}; expected {self.config.optimizer!r}"
@@ -320,8 +411,15 @@ class DPGUpdater:
                     f"state {key!r} has shape {value.shape}; expected ({size},) finite numbers"
                 )
             moments[key] = value
+        raw = state.get("theta_raw")
+        if raw is not None:
+            raw = np.asarray(raw, dtype=float)
+            if raw.shape != (size,) or not np.all(np.isfinite(raw)):
+                raise ValueError(f"state 'theta_raw' has shape {raw.shape}; expected ({size},) "
+                                 "finite numbers")
         self.step_count = count
         self.rule.load_state_arrays(moments)
+        self.raw = raw
 
     # -- update ---------------------------------------------------------------------------
     def step(self, theta: Theta, grad: np.ndarray) -> Theta:
@@ -347,28 +445,75 @@ class DPGUpdater:
         if not np.all(np.isfinite(grad)):
             raise ValueError("grad contains non-finite values (nan or inf)")
         g = np.where(self.mask, grad, 0.0)
+        config = self.config
+        metric = self._metric
+        if config.tie_agents:  # the gradient and metric of the shared parameters
+            g = self._tie(g)
+            if metric is not None:
+                metric = self._tie(self._tie(metric).T).T
+        if metric is None and not g.any():
+            metric = np.zeros((g.size, g.size))  # nothing was learned: no metric is needed
+        if metric is None and (self.rule.NEEDS_METRIC or config.max_policy_change):
+            raise ValueError(
+                f"optimizer={config.optimizer!r}, max_policy_change="
+                f"{config.max_policy_change!r}: the step needs the month's metric; call "
+                "observe(grad_pi) first"
+            )
         self.step_count += 1
-        direction = self.rule.direction(g, self.step_count)
-        step = self.config.step_size * direction
+        direction = self.rule.direction(g, self.step_count, metric=metric)
+        if config.tie_agents:  # exactly, not only up to the rounding of a solve
+            direction = self._tie(direction)
+        step_size = config.step_size
+        if config.step_warmup:
+            step_size *= min(1.0, self.step_count / config.step_warmup)
+        if config.step_decay:
+            step_size /= 1.0 + (self.step_count - 1) / config.step_decay
+        step = step_size * direction
         raw_norm = float(np.linalg.norm(step))
-        clip = self.config.grad_clip
+        clip = config.grad_clip
         clipped = clip is not None and raw_norm > clip
         if clipped:
             step = step * (clip / raw_norm)
-        moved = theta.to_vector() - step
-        new = np.maximum(moved, self._lower) if self.config.keep_well_posed else moved
-        hit = new != moved
+        shrunk = False
+        if config.max_policy_change and metric is not None:
+            change = float(np.sqrt(max(step @ metric @ step, 0.0)))
+            shrunk = change > config.max_policy_change
+            if shrunk:
+                step = step * (config.max_policy_change / change)
+        current = theta.to_vector()
+        start = current if self.raw is None or not config.average_months else self.raw
+        moved = start - step
+        raw = np.maximum(moved, self._lower) if config.keep_well_posed else moved
+        hit = raw != moved
+        if config.average_months:
+            self.raw = raw
+            new = current + (raw - current) / min(self.step_count + 1, config.average_months)
+        else:
+            new = raw
         self.last_info = {
             "step": self.step_count,
+            "step_size": float(step_size),
             "grad_norm": float(np.linalg.norm(g)),
             "grad_norm_scaled": float(np.linalg.norm(self.scale * g)),
             "raw_step_norm": raw_norm,
             "step_norm": float(np.linalg.norm(step)),
             "clipped": bool(clipped),
             "projected": [name for name, h in zip(self._names, hit) if h],
-            "projection_norm": float(np.linalg.norm(new - moved)),
+            "projection_norm": float(np.linalg.norm(raw - moved)),
         }
+        if self._metric is not None:
+            change = new - current
+            self.last_info["policy_change"] = float(np.sqrt(max(change @ self._metric @ change,
+                                                                0.0)))
+            self.last_info["trust_region"] = bool(shrunk)
+        self._metric = None
         return Theta.from_vector(new, self.n)
+
+    def _tie(self, x: np.ndarray) -> np.ndarray:
+        """The mean over the agents of each part, for every agent: the orthogonal projection
+        onto parameters shared by all agents (along axis 0 of ``x``, shape ``(10 n, ...)``)."""
+        parts = x.reshape((len(PARTS), self.n) + x.shape[1:])
+        return np.broadcast_to(parts.mean(axis=1, keepdims=True), parts.shape).reshape(x.shape)
 
     def __repr__(self) -> str:
         c = self.config

@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-from .closed_loop import evaluate_mpc, run_month
+from .closed_loop import evaluate_mpc, exploration_center, run_month
 from .config import LearningConfig, MPCConfig, SystemConfig
 from .dpg import DPGUpdater
 from .history import History
@@ -119,10 +119,14 @@ class Experiment(Learner):
         on all batteries and the stage cost); returns ``(grad, skipped, info)``."""
         use = record.sens_ok & record.solver_ok
         skipped = int(use.size - np.count_nonzero(use))
+        # the critic's compatible features are a minus the exploration's centre (zero mean)
+        center = exploration_center(record.policy, self.system, self.learning.exploration_margin)
         grad, info = lstd_policy_gradient(
-            record.soc, record.a, record.policy, record.grad_pi, record.stage_cost, use,
+            record.soc, record.a, center, record.grad_pi, record.stage_cost, use,
             self.learning, self.system.gamma,
         )
+        if use.any():
+            self.updater.observe(record.grad_pi[use])  # the metric of the natural gradient
         return grad, skipped, info
 
     # -- evaluation -----------------------------------------------------------------------
@@ -167,6 +171,8 @@ class Experiment(Learner):
         record = run_month(
             theta_used, self.solver, self.prices, self.system, self.rng,
             exploration_std=self.learning.exploration_std, sensitivities=True,
+            exploration_bounds=self.learning.exploration_bounds,
+            exploration_margin=self.learning.exploration_margin,
         )
         grad, skipped, info = self.learning_step(record)
         self.theta = self.updater.step(theta_used, grad)

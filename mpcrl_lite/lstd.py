@@ -51,9 +51,19 @@ Value features
 The state features :math:`\Phi` of the baseline :math:`V^v(s) = \Phi(s)^\top v` live here,
 one set per name of :data:`mpcrl_lite.config.VALUE_FEATURES` (:data:`FEATURE_SETS`): the
 paper's :math:`[soc_i^2, soc_i, 1]` (:func:`value_features`), the same with the constant
-replaced by one indicator per hour of the day, and the hour indicators alone
+replaced by one indicator per hour of the day, the hour indicators alone, and the paper's
+features once per hour (``'hour*paper'``, a quadratic in soc for each hour of the day)
 (:func:`state_features` for states with given hours, :func:`value_baseline_features` for the
 ``(H + 1, D, n)`` states of a recorded period).
+
+Why the hour matters for the *gradient*, not only for the baseline's variance: at the LSTD
+fixed point the critic's action gradient :math:`\nabla_\theta\pi^\top w` is the least squares
+fit of :math:`\nabla_a \tilde L + \gamma\,\alpha\,\partial V^v / \partial\,\mathrm{soc}(s^+)`
+(the successor is bootstrapped with the fitted :math:`V^v`). With ``'paper'`` or
+``'paper+hour'`` the slope :math:`\partial V^v / \partial\,\mathrm{soc}` is the same at every
+hour, while the value of a unit of charge changes through the day (high before the evening
+peak, nothing at the end of the day, which restarts at ``soc0``); the policy gradient
+inherits that error. ``'hour*paper'`` gives every hour its own slope and curvature.
 """
 
 from __future__ import annotations
@@ -80,6 +90,7 @@ _DESCRIPTIONS = {
     "paper": "the paper's [soc_i^2, soc_i, 1]",
     "paper+hour": "soc_i^2, soc_i and one indicator per hour",
     "hour": "one indicator per hour of the day",
+    "hour*paper": "the paper's [soc_i^2, soc_i, 1] for each hour of the day",
 }
 #: The value-feature sets by name (the names of :data:`mpcrl_lite.config.VALUE_FEATURES`),
 #: with a short description.
@@ -122,14 +133,16 @@ def state_features(
     kind : str
         ``'paper'``: :func:`value_features`; ``'paper+hour'``: :math:`[soc_i^2, soc_i, e_k]`,
         the paper's constant replaced by the indicator :math:`e_k` of the hour;
-        ``'hour'``: :math:`e_k` alone (a table over the hours).
+        ``'hour'``: :math:`e_k` alone (a table over the hours); ``'hour*paper'``:
+        :math:`e_k \otimes [soc_i^2, soc_i, 1]`, the paper's features once per hour (all
+        zero at an hour outside the range).
     hours_per_day : int, default 24
         Number of hour indicators.
 
     Returns
     -------
-    array, shape ``(..., 2 n + 1)``, ``(..., 2 n + hours_per_day)`` or
-    ``(..., hours_per_day)``
+    array, shape ``(..., 2 n + 1)``, ``(..., 2 n + hours_per_day)``,
+    ``(..., hours_per_day)`` or ``(..., hours_per_day (2 n + 1))`` (hour-major)
     """
     if kind not in FEATURE_SETS:
         raise ValueError(f"kind={kind!r}: expected one of {list(FEATURE_SETS)}")
@@ -147,6 +160,9 @@ def state_features(
     onehot = (hour[..., None] == np.arange(hours_per_day)).astype(float)
     if kind == "hour":
         return onehot
+    if kind == "hour*paper":
+        product = onehot[..., :, None] * paper[..., None, :]
+        return product.reshape(batch + (hours_per_day * paper.shape[-1],))
     return np.concatenate([paper[..., :-1], onehot], axis=-1)
 
 

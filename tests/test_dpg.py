@@ -24,6 +24,7 @@ from mpcrl_lite.dpg import (
     learnable_mask,
     part_scales,
     policy_gradient,
+    policy_metric,
 )
 from mpcrl_lite.theta import CONSTANT_PARTS, PARTS, Theta
 from mpcrl_lite.update_rules import (
@@ -47,8 +48,16 @@ def theta_from(seed: int = 0) -> Theta:
 
 
 def updater(**changes) -> DPGUpdater:
-    base = {"step_size": 0.1, "keep_well_posed": False, "optimizer": "sgd", **changes}
+    base = {"step_size": 0.1, "keep_well_posed": False, "optimizer": "sgd",
+            "tie_agents": False, **changes}
     return DPGUpdater(LearningConfig(**base), N, ALPHA)
+
+
+def sensitivities(seed: int, samples: int = 40) -> np.ndarray:
+    """Random policy sensitivities (samples, 10 N, N), zero for the constants phi3, T3."""
+    G = np.random.default_rng(seed).normal(size=(samples, 10 * N, N))
+    G[:, ~learnable_mask(N)] = 0.0
+    return G
 
 
 # -- policy_gradient -------------------------------------------------------------------------
@@ -279,13 +288,16 @@ def test_adam_rule_keeps_the_operation_order_of_its_formula():
 
 @pytest.mark.parametrize("optimizer", OPTIMIZERS)
 def test_updater_moves_theta_by_step_size_times_the_rules_direction(optimizer):
-    config = LearningConfig(optimizer=optimizer, step_size=0.03, keep_well_posed=False)
+    config = LearningConfig(optimizer=optimizer, step_size=0.03, keep_well_posed=False,
+                            tie_agents=False, natural_damping=0.0)
     up = DPGUpdater(config, N, ALPHA)
-    twin = make_update_rule(optimizer, 10 * N, scale=up.scale)
+    twin = make_update_rule(optimizer, 10 * N, scale=up.scale, damping=0.0)
     theta = theta_from(14)
     for t, g in enumerate(np.random.default_rng(15).normal(size=(5, 10 * N)), start=1):
+        G = sensitivities(100 + t)
+        up.observe(G)  # the metric, used by the natural gradient only
         new = up.step(theta, g)
-        direction = twin.direction(np.where(up.mask, g, 0.0), t)
+        direction = twin.direction(np.where(up.mask, g, 0.0), t, metric=policy_metric(G))
         np.testing.assert_array_equal(new.to_vector(), theta.to_vector() - 0.03 * direction)
         theta = new
 
@@ -296,7 +308,10 @@ def test_make_update_rule_passes_each_rule_only_its_options():
     assert sgd.direction(g, 1) is g and sgd.state_arrays() == {}
     adam = make_update_rule("adam", 4, scale=np.ones(4), betas=(0.5, 0.5), eps=1.0)
     assert adam.betas == (0.5, 0.5) and adam.eps == 1.0
-    with pytest.raises(ValueError, match=r"^optimizer='rmsprop': expected one of 'sgd', 'adam'"):
+    natural = make_update_rule("natural", 4, scale=np.ones(4), betas=(0.5, 0.5), damping=0.1)
+    assert natural.betas == (0.5, 0.5) and natural.damping == 0.1
+    with pytest.raises(ValueError, match=r"^optimizer='rmsprop': expected one of 'sgd', 'adam', "
+                                         r"'natural'"):
         make_update_rule("rmsprop", 4)
     with pytest.raises(ValueError, match=r"betas\[0\]=1.0: expected a value in \[0, 1\)"):
         Adam(4, np.ones(4), betas=(1.0, 0.5))
@@ -309,6 +324,7 @@ def test_make_update_rule_passes_each_rule_only_its_options():
 @pytest.mark.parametrize("optimizer", OPTIMIZERS)
 def test_checkpoint_layout_is_one_for_every_rule(optimizer):
     up = DPGUpdater(LearningConfig(optimizer=optimizer, step_size=0.02), N, ALPHA)
+    up.observe(sensitivities(16))
     up.step(theta_from(16), np.random.default_rng(17).normal(size=10 * N))
     state = json.loads(json.dumps(up.state_dict()))
     assert list(state) == ["optimizer", "n", "step_count", "m", "v"]

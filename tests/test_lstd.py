@@ -87,6 +87,14 @@ def test_feature_sets_are_the_configs_and_agree_with_each_other():
     np.testing.assert_array_equal(both[:5, 1, 6:], np.eye(5))
     assert np.all(both[5, :, 6:] == 0)  # no indicator at the end of the day
     assert state_features(soc, hour, "hour").shape == (6, 2, 24)  # 24 hours by default
+    # the paper's features once per hour, hour-major; nothing at the end of the day
+    per_hour = state_features(soc, hour, "hour*paper", hours_per_day=5)
+    assert per_hour.shape == (6, 2, 5 * 7)
+    blocks = per_hour.reshape(6, 2, 5, 7)
+    for k in range(5):
+        np.testing.assert_array_equal(blocks[k, :, k], value_features(soc[k]))
+        assert np.all(np.delete(blocks[k], k, axis=1) == 0)
+    assert np.all(per_hour[5] == 0)
     with pytest.raises(ValueError, match="kind='cubic'"):
         state_features(soc, hour, "cubic")
     with pytest.raises(ValueError, match=r"hour has shape \(3,\)"):
@@ -254,6 +262,69 @@ def test_lstd_q_exact_advantage_gradient():
     np.testing.assert_allclose(
         res.advantage_gradient(grad_pi)[:, 0], cf["g1"] * x + cf["g0"], rtol=1e-7, atol=1e-9
     )
+
+
+def _hourly_q_samples(size: int, sigma: float, q=(1.0, 3.0, 0.5)):
+    """A 3-hour episode of the scalar system with the state cost ``q_k x^2`` changing by the
+    hour and one affine policy per hour (theta = (k_0, m_0, k_1, m_1, k_2, m_2)). Returns the
+    samples with the exact expected successor features for ``kind`` features and the true
+    dQ/du = g1_k x + g0_k at u = pi."""
+    a, c, r, s2, gamma = SYS["a"], SYS["c"], SYS["r"], SYS["s2"], SYS["gamma"]
+    H = len(q)
+    gains = [(-0.6, 0.3), (-0.2, -0.1), (-0.9, 0.5)]
+    P, p = np.zeros(H + 1), np.zeros(H + 1)  # V_k(x) = P_k x^2 + p_k x + C_k, V_H = 0
+    g1, g0 = np.zeros(H), np.zeros(H)
+    for k in range(H - 1, -1, -1):
+        kk, mm = gains[k]
+        A, B = a + c * kk, c * mm
+        P[k] = q[k] + r * kk**2 + gamma * P[k + 1] * A**2
+        p[k] = 2 * r * kk * mm + gamma * (2 * P[k + 1] * A * B + p[k + 1] * A)
+        g1[k] = 2 * r * kk + 2 * gamma * P[k + 1] * c * (a + c * kk)
+        g0[k] = 2 * r * mm + gamma * (2 * P[k + 1] * c * c * mm + p[k + 1] * c)
+    rng = np.random.default_rng(11)
+    x = rng.uniform(-1.0, 1.0, size)
+    hour = np.arange(size) % H
+    e = sigma * np.where(np.arange(size) // H % 2 == 0, 1.0, -1.0)  # exactly symmetric
+    kk, mm = np.array(gains)[hour].T
+    u = kk * x + mm + e
+    grad_pi = np.zeros((size, 2 * H, 1))
+    grad_pi[np.arange(size), 2 * hour, 0] = x
+    grad_pi[np.arange(size), 2 * hour + 1, 0] = 1.0
+    psi = compatible_features(grad_pi, u[:, None], (kk * x + mm)[:, None])
+    mean = a * x + c * u
+    second = mean**2 + s2  # E[x+^2]
+    done = hour == H - 1
+    cost = np.asarray(q)[hour] * x**2 + r * u**2
+
+    def features(kind):
+        """Phi(x) and the exact E[Phi(x+)] (zero where the episode ends). Every feature is
+        f2 x^2 + f1 x + f0 at a given hour, read off its values at x = -1, 0, 1."""
+        phi = state_features(x[:, None], hour, kind, hours_per_day=H)
+        nxt = np.minimum(hour + 1, H - 1)
+        at = {v: state_features(np.full((size, 1), v), nxt, kind, H) for v in (-1.0, 0.0, 1.0)}
+        f0 = at[0.0]
+        f1 = (at[1.0] - at[-1.0]) / 2
+        f2 = (at[1.0] + at[-1.0]) / 2 - f0
+        phi_next = f2 * second[:, None] + f1 * mean[:, None] + f0
+        return phi, np.where(done[:, None], 0.0, phi_next)
+
+    truth = np.stack([g1, g0], axis=1).reshape(-1)
+    return psi, cost, done, features, truth
+
+
+def test_hourly_value_slopes_are_needed_for_the_exact_action_gradient():
+    """When the value of the state changes with the hour, the compatible critic recovers
+    the exact dQ/du only if its baseline can have a different soc slope at every hour
+    ('hour*paper'); with one slope for the day ('paper+hour') the action gradient, and so
+    the policy gradient, is biased."""
+    psi, cost, done, features, truth = _hourly_q_samples(3000, 0.1)
+    gamma = SYS["gamma"]
+    phi, phi_next = features("hour*paper")
+    exact = lstd_q(phi, psi, cost, phi_next, gamma, done=done)
+    np.testing.assert_allclose(exact.w, truth, rtol=1e-7, atol=1e-9)
+    phi, phi_next = features("paper+hour")
+    shared = lstd_q(phi, psi, cost, phi_next, gamma, done=done)
+    assert np.abs(shared.w - truth).max() > 0.05 * np.abs(truth).max()
 
 
 def test_lstd_q_statistical_advantage_gradient():

@@ -1,0 +1,69 @@
+r"""An extension beside the paper's policy class: an MPC that knows the day ends at midnight.
+
+In the experiment every day is an episode: the true cost (:mod:`mpcrl_lite.model`) counts
+the 24 hours of the day and nothing after them, since the next day restarts at ``soc0``.
+The paper's MPC does not know this. Its 12-hour forecast (:meth:`Prices.window`) reads on
+into the next day's prices, so at 20:00 it keeps charge to sell tomorrow morning, charge
+that is worth nothing to the true cost. None of the paper's parameters can undo this: the
+terminal cost :math:`T_\theta` is the same at every hour, while the value of the charge at
+the end of the horizon is large in the afternoon and nil after midnight.
+
+:class:`DayEndPrices` changes only the forecast: the prices of the hours after the day's
+midnight are zero, so the MPC sees that energy bought or sold after midnight costs and earns
+nothing. Everything else -- the MPC, its parameters theta, the learning -- is unchanged;
+the true cost still uses the real prices (:attr:`Prices.buy`, :attr:`Prices.sell`).
+
+Measured (``benchmarks/bench_learner_robustness.py``, defaults, 20 seeds never tuned on, 10
+evaluation draws of the month): the day-end MPC learns a policy that closes about as much
+more of the gap to the best causal policy as the paper's class leaves open; see
+``benchmarks/README.md``. This is *not* the paper's policy class and is never a default:
+pass ``prices=until_midnight(prices)`` to :class:`~mpcrl_lite.experiment.Experiment` (and to
+any evaluation of the learned theta) to use it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .config import HOURS_PER_DAY, check_instance
+from .prices import Prices
+
+__all__ = ["DayEndPrices", "until_midnight"]
+
+
+class DayEndPrices(Prices):
+    """:class:`~mpcrl_lite.prices.Prices` whose forecast stops at the end of the day.
+
+    :meth:`window` is :meth:`Prices.window` with the prices of the hours after the day's
+    midnight set to zero; :attr:`buy` and :attr:`sell` (what the true system is charged) are
+    the real ones.
+
+    Examples
+    --------
+    >>> prices = until_midnight(Prices.default())
+    >>> buy, sell = prices.window(hour=20, N=12)   # 20:00 .. 23:00 priced, then zeros
+    >>> bool((buy[:, 4:] == 0).all()), bool((buy[:, :4] > 0).all())
+    (True, True)
+    """
+
+    def window(self, hour: int, N: int) -> tuple[np.ndarray, np.ndarray]:
+        """Buying and selling prices over ``N`` hours from ``hour``, zero after midnight.
+
+        Returns
+        -------
+        buy, sell : numpy.ndarray
+            Each of shape ``(days, N)``.
+        """
+        buy, sell = super().window(hour, N)
+        after = hour + np.arange(N) >= HOURS_PER_DAY  # (N,), hours of the next day(s)
+        return np.where(after, 0.0, buy), np.where(after, 0.0, sell)
+
+    def __repr__(self) -> str:
+        return "DayEndPrices" + super().__repr__()[len("Prices"):]
+
+
+def until_midnight(prices: Prices) -> DayEndPrices:
+    """The same prices with a forecast that stops at midnight (:class:`DayEndPrices`)."""
+    check_instance("prices", prices, Prices)
+    return DayEndPrices(prices.buy, sell_ratio=prices.sell_ratio, unit=prices.unit,
+                        source=f"{prices.source}; forecast until midnight")
