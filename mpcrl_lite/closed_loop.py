@@ -135,16 +135,16 @@ class GaussianExploration:
     shape ``(days, n)`` per hour (times ``std``) and made feasible in one of three ways
     (``bounds``, see :func:`bounded_exploration`):
 
-    * ``'symmetric'`` (default): each entry is clipped to the distance of :math:`\pi_i` to
-      its nearer input bound, then the vector is shrunk radially until both
-      :math:`\pi \pm e` respect the grid limit. The map is odd in ``e``, so the applied
-      exploration :math:`a - \pi` keeps a zero mean, as the compatible critic assumes
-      (:mod:`mpcrl_lite.lstd`);
+    * ``'symmetric'`` (default): ``e`` slides along the grid faces it could reach, each
+      entry is clipped to the distance of :math:`\pi_i` to its nearer input bound, and the
+      vector is shrunk until both :math:`\pi \pm e` are feasible. The map is odd in ``e``,
+      so the applied exploration :math:`a - \pi` keeps a zero mean, as the compatible
+      critic assumes (:mod:`mpcrl_lite.lstd`);
     * ``'radial'``: the whole vector is shrunk until both :math:`\pi \pm e` are feasible
-      (also odd, but one battery at a bound stops the exploration of all);
+      (also odd, but little is left where the grid limit is nearly active);
     * ``'project'``: ``project_action(pi + e)``, the closest feasible action. Near a bound
-      this shifts the mean of :math:`a - \pi` inwards (+0.035 MW at theta0 with
-      ``std = 0.2``), which biases the critic.
+      this shifts the mean of :math:`a - \pi` inwards (about +0.04 MW over a month at
+      theta0 with ``std = 0.2``), which biases the critic.
 
     Parameters
     ----------
@@ -152,6 +152,9 @@ class GaussianExploration:
         Standard deviation in MW, ``>= 0``.
     system : SystemConfig
     bounds : {'symmetric', 'radial', 'project'}, default 'symmetric'
+    margin : float, default 0
+        With ``margin > 0`` the exploration is centred on :func:`exploration_center` instead
+        of :math:`\pi` (:meth:`center`); the critic must then use the same centre.
     """
 
     def __init__(
@@ -196,8 +199,9 @@ def exploration_center(pi: np.ndarray, system: SystemConfig, margin: float) -> n
     The compatible critic then uses :math:`\psi = \nabla_\theta\pi\,(a - c(s))`, whose
     mean is zero at every state, so the state part of the cost cannot leak into :math:`w`;
     what it measures is :math:`\nabla_a Q_\pi` averaged over the actions explored around
-    :math:`c`, which differs from the value at :math:`\pi` by at most the curvature of
-    :math:`Q_\pi` times :math:`|c - \pi| \le` ``margin``-ish.
+    :math:`c`, which differs from its value at :math:`\pi` by about the curvature of
+    :math:`Q_\pi` in :math:`a` times :math:`|c - \pi|` (at most ``margin`` per entry and
+    per grid sum).
 
     Parameters
     ----------
@@ -273,14 +277,16 @@ def bounded_exploration(
     if bounds == "project":
         return project_action(pi + e, system)
     base = project_action(pi, system)
-    step = _radial(base, e, system)
     if bounds == "symmetric":
         room = np.maximum(system.U_bar - np.abs(base), 0.0)  # distance to the nearer bound
-        along = _radial(base, np.clip(_along_grid_faces(base, e, system.P_bar), -room, room),
-                        system)
+        along = np.clip(_along_grid_faces(base, e, system.P_bar), -room, room)
+        both = _radial(np.concatenate([base, base]), np.concatenate([e, along]), system)
+        step, along = both[: len(base)], both[len(base):]
         # the larger of two odd maps, judged by an even function of e, is odd
         larger = (along**2).sum(axis=-1) > (step**2).sum(axis=-1)
         step = np.where(larger[:, None], along, step)
+    else:
+        step = _radial(base, e, system)
     # a guard against rounding only: base + step is feasible up to ~1e-16
     return project_action(base + step, system)
 
@@ -291,8 +297,10 @@ def _radial(base: np.ndarray, e: np.ndarray, system: SystemConfig) -> np.ndarray
     room = np.maximum(system.U_bar - np.abs(base), 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         t = np.min(np.where(e != 0.0, room / np.abs(e), np.inf), axis=-1)
-    for c, d in ((base, e), (base, -e), (-base, e), (-base, -e)):
-        t = np.minimum(t, _largest_step(c, d, system.P_bar))
+    # both grid sums at base + t e and base - t e, as four stacked problems of one call
+    grid = _largest_step(np.concatenate([base, base, -base, -base]),
+                         np.concatenate([e, -e, e, -e]), system.P_bar)
+    t = np.minimum(t, grid.reshape(4, -1).min(axis=0))
     return np.minimum(t, 1.0)[:, None] * e
 
 

@@ -149,6 +149,7 @@ def run_month_decentralized(
     exploration_std: float = 0.0,
     sensitivities: bool = True,
     soc0: float | np.ndarray | None = None,
+    exploration_bounds: str = "symmetric",
 ) -> tuple[MonthRecord, DecentralizedMonth]:
     """One month in closed loop with the coordinated local MPCs.
 
@@ -165,12 +166,16 @@ def run_month_decentralized(
     system : SystemConfig
     rng : numpy.random.Generator
     exploration_std : float
-        Std of the Gaussian exploration added to each battery's action (then projected
-        jointly onto the input bounds and the grid limit).
+        Std of the Gaussian exploration added to each battery's action (then kept jointly
+        within the input bounds and the grid limit as ``exploration_bounds`` says,
+        :class:`~mpcrl_lite.closed_loop.GaussianExploration`).
     sensitivities : bool
         Compute :math:`\\nabla_{\\theta^i}\\pi^i` (needed for learning).
     soc0 : float or array, optional
         Start-of-day soc (default ``system.soc0``), scalar, ``(n,)`` or ``(days, n)``.
+    exploration_bounds : str
+        ``LearningConfig.exploration_bounds`` (a margin is not used here: the exploration is
+        centred on the policy's action, as the critic assumes).
 
     Returns
     -------
@@ -200,7 +205,8 @@ def run_month_decentralized(
             grad_pi[k], sens_ok[k] = policy.sensitivity(sol)
         return Decision(sol.action, solver_ok[k].all(-1), sol.planned_power, sens_ok[k].all(-1))
 
-    explore = GaussianExploration(exploration_std, system) if exploration_std > 0 else None
+    explore = (GaussianExploration(exploration_std, system, exploration_bounds)
+               if exploration_std > 0 else None)
     record = MonthRecord.from_record(simulate(
         decide, prices.buy[:, :H], prices.sell[:, :H], system, rng=rng, soc0=soc0, explore=explore
     ))
@@ -292,6 +298,8 @@ class DecentralizedExperiment(Learner):
                 extra.grad_pi[:, :, i, :, None], record.agent_cost[..., i], use,
                 self.learning, self.system.gamma,
             )
+            if use.any():  # the metric of the natural gradient and of the trust region
+                self.updaters[i].observe(extra.grad_pi[:, :, i, :, None][use])
             grads.append(grad)
             infos.append(info)
         return grads, int(np.count_nonzero(any_skipped)), infos
@@ -303,6 +311,7 @@ class DecentralizedExperiment(Learner):
         record, extra = run_month_decentralized(
             used, self.policy, self.prices, self.system, self.rng,
             exploration_std=self.learning.exploration_std, sensitivities=True,
+            exploration_bounds=self.learning.exploration_bounds,
         )
         grads, skipped, infos = self.learning_step(record, extra)
         n = self.system.n

@@ -15,10 +15,14 @@ gradient of the paper (Section III) is
 and the paper's update is the plain gradient step
 :math:`\theta \leftarrow \theta - \alpha \nabla_\theta J` (the cost is minimised).
 
-:class:`DPGUpdater` applies that step (``optimizer='sgd'``) or an Adam step (the default), only
-to the learnable parts of theta, with optional clipping of the step and an optional projection
-that keeps the MPC a convex QP with a unique solution. The update rules themselves (one class
-each) live in :mod:`mpcrl_lite.update_rules`.
+:class:`DPGUpdater` applies that step (``optimizer='sgd'``), an Adam step (the default) or a
+natural-gradient step (``'natural'``), only to the learnable parts of theta -- by default one
+value per part shared by the identical batteries (``tie_agents``) -- with an optional step
+schedule (warm-up, decay), clipping, a trust region on the change of the policy, averaging of
+the iterates, and a projection that keeps the MPC a convex QP with a unique solution. The
+update rules themselves (one class each) live in :mod:`mpcrl_lite.update_rules`; the metric
+:math:`F = \mathbb E[\nabla_\theta\pi\nabla_\theta\pi^\top]` the natural gradient and the
+trust region need is given with :meth:`DPGUpdater.observe` (:func:`policy_metric`).
 
 Why Adam with per-part scales by default: theta's parts have unrelated units (a model gain of
 order 1/12, price corrections in NOK/MWh, soc cost weights in NOK), so one step size cannot
@@ -26,6 +30,13 @@ serve them all. On the paper's system the first gradient has norm ~1e8, almost a
 theta_alpha: the paper's step 5e-8 throws theta_alpha from 1/12 to ~3.5 while the cost weights
 do not move. Adam normalises each entry by its own gradient history and moves it by at most
 about ``step_size`` times its typical magnitude (:data:`DEFAULT_SCALE`), whatever the units.
+The natural gradient removes the hand-set scales altogether (with the compatible critic it is
+the critic's ``w``), but measured on 5 seeds it learned more slowly and failed on some
+(``benchmarks/README.md``): a battery whose action sits near a bound has a tiny
+:math:`\nabla_\theta\pi`, so a small first-order change of its action asks for a large change
+of theta. Averaging the iterates (``average_months``) made the run oscillate with Adam's own
+momentum, and a decaying step slowed the learning more than it calmed the end; both stay
+options, off by default.
 """
 
 from __future__ import annotations
@@ -269,14 +280,15 @@ class DPGUpdater:
     running average :math:`\theta_{t} = \theta_{t-1} + (\rho_t - \theta_{t-1}) /
     \min(t + 1, M)`; the projected set is convex, so the average stays in it.
 
-    After each :meth:`step`, :attr:`last_info` records ``step`` (count), ``step_size`` (of
-    this update), ``grad_norm`` (of the masked gradient), ``grad_norm_scaled`` (of the
-    masked gradient times ``scale``: the gradient with respect to theta measured in its parts'
-    typical magnitudes, which does not depend on their units), ``raw_step_norm``,
-    ``step_norm`` (after clipping and the trust region), ``clipped``, ``projected`` (names
-    like ``'phi1[2]'`` of the entries moved by the projection), ``projection_norm`` and,
-    after :meth:`observe`, ``policy_change`` (the RMS change of the action, in MW, of the
-    parameters in use) and ``trust_region`` (True if it shrank the step).
+    After each :meth:`step`, :attr:`last_info` records ``step`` (count), ``grad_norm`` (of
+    the masked gradient), ``grad_norm_scaled`` (of the masked gradient times ``scale``: the
+    gradient with respect to theta measured in its parts' typical magnitudes, which does not
+    depend on their units), ``raw_step_norm``, ``step_norm`` (after clipping and the trust
+    region), ``clipped``, ``projected`` (names like ``'phi1[2]'`` of the entries moved by the
+    projection) and ``projection_norm``; with a step schedule also ``step_size`` (of this
+    update), and with ``optimizer='natural'`` or ``max_policy_change`` (after :meth:`observe`)
+    ``policy_change`` (the RMS change of the action, in MW, of the parameters in use) and
+    ``trust_region`` (True if it shrank the step).
     """
 
     def __init__(
@@ -492,7 +504,6 @@ class DPGUpdater:
             new = raw
         self.last_info = {
             "step": self.step_count,
-            "step_size": float(step_size),
             "grad_norm": float(np.linalg.norm(g)),
             "grad_norm_scaled": float(np.linalg.norm(self.scale * g)),
             "raw_step_norm": raw_norm,
@@ -501,13 +512,26 @@ class DPGUpdater:
             "projected": [name for name, h in zip(self._names, hit) if h],
             "projection_norm": float(np.linalg.norm(raw - moved)),
         }
-        if self._metric is not None:
+        # the keys of the options, only where they are used (histories of runs without them
+        # keep the keys they always had)
+        if config.step_warmup or config.step_decay:
+            self.last_info["step_size"] = float(step_size)
+        if self._metric is not None and (self.rule.NEEDS_METRIC or config.max_policy_change):
             change = new - current
             self.last_info["policy_change"] = float(np.sqrt(max(change @ self._metric @ change,
                                                                 0.0)))
             self.last_info["trust_region"] = bool(shrunk)
         self._metric = None
         return Theta.from_vector(new, self.n)
+
+    def effective_gradient(self, grad: np.ndarray) -> np.ndarray:
+        """The gradient as the update rule sees it: zero outside :attr:`mask` and, with
+        ``tie_agents``, each part's mean over the agents; shape ``(10 n,)``."""
+        grad = np.asarray(grad, dtype=float)
+        if grad.shape != self.mask.shape:
+            raise ValueError(f"grad has shape {grad.shape}; expected {self.mask.shape} (10 n)")
+        g = np.where(self.mask, grad, 0.0)
+        return self._tie(g) if self.config.tie_agents else g
 
     def _tie(self, x: np.ndarray) -> np.ndarray:
         """The mean over the agents of each part, for every agent: the orthogonal projection

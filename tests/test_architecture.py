@@ -26,7 +26,7 @@ LAYERS: list[set[str]] = [
     {"config", "theta", "json_values", "resources", "references", "batch_linalg",
      "causal_kernels"},
     # the true system and its prices
-    {"prices", "model"},
+    {"prices", "model", "day_end"},
     # the one MPC formulation
     {"mpc"},
     # solution and sensitivity types, below every back-end

@@ -169,7 +169,7 @@ def test_exploration_is_drawn_before_the_noise_every_hour():
     days, std = 4, 0.3
     buy, sell = _prices(days)
     record = simulate(_rule, buy, sell, SYSTEM, rng=np.random.default_rng(9),
-                      explore=GaussianExploration(std, SYSTEM))
+                      explore=GaussianExploration(std, SYSTEM, "project"))
     replay = np.random.default_rng(9)
     for k in range(24):
         e = replay.standard_normal((days, SYSTEM.n))

@@ -68,10 +68,19 @@ BAD = [
     (LearningConfig, "eval_draws", 0, "an integer >= 1"),
     (LearningConfig, "exploration_std", -0.1, "a value in [0, inf)"),
     (LearningConfig, "ridge", -1e-6, "a value in [0, inf)"),
-    (LearningConfig, "value_features", "quadratic", "one of 'paper', 'paper+hour', 'hour'"),
+    (LearningConfig, "value_features", "quadratic",
+     "one of 'paper', 'paper+hour', 'hour', 'hour*paper'"),
+    (LearningConfig, "exploration_bounds", "clip", "one of 'symmetric', 'radial', 'project'"),
+    (LearningConfig, "exploration_margin", -0.1, "a value in [0, inf)"),
     (LearningConfig, "learn_constants", "yes", "True or False"),
-    (LearningConfig, "optimizer", "rmsprop", "one of 'sgd', 'adam'"),
+    (LearningConfig, "optimizer", "rmsprop", "one of 'sgd', 'adam', 'natural'"),
     (LearningConfig, "grad_clip", 0.0, "a value in (0, inf)"),
+    (LearningConfig, "tie_agents", 1, "True or False"),
+    (LearningConfig, "natural_damping", -1.0, "a value in [0, inf)"),
+    (LearningConfig, "step_warmup", -1, "an integer >= 0"),
+    (LearningConfig, "step_decay", 2.5, "an integer >= 0, got float"),
+    (LearningConfig, "max_policy_change", 0.0, "a value in (0, inf)"),
+    (LearningConfig, "average_months", -2, "an integer >= 0"),
     (LearningConfig, "keep_well_posed", None, "True or False"),
     (LearningConfig, "alpha_min", 0.0, "a value in (0, inf)"),
     (LearningConfig, "seed", -1, "an integer >= 0"),
@@ -197,7 +206,7 @@ def test_check_int():
 def test_check_choice_bool_and_instance():
     assert check_choice("c", np.str_("adam"), OPTIMIZERS) == "adam"
     assert type(check_choice("c", np.str_("adam"), OPTIMIZERS)) is str
-    with pytest.raises(ValueError, match=r"^c='Adam': expected one of 'sgd', 'adam'$"):
+    with pytest.raises(ValueError, match=r"^c='Adam': expected one of 'sgd', 'adam', 'natural'$"):
         check_choice("c", "Adam", OPTIMIZERS)
     with pytest.raises(InputTypeError, match="got list"):
         check_choice("c", ["adam"], OPTIMIZERS)

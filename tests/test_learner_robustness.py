@@ -370,3 +370,31 @@ def test_day_end_forecast_stops_at_midnight():
     assert "until midnight" in late.source and repr(late).startswith("DayEndPrices(days=5")
     with pytest.raises(ValueError, match="prices: expected a Prices"):
         until_midnight(prices.buy)
+
+
+# -- configs of earlier runs ----------------------------------------------------------------------
+def test_a_config_saved_before_the_options_reads_back_as_its_run_went():
+    """A LearningConfig written before exploration_bounds and tie_agents existed belongs to a
+    run that projected its exploration and learned every battery's own parameters: it must
+    resume that way, whatever today's defaults."""
+    saved = LearningConfig().to_dict()
+    for field in ("exploration_bounds", "exploration_margin", "tie_agents", "eval_draws",
+                  "natural_damping", "step_warmup", "step_decay", "max_policy_change",
+                  "average_months"):
+        saved.pop(field)
+    old = LearningConfig.from_dict(saved)
+    assert (old.exploration_bounds, old.tie_agents, old.eval_draws) == ("project", False, 1)
+    assert (old.exploration_margin, old.step_decay, old.average_months) == (0.0, 0, 0)
+    assert old.max_policy_change is None and old.optimizer == LearningConfig().optimizer
+    today = LearningConfig()
+    assert LearningConfig.from_dict(json.loads(json.dumps(today.to_dict()))) == today
+
+
+def test_effective_gradient_is_what_the_rule_sees():
+    g = np.arange(10.0 * N)
+    tied = DPGUpdater(LearningConfig(), N, ALPHA).effective_gradient(g)
+    untied = DPGUpdater(LearningConfig(tie_agents=False), N, ALPHA).effective_gradient(g)
+    np.testing.assert_array_equal(untied, np.where(learnable_mask(N), g, 0.0))
+    np.testing.assert_allclose(tied, np.repeat(untied.reshape(10, N).mean(axis=1), N))
+    with pytest.raises(ValueError, match=r"grad has shape \(3,\)"):
+        DPGUpdater(LearningConfig(), N, ALPHA).effective_gradient(np.zeros(3))
