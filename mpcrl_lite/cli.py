@@ -371,6 +371,25 @@ def _run_eval_draws(out: Path) -> int | None:
     return None
 
 
+#: LearningConfig fields ``learn`` has no flag for: a resumed run keeps the run's own.
+_RUN_FIELDS = ("exploration_bounds", "exploration_margin", "ridge", "value_features",
+               "learn_constants", "grad_clip", "tie_agents", "natural_damping", "step_warmup",
+               "step_decay", "max_policy_change", "average_months", "keep_well_posed",
+               "alpha_min")
+
+
+def _run_learning(out: Path) -> dict[str, Any]:
+    """The fields of ``_RUN_FIELDS`` of the run in ``out`` ({} if there is none to read: the
+    resume then reports what is wrong)."""
+    for name in ("checkpoint.json", "history.json"):
+        try:
+            learning = LearningConfig.from_dict(json.loads((out / name).read_text())["learning"])
+            return {field: getattr(learning, field) for field in _RUN_FIELDS}
+        except (OSError, ValueError, TypeError, KeyError, AttributeError):
+            continue
+    return {}
+
+
 def cmd_learn(args: argparse.Namespace) -> int:
     """The ``learn`` command. Everything about ``--out`` is checked before any month runs:
     a directory holding results (a run, a History, a summary or figures of ``learn``) is
@@ -380,16 +399,17 @@ def cmd_learn(args: argparse.Namespace) -> int:
     if args.resume and eval_draws is None:
         # a resumed run keeps its evaluation draws (1 for runs from before the option)
         eval_draws = _run_eval_draws(Path(args.out))
+    kept = _run_learning(Path(args.out)) if args.resume else {}  # and its learner's settings
     system, mpc_config, learning = _configs(
         args, months=args.months, days_per_month=args.days, step_size=args.step_size,
         optimizer=args.optimizer, exploration_std=args.exploration_std,
-        eval_draws=eval_draws,
+        eval_draws=eval_draws, **kept,
     )
     prices = _prices(args, system, args.days)
     if prices is not None:  # the month's days
         system, mpc_config, learning = _configs(
             args, months=args.months, days_per_month=prices.days, step_size=args.step_size,
-            optimizer=args.optimizer, exploration_std=args.exploration_std,
+            optimizer=args.optimizer, exploration_std=args.exploration_std, **kept,
         )
     _budget(f"--months {args.months} --days {learning.days_per_month} --n {system.n}",
             system.n, learning.days_per_month, runs=args.months, sensitivities=True,

@@ -5,8 +5,9 @@ Every month (paper, Section IV):
 1. all days of the month start at ``soc0`` and advance together, hour by hour: at hour
    ``k`` one call solves the MPC of every day (:mod:`mpcrl_lite.solvers`), the policy
    sensitivities are computed at the solutions (:mod:`mpcrl_lite.sensitivity`), Gaussian
-   exploration is added to the MPC action and projected onto the input bounds and the grid
-   limit (:func:`mpcrl_lite.model.project_action`), and the true system takes a step
+   exploration is added to the MPC action and kept within the input bounds and the grid
+   limit with a zero mean (:func:`mpcrl_lite.closed_loop.bounded_exploration`,
+   ``LearningConfig.exploration_bounds``), and the true system takes a step
    (:func:`mpcrl_lite.model.step`) -- the one closed loop,
    :func:`mpcrl_lite.closed_loop.run_month`;
 2. LSTD fits the compatible action-value function on the month's transitions

@@ -515,9 +515,14 @@ def test_runs_of_the_previous_version_load_and_resume(tmp_path, capsys, learner)
     out = legacy_copy(tmp_path, learner)
     assert cli(learn_args(out, 2, learner, "--resume"), capsys)[0] == 0
     reference = tmp_path / "reference"
-    # the previous version evaluated on one noise draw; the resumed run keeps it
-    assert History.load(out).learning.eval_draws == 1
-    assert cli(learn_args(reference, 2, learner, "--eval-draws", "1"), capsys)[0] == 0
+    # the previous version evaluated on one noise draw, explored with a projection and learned
+    # one parameter set per battery; the resumed run keeps all that (LearningConfig.from_dict)
+    resumed = History.load(out)
+    assert resumed.learning.eval_draws == 1 and not resumed.learning.tie_agents
+    assert resumed.learning.exploration_bounds == "project"
+    learner_class = DecentralizedExperiment if learner else Experiment
+    learner_class(resumed.system, resumed.mpc, resumed.learning.replace(months=2)).run(
+        months=2, out=reference, progress=False)
     if learner:
         assert_same_run(out, reference)
     else:

@@ -194,8 +194,7 @@ def test_learning_step_uses_the_configured_features():
                  value_features(rec.soc[1:])[use], exp.system.gamma, done=done[use],
                  ridge=exp.learning.ridge)
     np.testing.assert_allclose(grad, policy_gradient(rec.grad_pi[use], fit.w), rtol=1e-12)
-    hourly = small_experiment()
-    assert hourly.learning.value_features == "paper+hour"
+    hourly = small_experiment(value_features="paper+hour")
     grad_h, _, _ = hourly.learning_step(rec)
     assert np.all(np.isfinite(grad_h)) and not np.allclose(grad_h, grad)
     # the hour indicators alone (a table over the hours) are a baseline too

@@ -2,8 +2,9 @@
 
 A short run of the paper's system (n = 3, N = 12) with 10 days per month: the default
 settings (barrier tau = 0.1, exploration 0.2, hourly critic baseline, per-part scaled Adam with
-step 0.02) improve the evaluation J within a few months, while the paper's literal rule (plain
-gradient steps of 5e-8 at a nearly exact MPC) throws theta_alpha far away in its first step.
+step 0.02, tied batteries) improve the evaluation J within a few months, while the paper's
+literal rule (plain gradient steps of 5e-8 at a nearly exact MPC) throws theta_alpha far away
+in its first step.
 """
 
 from __future__ import annotations
@@ -30,7 +31,8 @@ def test_defaults_are_the_documented_ones():
     assert mpc.tau == 0.1
     assert learning.optimizer == "adam" and learning.step_size == 0.02
     assert learning.exploration_std == 0.2
-    assert learning.value_features == "paper+hour"
+    assert learning.value_features == "hour*paper"
+    assert learning.tie_agents and learning.exploration_bounds == "symmetric"
     assert learning.eval_every == 5
     paper = LearningConfig.paper()
     assert (paper.optimizer, paper.step_size, paper.value_features) == ("sgd", 5e-8, "paper")
