@@ -33,6 +33,15 @@ verifies everything -- checksums, formats, the learner kind, months_done against
 and the manifest, every series one entry per month, the configurations -- before changing
 anything: a directory that does not verify is refused with one line, never half-resumed.
 
+One thread of linear algebra
+----------------------------
+The month loop runs with the BLAS/LAPACK libraries limited to one thread
+(``threadpoolctl``). The matrices of a month are small (tens to hundreds of rows), where
+threads cost more than they bring, and a multi-threaded BLAS may sum in another order on a
+machine with another number of cores or in a worker process that limits its threads (Dask
+does): with one thread, a run gives the same numbers to the last bit in a notebook, under
+``learn``, in a sweep's worker and on any machine with the same libraries.
+
 Failed solves
 -------------
 Hours whose MPC failed act with the fallback (idle) and are left out of the learning step.
@@ -49,6 +58,7 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
 from . import rundir
@@ -62,6 +72,7 @@ from .rundir import RECOVER, RunDirError, RunDirMissing
 from .theta import PARTS, Theta
 
 __all__ = [
+    "BLAS_THREADS",
     "MAX_FAILED_SOLVE_SHARE",
     "Learner",
     "lstd_policy_gradient",
@@ -75,6 +86,10 @@ log = logging.getLogger(__name__)
 #: A month (and, for the ``learn`` command, a run) with a larger share of failed MPC solves
 #: is reported: its learning signal comes from too few hours to be trusted.
 MAX_FAILED_SOLVE_SHARE = 0.5
+
+#: Threads the BLAS/LAPACK libraries may use inside the month loop (see the module
+#: docstring): one, so that results do not depend on the machine's cores.
+BLAS_THREADS = 1
 
 
 def resolve_setup(
@@ -203,7 +218,7 @@ def run_months(
     history = learner.history
     bar = tqdm(total=months, initial=min(history.months, months), desc=desc, unit="month",
                disable=not progress)
-    with bar:
+    with bar, threadpool_limits(limits=BLAS_THREADS):
         while learner.history.months < months:
             learner.run_one_month()
             history = learner.history

@@ -70,6 +70,30 @@ def test_same_seed_same_history():
     assert h3.J != h1.J
 
 
+def test_month_loop_uses_one_blas_thread_and_any_outer_limit_gives_the_same_run():
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from mpcrl_lite.learner import BLAS_THREADS
+
+    seen: list[int] = []
+
+    def record_threads(month, history, learner):
+        seen.extend(pool["num_threads"] for pool in threadpool_info())
+
+    before = [pool["num_threads"] for pool in threadpool_info()]
+    exp = small_experiment(months=2)
+    exp.callbacks.append(record_threads)
+    h1 = exp.run(progress=False)
+    # the limit holds inside the month loop only
+    assert [pool["num_threads"] for pool in threadpool_info()] == before
+    assert seen and set(seen) == {BLAS_THREADS}
+    # a process (or a Dask worker) that already limits its threads learns the same numbers
+    with threadpool_limits(limits=1):
+        h2 = small_experiment(months=2).run(progress=False)
+    assert h1.J == h2.J
+    assert h1.theta_final == h2.theta_final
+
+
 def test_resume_reproduces_uninterrupted_run(tmp_path):
     full = small_experiment(months=4).run(progress=False)
     # interrupted after two months, then resumed by a fresh process-like object
