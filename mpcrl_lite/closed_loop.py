@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from ._explore_kernel import ensure_compiled, explore_rows
 from .config import EXPLORATION_BOUNDS, SystemConfig, check_choice, check_real
 from .model import StepResult, project_action, sample_noise, step
 from .record import MonthRecord, Record
@@ -276,89 +277,20 @@ def bounded_exploration(
     bounds = check_choice("bounds", bounds, EXPLORATION_BOUNDS)
     if bounds == "project":
         return project_action(pi + e, system)
-    base = project_action(pi, system)
-    if bounds == "symmetric":
-        room = np.maximum(system.U_bar - np.abs(base), 0.0)  # distance to the nearer bound
-        along = np.clip(_along_grid_faces(base, e, system.P_bar), -room, room)
-        both = _radial(np.concatenate([base, base]), np.concatenate([e, along]), system)
-        step, along = both[: len(base)], both[len(base):]
-        # the larger of two odd maps, judged by an even function of e, is odd
-        larger = (along**2).sum(axis=-1) > (step**2).sum(axis=-1)
-        step = np.where(larger[:, None], along, step)
-    else:
-        step = _radial(base, e, system)
-    # a guard against rounding only: base + step is feasible up to ~1e-16
-    return project_action(base + step, system)
-
-
-def _radial(base: np.ndarray, e: np.ndarray, system: SystemConfig) -> np.ndarray:
-    """``min(1, t*) e`` with ``t*`` the largest ``t`` for which both ``base + t e`` and
-    ``base - t e`` respect the input bounds and the grid limit (``base`` feasible)."""
-    room = np.maximum(system.U_bar - np.abs(base), 0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.min(np.where(e != 0.0, room / np.abs(e), np.inf), axis=-1)
-    # both grid sums at base + t e and base - t e, as four stacked problems of one call
-    grid = _largest_step(np.concatenate([base, base, -base, -base]),
-                         np.concatenate([e, -e, e, -e]), system.P_bar)
-    t = np.minimum(t, grid.reshape(4, -1).min(axis=0))
-    return np.minimum(t, 1.0)[:, None] * e
-
-
-def _along_grid_faces(base: np.ndarray, e: np.ndarray, total: float) -> np.ndarray:
-    """The exploration ``e`` (days, n) moved into the directions along which both
-    ``base + e`` and ``base - e`` keep the grid sums where they are, on the faces it could
-    reach.
-
-    With ``r = max_i |e_i|`` (per day), the buying face ``sum_i max(x_i, 0) <= total`` counts
-    as reachable when its slack at ``base`` is below ``r`` (likewise the selling face). On a
-    reachable face, the batteries at ``|base_i| <= r`` (they could cross zero and join the
-    sum) do not explore, and among those on the face's side (``base_i > r`` buying,
-    ``< -r`` selling) the mean of ``e`` is removed: ``e`` then slides along the face. The
-    sets depend on ``e`` only through ``r``, which is even in ``e``, and the map is linear
-    in ``e`` given them, so it is odd in ``e``.
-    """
-    r = np.abs(e).max(axis=-1, keepdims=True)
-    out = e.copy()
-    idle = np.abs(base) <= r
-    pinned = np.zeros(base.shape[0], dtype=bool)
-    for sign in (1.0, -1.0):
-        side = sign * base
-        reach = total - np.maximum(side, 0.0).sum(axis=-1) < r[:, 0]
-        pinned |= reach
-        members = reach[:, None] & (side > r)
-        count = members.sum(axis=-1, keepdims=True)
-        mean = np.where(members, out, 0.0).sum(axis=-1, keepdims=True) / np.maximum(count, 1)
-        out = np.where(members, out - mean, out)
-    return np.where(pinned[:, None] & idle, 0.0, out)
-
-
-def _largest_step(c: np.ndarray, d: np.ndarray, total: float) -> np.ndarray:
-    """Row-wise ``max{t in [0, 1]: sum_i max(c_i + t d_i, 0) <= total}`` for rows with
-    ``sum_i max(c_i, 0) <= total``.
-
-    ``f(t) = sum_i max(c_i + t d_i, 0)`` is convex and piecewise linear with kinks at
-    ``-c_i / d_i``; it is evaluated at 0, at the kinks inside ``(0, 1)`` and at 1, and the
-    crossing of ``total`` is found exactly by linear interpolation on the segment where it
-    happens. Shapes ``(days, n)`` -> ``(days,)``.
-    """
-    with np.errstate(divide="ignore", invalid="ignore"):
-        kinks = np.where(d != 0.0, -c / d, 1.0)
-    kinks = np.clip(np.where(np.isfinite(kinks), kinks, 1.0), 0.0, 1.0)
-    ts = np.sort(np.concatenate([np.zeros_like(kinks[:, :1]), kinks,
-                                 np.ones_like(kinks[:, :1])], axis=1), axis=1)  # (days, n+2)
-    f = np.maximum(c[:, None, :] + ts[:, :, None] * d[:, None, :], 0.0).sum(-1)
-    over = f > total
-    t = np.ones(c.shape[0])
-    rows = over.any(axis=1)
-    if rows.any():
-        j = np.argmax(over[rows], axis=1)  # first point above total; >= 1 as f(0) <= total
-        j = np.maximum(j, 1)
-        r = np.flatnonzero(rows)
-        t0, t1, f0, f1 = ts[r, j - 1], ts[r, j], f[r, j - 1], f[r, j]
-        slope = np.where(f1 > f0, f1 - f0, 1.0)
-        t[r] = np.clip(t0 + (total - f0) * (t1 - t0) / slope, 0.0, 1.0)
-        t[r] = np.where(f0 > total, t0, t[r])  # f(0) > total (rounding): no exploration
-    return t
+    pi = np.asarray(pi, dtype=float)
+    e = np.asarray(e, dtype=float)
+    if pi.ndim != 2 or pi.shape[1] != system.n or e.shape != pi.shape:
+        raise ValueError(f"pi has shape {pi.shape} and e {e.shape}: expected both (days, "
+                         f"{system.n})")
+    for name, value in (("pi", pi), ("e", e)):
+        if not np.isfinite(value).all():
+            raise ValueError(f"{name} has non-finite entries: expected finite values only")
+    ensure_compiled()
+    # compiled (mpcrl_lite._explore_kernel): per day, pi projected onto the feasible set,
+    # the radial step (and the slide along the grid faces), the result projected once more
+    # as a guard against rounding (base + step is feasible up to ~1e-16)
+    return explore_rows(np.ascontiguousarray(pi), np.ascontiguousarray(e), system.U_bar,
+                        system.P_bar, bounds == "symmetric")
 
 
 class Projection:
