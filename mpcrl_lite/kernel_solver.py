@@ -43,6 +43,7 @@ import time
 import casadi as ca
 import numpy as np
 
+from . import _coord_kernel
 from . import _kernel as K
 from .config import MPCConfig
 from .mpc import MPC
@@ -98,6 +99,7 @@ def warm_up(verbose: bool = False) -> float:
     """
     t0 = time.perf_counter()
     K.ensure_compiled()
+    _coord_kernel.ensure_compiled()  # the decentralized learner's coordination rounds
     took = time.perf_counter() - t0
     if verbose:
         print(f"mpcrl_lite kernels ready in {took:.1f} s (cache: {cache_dir()})")
