@@ -458,6 +458,8 @@ class CoordinatedMPC:
             self._kb, self._ks, self.system.n, float(self.system.P_bar),
             float(self.mpc_config.tau), float(cfg.tol), int(cfg.max_iter), p.x, p.lam, p.mu,
             p.nu, p.tau, state.rounds, state.done, state.stopped, state.worst)
+        for d in np.flatnonzero(state.stopped):
+            log.info("coordination stopped (day %d): singular or non-finite Newton system", d)
 
     def _hour(
         self, soc: np.ndarray, buy: np.ndarray, sell: np.ndarray, thetas: list[Theta]

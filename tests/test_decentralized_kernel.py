@@ -173,6 +173,10 @@ def test_structure_reproduces_the_dense_data():
     assert sorted(map(sorted, groups)) == [[0], [1], [2, 3, 4]]
 
 
-def test_warm_up_fills_the_coordination_kernel():
+def test_warm_up_compiles_what_the_coordination_uses():
+    # the types of the warm-up's call are those of a real hour: no user waits for numba
     warm_up()
-    assert _coord_kernel.coordinate.signatures
+    assert len(_coord_kernel.coordinate.signatures) == 1
+    soc, buy, sell = case(TIGHT, 2, 18, 8)
+    assert CoordinatedMPC(TIGHT, FAST).solve(soc, buy, sell, Theta.nominal(TIGHT)).compiled
+    assert len(_coord_kernel.coordinate.signatures) == 1
