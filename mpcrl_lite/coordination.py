@@ -109,9 +109,10 @@ local problem at the final prices *is* an ``n = 1`` MPC), the reference with
 * ``'batch'``, ``'ipopt'``: the reference (the fallback's local solves use IPOPT whatever the
   choice).
 
-On the paper's system with ``n = 20`` batteries (30 days, ~12 rounds per hour) the compiled
-path takes ~60 ms of CPU per hour for the rounds and ~3 ms for the sensitivities, against
-~1.5 s and ~0.15 s for the reference (``benchmarks/bench_decentralized.py``).
+On the paper's system with ``n = 20`` batteries (30 days, ~12 rounds per hour) a learning
+month of the decentralized learner took 2.4 s of CPU with the compiled path (the rounds
+1.4 s, the sensitivities 0.05 s, the learners' month-end fits 0.35 s) against 19 s with the
+reference, measured in the same run (``benchmarks/bench_decentralized.py``).
 
 Example
 -------
@@ -466,10 +467,23 @@ class CoordinatedMPC:
     ) -> _Hour:
         """The local problems of every day and battery at zero grid prices."""
         n, D = self.system.n, soc.shape[0]
-        P0 = np.stack([self.local_mpc.parameters(soc[:, i : i + 1], buy, sell, thetas[i])
-                       for i in range(n)], axis=1).reshape(D * n, -1)
+        P0 = self._parameters(soc, buy, sell, thetas).reshape(D * n, -1)
         Hd, q0, A, e = self._qp.data(P0)
         return _Hour(Hd, q0, A, e, scale=1.0 + np.abs(q0).reshape(D, -1).max(1))
+
+    def _parameters(
+        self, soc: np.ndarray, buy: np.ndarray, sell: np.ndarray, thetas: list[Theta]
+    ) -> np.ndarray:
+        """The local MPCs' parameters ``(days, n, np)``: :meth:`MPC.parameters
+        <mpcrl_lite.mpc.MPC.parameters>` of every battery, in one call (its last ``n_theta``
+        entries are the battery's theta)."""
+        mpc = self.local_mpc
+        P = mpc.parameters(soc[:, :, None], buy[:, None], sell[:, None], thetas[0])
+        tvec = np.stack([t.to_vector() for t in thetas])
+        if not np.all(np.isfinite(tvec)):
+            raise ValueError("MPC parameters contain non-finite values (soc0, prices or theta)")
+        P[:, :, mpc.np - mpc.n_theta :] = tvec
+        return P
 
     def _start(self, hour: _Hour) -> _Rounds:
         """Every day's start: one interior guess on the barrier path's centre for a large
@@ -651,13 +665,12 @@ class CoordinatedMPC:
         t0: float,
     ) -> CoordinatedSolution:
         """Outputs, and the fallback for days whose rounds did not converge."""
-        sysc, mpc, qp = self.system, self.local_mpc, self._qp
+        sysc, qp = self.system, self._qp
         n, N, D = sysc.n, sysc.N, soc.shape[0]
         nu, done, worst = state.point.nu, state.done, state.worst
         buy_p = buy + nu[:, :N] / self._discount
         sell_p = sell - nu[:, N:] / self._discount
-        Pp = np.stack([mpc.parameters(soc[:, i : i + 1], buy_p, sell_p, thetas[i])
-                       for i in range(n)], axis=1)
+        Pp = self._parameters(soc, buy_p, sell_p, thetas)
         X = state.point.x.reshape(D, n, -1).copy()
         Lm = state.point.lam.reshape(D, n, -1).copy()
         Mu = state.point.mu.reshape(D, n, -1).copy()
