@@ -95,7 +95,9 @@ def warm_up(verbose: bool = False) -> float:
     """Compile every kernel, or load it from numba's cache; returns the seconds it took.
 
     Called by ``python -m mpcrl_lite.kernel_solver --warm`` (the Makefile's setup) so that no
-    notebook waits for the compiler; :class:`KernelSolver` calls it on first use.
+    notebook waits for the compiler (the coordination rounds of the decentralized learner
+    included, :mod:`mpcrl_lite._coord_kernel`); :class:`KernelSolver` and the coordination
+    load their own kernels on first use.
     """
     t0 = time.perf_counter()
     K.ensure_compiled()
@@ -163,7 +165,7 @@ class KernelSolver(StartSettings, BackendBase):
             np.where(stage, gam[1:] * sysc.omega[0], sysc.omega_f[0]),
             np.where(stage, gam[1:] * sysc.omega[1], sysc.omega_f[1]),
         ]))
-        warm_up()
+        K.ensure_compiled()  # the coordination kernel is loaded by its own first use
         self._check_formulation()
 
     # ------------------------------------------------------------------ options ----------
