@@ -31,7 +31,12 @@ One round of one day
 
 Linear systems are solved by Gaussian elimination with partial pivoting (``W`` blocks,
 ``S``, the coordinator's system); a zero pivot or a non-finite direction stops that day's
-rounds (the caller's fallback), as a singular system does in the reference.
+rounds (the caller's fallback), as a singular system does in the reference. The fixed
+sparsity is used (:class:`Structure`): ``A`` and ``C`` by their nonzero entries, ``W_j``
+by its diagonal blocks (on the paper's MPC ``b`` and ``s`` alone, ``soc`` with its two
+slacks), ``S`` and ``A W^{-1}`` by the stages a dynamics row touches. Cost: about 5 us per
+battery and round (``n = 20``, ``N = 12``: ~0.15 ms per day and round), against ~2.5 ms per
+day and round for the vectorized reference.
 
 The kernels are compiled into numba's on-disk cache with those of :mod:`mpcrl_lite._kernel`
 (:func:`warm_up`, called by ``python -m mpcrl_lite.kernel_solver --warm``).
@@ -109,7 +114,7 @@ def _lu_solve(a, piv, b):
 
 
 # ------------------------------------------------------------------------- residuals ----
-# Sparse data of the local problems (built by :func:`sparsity`): the dynamics rows
+# Sparse data of the local problems (built by :func:`structure`): the dynamics rows
 # ``A[r] = sum_k aval[r, k] e_{acol[r, k]}'`` (padded with zero values), their blocks
 # ``ablo[r]..abhi[r]``, and per stage the inequality entries ``Cb[j, cr, cc] = cv`` and the
 # products ``C' D C`` needs, ``W[wa, wb] += D[wr] wv``.
@@ -487,7 +492,7 @@ def coordinate(Hd, q0, aval, e, scale, acol, ablo, abhi, cr, cc, cv, wr, wa, wb,
         ordered (day, battery), battery fastest.
     aval (B, N, ka), e (B, N), acol, ablo, abhi, cr, cc, cv, wr, wa, wb, wv
         Local dynamics ``A x = e`` and inequality rows in the sparse form of
-        :func:`sparsity`; ``db (N, 10)`` the right-hand sides of the inequality rows.
+        :func:`structure`; ``db (N, 10)`` the right-hand sides of the inequality rows.
     scale : (D,)
         ``1 + max |q|`` per day, the scale of the tolerance.
     kb, ks : int
