@@ -37,6 +37,7 @@ TARGETS = {
     "N48_ms_per_step": ("<=", 5.0),
     "cold_start_s": ("<=", 3.0),
     "kernel_us_per_problem": ("<=", 60.0),
+    "decentralized_n20_s_per_month": ("<=", 2.0),
 }
 
 
@@ -121,6 +122,16 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
         "import sys, bench_kernel; "
         f"sys.exit(bench_kernel.main({['--quick'] if quick else []!r}))", timeout=3600))
 
+    _log("decentralized learner, n = 20: compiled coordination vs the reference rounds")
+    dec = _try("decentralized benchmark", lambda: run_json(
+        "import sys, bench_decentralized; "
+        f"sys.exit(bench_decentralized.main({['--quick'] if quick else []!r}))", timeout=3600))
+    if dec is not None:
+        _log(f"decentralized n=20: {dec['decentralized_n20_s_per_month']:.2f} s/month "
+             f"(cpu {dec['decentralized_n20_cpu_s_per_month']:.2f}), reference "
+             f"{dec['decentralized_n20_reference_s_per_month']:.2f} s/month: ratio "
+             f"{dec['decentralized_n20_ratio']:.1f} (cpu {dec['decentralized_n20_ratio_cpu']:.1f})")
+
     _log("cold start")
     cold = bench_learning.cold_start(trials=1 if quick else 3)
 
@@ -167,6 +178,11 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
         "batch_cpu_us_per_problem": None if kernel is None
         else kernel["batch_cpu_us_per_problem"],
         "kernel_vs_batch": None if kernel is None else kernel["ratio"],
+        **{key: None if dec is None else dec[key] for key in (
+            "decentralized_n20_s_per_month", "decentralized_n20_cpu_s_per_month",
+            "decentralized_n20_reference_s_per_month",
+            "decentralized_n20_reference_cpu_s_per_month", "decentralized_n20_ratio",
+            "decentralized_n20_ratio_cpu")},
         "scaling": rows,
     })
     values = {
@@ -177,6 +193,7 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
         "N48_ms_per_step": _scaling_value(rows, 3, 48),
         "cold_start_s": result["cold_start_s"],
         "kernel_us_per_problem": result["kernel_us_per_problem"],
+        "decentralized_n20_s_per_month": result["decentralized_n20_s_per_month"],
     }
     targets = {}
     for name, (op, bound) in TARGETS.items():
@@ -191,6 +208,7 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
         "mpcrl_bounds_in_lbx": mpcrl_lbx, "mpcrl_cold_fresh_numba": mpcrl_cold,
         "mpcrl_cold_cached_numba": mpcrl_cold_cached, "paper": paper,
         "paper_learning_only": paper_learn, "cold": cold, "kernel": kernel,
+        "decentralized": dec,
         "figure": None if figure is None else str(figure),
     }
     result["total_s"] = time.perf_counter() - t_start

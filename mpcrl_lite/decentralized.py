@@ -28,7 +28,10 @@ stay importable from here.
 Learning and its approximation
 ------------------------------
 Battery ``i`` uses :math:`\nabla_{\theta^i}\pi^i` computed from its own KKT system at the
-final prices (:class:`~mpcrl_lite.sensitivity.PolicySensitivity` of the local MPC), i.e.
+final prices (the local MPC's KKT sensitivity: the compiled adjoint of
+:class:`~mpcrl_lite.kernel_solver.KernelSolver`, or
+:class:`~mpcrl_lite.sensitivity.PolicySensitivity` on the reference path, see
+:mod:`mpcrl_lite.coordination`), i.e.
 **at fixed grid prices**: the response of the prices to :math:`\theta^i` (and through them
 of the other batteries) is ignored. That is exact when the grid limit is slack (the prices
 are then ~0 and insensitive) and an approximation when it binds. Exploration is drawn per

@@ -43,7 +43,7 @@ import time
 import casadi as ca
 import numpy as np
 
-from . import _explore_kernel
+from . import _coord_kernel, _explore_kernel
 from . import _kernel as K
 from .config import MPCConfig
 from .mpc import MPC
@@ -95,11 +95,14 @@ def warm_up(verbose: bool = False) -> float:
     """Compile every kernel, or load it from numba's cache; returns the seconds it took.
 
     Called by ``python -m mpcrl_lite.kernel_solver --warm`` (the Makefile's setup) so that no
-    notebook waits for the compiler; :class:`KernelSolver` calls it on first use.
+    notebook waits for the compiler (the coordination rounds of the decentralized learner
+    included, :mod:`mpcrl_lite._coord_kernel`); :class:`KernelSolver` and the coordination
+    load their own kernels on first use.
     """
     t0 = time.perf_counter()
     K.ensure_compiled()
     _explore_kernel.ensure_compiled()  # the closed loop's exploration
+    _coord_kernel.ensure_compiled()  # the decentralized learner's coordination rounds
     took = time.perf_counter() - t0
     if verbose:
         print(f"mpcrl_lite kernels ready in {took:.1f} s (cache: {cache_dir()})")
@@ -163,7 +166,7 @@ class KernelSolver(StartSettings, BackendBase):
             np.where(stage, gam[1:] * sysc.omega[0], sysc.omega_f[0]),
             np.where(stage, gam[1:] * sysc.omega[1], sysc.omega_f[1]),
         ]))
-        warm_up()
+        K.ensure_compiled()  # the coordination kernel is loaded by its own first use
         self._check_formulation()
 
     # ------------------------------------------------------------------ options ----------

@@ -33,7 +33,7 @@ LAYERS: list[set[str]] = [
     {"solution"},
     # the back-ends and the KKT sensitivity
     {"sensitivity", "batch_kkt", "batch_adjoint", "batch_solver", "ipopt_solver", "_kernel",
-     "kernel_solver", "local_qp", "_explore_kernel"},
+     "kernel_solver", "local_qp", "_explore_kernel", "_coord_kernel"},
     # the back-end registry
     {"solvers"},
     # the one closed loop and its record
