@@ -33,8 +33,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, median
 
 from mpcrl_lite.batch_solver import BatchSolver
+from mpcrl_lite.closed_loop import GaussianExploration, MPCPolicy, SensitivityRecorder, simulate
 from mpcrl_lite.config import ConfigWarning, LearningConfig, MPCConfig, SystemConfig
-from mpcrl_lite.experiment import ClosedLoop
 from mpcrl_lite.kernel_solver import KernelSolver, warm_up
 from mpcrl_lite.mpc import MPC
 from mpcrl_lite.prices import Prices
@@ -46,34 +46,51 @@ SIZES = [(3, 12, 24), (100, 12, 3), (3, 48, 24)]
 TARGETS_US_PER_PROBLEM = {(3, 12): 60.0, (100, 12): 5000.0, (3, 48): 1000.0}
 
 
-def closed_loop(solver, system: SystemConfig, prices: Prices, hours: int, seed: int) -> dict:
-    """``hours`` closed-loop hours with ``solver``; times of its calls and what it returned."""
-    mpc = solver.mpc
-    theta = Theta.nominal(system)
-    loop = ClosedLoop(prices, system)
-    rng = np.random.default_rng(seed)
-    std = LearningConfig().exploration_std
-    ib, is_ = mpc.index("b"), mpc.index("s")
-    wall = cpu = 0.0
-    actions, grads, iters, ok = [], [], [], True
-    x_prev = None
-    for k in range(hours):
-        buy, sell = prices.window(k, system.N)
-        warm = None if x_prev is None else solver.shift(x_prev)
+class _Timed:
+    """``solver`` with the wall and CPU time of its ``solve_batch`` and ``sensitivity``
+    calls summed, and the iteration counts kept (what the per-problem figures count)."""
+
+    def __init__(self, solver) -> None:
+        self.solver, self.mpc = solver, solver.mpc
+        self.wall = self.cpu = 0.0
+        self.iters: list[np.ndarray] = []
+        self.ok = True
+
+    def shift(self, x):
+        return self.solver.shift(x)
+
+    def _timed(self, call, *args, **kwargs):
         t0, c0 = time.perf_counter(), time.process_time()
-        sol = solver.solve_batch(loop.soc, buy, sell, theta, x0=warm)
-        sens = solver.sensitivity(sol)
-        wall += time.perf_counter() - t0
-        cpu += time.process_time() - c0
-        ok &= bool(sol.success.all() and sens.ok.all())
-        x_prev = np.where(sol.success[:, None], sol.x, warm) if warm is not None else sol.x
-        planned = np.maximum(sol.x[:, ib].sum(axis=2), sol.x[:, is_].sum(axis=2)).max(axis=1)
-        loop.advance(k, sol.action, planned, rng, std)
-        actions.append(sol.action)
-        grads.append(sens.grad)
-        iters.append(sol.iterations)
-    return {"wall": wall, "cpu": cpu, "action": np.stack(actions), "grad": np.stack(grads),
-            "iters": np.concatenate(iters), "ok": ok}
+        out = call(*args, **kwargs)
+        self.wall += time.perf_counter() - t0
+        self.cpu += time.process_time() - c0
+        return out
+
+    def solve_batch(self, *args, **kwargs):
+        sol = self._timed(self.solver.solve_batch, *args, **kwargs)
+        self.iters.append(sol.iterations)
+        self.ok &= bool(sol.success.all())
+        return sol
+
+    def sensitivity(self, solution):
+        sens = self._timed(self.solver.sensitivity, solution)
+        self.ok &= bool(sens.ok.all())
+        return sens
+
+
+def closed_loop(solver, system: SystemConfig, prices: Prices, hours: int, seed: int) -> dict:
+    """``hours`` closed-loop hours (:func:`mpcrl_lite.closed_loop.simulate`, the nominal theta,
+    the default exploration) with ``solver``; times of its calls and what it returned."""
+    timed = _Timed(solver)
+    recorder = SensitivityRecorder()
+    record = simulate(
+        MPCPolicy(timed, Theta.nominal(system), prices, sensitivities=True),
+        prices.buy[:, :system.hours_per_day], prices.sell[:, :system.hours_per_day], system,
+        rng=np.random.default_rng(seed), hours=hours, on_hour=[recorder],
+        explore=GaussianExploration(LearningConfig().exploration_std, system),
+    )
+    return {"wall": timed.wall, "cpu": timed.cpu, "action": record.policy[:hours],
+            "grad": recorder.grad_pi, "iters": np.concatenate(timed.iters), "ok": timed.ok}
 
 
 def bench(n: int, N: int, hours: int, days: int, repeats: int) -> dict:
