@@ -37,6 +37,7 @@ TARGETS = {
     "N48_ms_per_step": ("<=", 5.0),
     "cold_start_s": ("<=", 3.0),
     "kernel_us_per_problem": ("<=", 60.0),
+    "study_20x100_s": ("<=", 180.0),
 }
 
 
@@ -121,6 +122,11 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
         "import sys, bench_kernel; "
         f"sys.exit(bench_kernel.main({['--quick'] if quick else []!r}))", timeout=3600))
 
+    _log("multi-seed study, runs in lockstep on 2 workers vs one by one")
+    study = _try("study benchmark", lambda: run_json(
+        "import sys, bench_study; "
+        f"sys.exit(bench_study.main({['--quick'] if quick else []!r}))", timeout=4 * 3600))
+
     _log("cold start")
     cold = bench_learning.cold_start(trials=1 if quick else 3)
 
@@ -169,11 +175,19 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
         "kernel_vs_batch": None if kernel is None else kernel["ratio"],
         "scaling": rows,
     })
+    # the study's keys (the 20x100 ones are null in the smoke run, which runs 4x4)
+    study = study or {}
+    for key in ("study_20x100_s", "study_20x100_cpu_s", "study_serial_20x100_s",
+                "study_serial_20x100_cpu_s", "study_serial_extrapolated",
+                "study_serial_seeds_measured", "study_speedup_vs_serial",
+                "study_cpu_ratio_vs_serial", "lockstep_cpu_ratio"):
+        result[key] = study.get(key)
     values = {
         "speedup_vs_mpcrl": result["speedup_vs_mpcrl"],
         "paper_experiment_s": result["paper_experiment_s"],
         "peak_rss_mb": result["peak_rss_mb"],
         "n100_ms_per_step": _scaling_value(rows, 100, 12),
+        "study_20x100_s": result["study_20x100_s"],
         "N48_ms_per_step": _scaling_value(rows, 3, 48),
         "cold_start_s": result["cold_start_s"],
         "kernel_us_per_problem": result["kernel_us_per_problem"],
@@ -190,7 +204,7 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
         "ours": ours, "ours_no_warm_start": ours_cold, "mpcrl": mpcrl,
         "mpcrl_bounds_in_lbx": mpcrl_lbx, "mpcrl_cold_fresh_numba": mpcrl_cold,
         "mpcrl_cold_cached_numba": mpcrl_cold_cached, "paper": paper,
-        "paper_learning_only": paper_learn, "cold": cold, "kernel": kernel,
+        "paper_learning_only": paper_learn, "cold": cold, "kernel": kernel, "study": study,
         "figure": None if figure is None else str(figure),
     }
     result["total_s"] = time.perf_counter() - t_start

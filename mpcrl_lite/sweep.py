@@ -118,7 +118,12 @@ __all__ = [
 ]
 
 
-def _check_arguments(scheduler: Any, workers: Any) -> None:
+def _check_arguments(scheduler: Any, workers: Any, lockstep: Any = None) -> None:
+    if lockstep is not None and (
+        isinstance(lockstep, bool) or not isinstance(lockstep, int) or lockstep < 1
+    ):
+        raise GridError(f"lockstep={lockstep!r}: expected None (each worker's share) or an "
+                        "integer >= 1 (runs per task)")
     if workers is not None and (
         isinstance(workers, bool) or not isinstance(workers, int) or workers < 0
     ):
@@ -145,6 +150,7 @@ def run_sweep(
     notebook: str | os.PathLike | None = None,
     notebook_parameters: Mapping[str, str] | None = None,
     connect_timeout: float = CONNECT_TIMEOUT,
+    lockstep: int | None = None,
 ) -> pd.DataFrame:
     """Run every unfinished grid point; return (and save) one row per run.
 
@@ -174,6 +180,10 @@ def run_sweep(
     connect_timeout
         Seconds to wait for the scheduler at a ``scheduler`` address to answer, checked
         before anything is written (default :data:`CONNECT_TIMEOUT`).
+    lockstep
+        Runs per task, learned month by month in lockstep in one process
+        (:mod:`mpcrl_lite.lockstep`; same results as one by one). Default: each worker's
+        share of the runs as one task (serial: all runs); ``1``: one run per task.
 
     Returns
     -------
@@ -201,7 +211,7 @@ def run_sweep(
     """
     t_start = time.perf_counter()
     sweep = load_grid(grid)
-    _check_arguments(scheduler, workers)
+    _check_arguments(scheduler, workers, lockstep)
     out = Path(out).resolve()
     serial = scheduler == "serial" or workers == 0
     selected = set(sweep.run_ids)
@@ -259,9 +269,9 @@ def run_sweep(
         if not todo:
             pass
         elif serial:
-            run_serial(todo, args, finished, progress)
+            run_serial(todo, args, finished, progress, lockstep)
         else:
-            run_dask(todo, args, finished, progress, scheduler, workers, out)
+            run_dask(todo, args, finished, progress, scheduler, workers, out, lockstep)
     finally:
         table = results_table(sweep, rows, notebooks)
         table.attrs.update({
@@ -284,6 +294,7 @@ def run_sweep_cli(
     progress: bool = True,
     only: Iterable[str] | None = None,
     connect_timeout: float = CONNECT_TIMEOUT,
+    lockstep: int | None = None,
 ) -> pd.DataFrame:
     """The ``sweep`` command: :func:`run_sweep` on a YAML file.
 
@@ -294,4 +305,4 @@ def run_sweep_cli(
     """
     return run_sweep(grid_path, out_dir, scheduler=scheduler, workers=workers,
                      notebooks=notebooks, progress=progress, only=only,
-                     connect_timeout=connect_timeout)
+                     connect_timeout=connect_timeout, lockstep=lockstep)

@@ -188,3 +188,73 @@ def test_lockstep_rejects_bad_input(tmp_path):
         run_lockstep(runs, months=0)
     results = run_lockstep(runs[:1], outs=[tmp_path], resume=True, force=True)
     assert isinstance(results[0], ValueError) and "exclude" in str(results[0])
+
+
+# -- the sweep runs its chunks in lockstep -------------------------------------------------
+SWEEP_GRID = {
+    "base": {"learning": {"months": 2, "days_per_month": 2, "eval_draws": 2},
+             "system": {"N": 4}},
+    "grid": {"system.P_bar": [1.0, 1.5], "system.noise_var": [0.5, 0.3],
+             "learning.seed": [0, 1]},
+}
+
+
+def test_sweep_in_lockstep_is_the_sweep_run_by_run(tmp_path, monkeypatch):
+    from mpcrl_lite.history import History
+    from mpcrl_lite.sweep import GridError, run_sweep
+
+    stacked: list[int] = []
+
+    def counting(theta, *args, **kwargs):
+        stacked.append(len(theta))
+        return run_month(theta, *args, **kwargs)
+
+    monkeypatch.setattr(lockstep, "run_month", counting)
+    together = run_sweep(SWEEP_GRID, tmp_path / "a", scheduler="serial", progress=False)
+    # one chunk of all 8 runs: two groups (the grid limits) of 4 runs, for 2 months
+    assert stacked == [4, 4, 4, 4]
+    one = run_sweep(SWEEP_GRID, tmp_path / "b", scheduler="serial", progress=False, lockstep=1)
+    assert stacked == [4, 4, 4, 4]
+    three = run_sweep(SWEEP_GRID, tmp_path / "c", scheduler="serial", progress=False,
+                      lockstep=3)
+    # chunks of 3 + 3 + 2 runs in grid order (P_bar outermost): 3 | 1 alone + 2 | 2
+    assert sorted(stacked[4:]) == [2, 2, 2, 2, 3, 3]
+    assert (together["status"] == "done").all() and (one["status"] == "done").all()
+    for run_id in together["run_id"]:
+        files = [History.load(tmp_path / d / "runs" / run_id).to_files()["history.json"]
+                 for d in "abc"]
+        metas = [json.loads(f) for f in files]
+        for meta in metas:
+            meta.pop("wall_time_s")
+            for info in meta["update_info"]:
+                info.pop("eval_time_s", None)
+        assert metas[0] == metas[1] == metas[2]
+    for col in ("J_first", "J_last", "months"):
+        assert together[col].tolist() == one[col].tolist() == three[col].tolist()
+    with pytest.raises(GridError, match="lockstep=0"):
+        run_sweep(SWEEP_GRID, tmp_path / "d", scheduler="serial", lockstep=0)
+    assert not (tmp_path / "d").exists()
+
+
+def test_cli_lockstep_flags(tmp_path, monkeypatch, capsys):
+    from mpcrl_lite import cli
+
+    parser = cli.build_parser()
+    args = parser.parse_args(["sweep", "--grid", "g.yaml", "--out", "o", "--lockstep", "3"])
+    assert args.lockstep == 3
+    args = parser.parse_args(["study", "--seeds", "2", "--months", "1", "--out", "o"])
+    assert args.lockstep is None
+    with pytest.raises(SystemExit):
+        parser.parse_args(["study", "--seeds", "2", "--months", "1", "--out", "o",
+                           "--lockstep", "0"])
+    assert "--lockstep" in capsys.readouterr().err
+    seen = {}
+
+    def fake_study(*args, **kwargs):
+        seen.update(kwargs)
+        raise ValueError("stop here")
+
+    monkeypatch.setattr("mpcrl_lite.study.run_study", fake_study)
+    assert cli.main(["study", "--seeds", "2", "--months", "1", "--out", str(tmp_path),
+                     "--lockstep", "2", "--quiet"]) == 2
+    assert seen["lockstep"] == 2
