@@ -42,6 +42,13 @@ the report notebook and, for ``scheduler='tcp://...'``, that a Dask scheduler an
 within ``connect_timeout`` seconds. Each failure is a :class:`GridError` (a ``ValueError``)
 with a one-line message; the ``sweep`` command prints it as one line and exits with status 2.
 
+Each task (a Dask task, or the serial loop's step) learns a chunk of runs month by month in
+lockstep in one process (:mod:`mpcrl_lite.lockstep`: runs that share the MPC formulation
+share its solver calls, each run with its own generator, update and checkpoint, and each
+run's results are bit for bit those of the run alone). ``lockstep=K`` sets the runs per
+task; by default each worker gets its share of the runs as one task (serial: all runs), and
+``lockstep=1`` gives one run per task. A finished chunk reports its runs to the table.
+
 Dask workers need ``mpcrl_lite`` importable and, with a remote scheduler, ``out`` on a file
 system they share with the client. Two sweeps must not write into the same ``out`` at once.
 
@@ -50,7 +57,8 @@ The parts, one module each (all public names are importable from here):
 * :mod:`mpcrl_lite.sweep_grid` -- the grid: parsing, validation, run ids (:func:`load_grid`);
 * :mod:`mpcrl_lite.sweep_store` -- the output directory: paths, atomic JSON, checks;
 * :mod:`mpcrl_lite.sweep_table` -- the results table (:func:`load_results`, :func:`summarize`);
-* :mod:`mpcrl_lite.sweep_run` -- one grid point on a worker (learning run, report notebook);
+* :mod:`mpcrl_lite.sweep_run` -- grid points on a worker (learning runs in lockstep,
+  report notebooks);
 * :mod:`mpcrl_lite.sweep_schedule` -- serial or Dask execution, the scheduler check;
 * this module -- :func:`run_sweep` and the ``sweep`` command (:func:`run_sweep_cli`).
 """
