@@ -258,3 +258,21 @@ def test_cli_lockstep_flags(tmp_path, monkeypatch, capsys):
     assert cli.main(["study", "--seeds", "2", "--months", "1", "--out", str(tmp_path),
                      "--lockstep", "2", "--quiet"]) == 2
     assert seen["lockstep"] == 2
+
+
+def test_parameters_take_one_theta_per_problem():
+    from mpcrl_lite.mpc import MPC
+
+    system = SystemConfig(N=6)
+    mpc = MPC(system)
+    rng = np.random.default_rng(0)
+    soc, buy, sell = rng.uniform(size=(4, 3)), rng.uniform(size=(4, 6)), rng.uniform(size=(4, 6))
+    thetas = [Theta.nominal(system), Theta.nominal(system).replace(b=np.full(3, 0.2))]
+    rows = np.repeat(np.stack([t.to_vector() for t in thetas]), 2, axis=0)
+    P = mpc.parameters(soc, buy, sell, rows)
+    for r, theta in enumerate(thetas):
+        block = slice(2 * r, 2 * r + 2)
+        np.testing.assert_array_equal(P[block], mpc.parameters(soc[block], buy[block],
+                                                               sell[block], theta))
+    with pytest.raises(ValueError, match=r"theta has shape \(3, 30\).*\(4, 30\)"):
+        mpc.parameters(soc, buy, sell, rows[:3])
