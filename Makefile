@@ -59,14 +59,16 @@ site: $(STAMP)
 	$(BIN)/python -m mpcrl_lite.site --out site --profile $(SITE_PROFILE) $(if $(SITE_FROM),--report $(SITE_FROM))
 
 ## multi-seed study: SEEDS runs of MONTHS months (seeds from SEED_START) into STUDY_OUT
-## (study.csv, study.json, study_curves.png; resumes an interrupted study)
+## (study.csv, study.json, study_curves.png; resumes an interrupted study). Each of the 2
+## workers steps its share of the seeds in lockstep; LOCKSTEP=K sets the runs per task.
 SEEDS ?= 20
 MONTHS ?= 100
 SEED_START ?= 0
 STUDY_OUT ?= study
+LOCKSTEP ?=
 study: $(STAMP)
 	$(BIN)/python -m mpcrl_lite study --seeds $(SEEDS) --months $(MONTHS) \
-		--seed-start $(SEED_START) --out $(STUDY_OUT)
+		--seed-start $(SEED_START) --out $(STUDY_OUT) $(if $(LOCKSTEP),--lockstep $(LOCKSTEP))
 
 clean:
 	rm -rf reports site .pytest_cache

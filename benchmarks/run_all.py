@@ -38,6 +38,7 @@ TARGETS = {
     "cold_start_s": ("<=", 3.0),
     "kernel_us_per_problem": ("<=", 60.0),
     "decentralized_n20_s_per_month": ("<=", 2.0),
+    "study_20x100_s": ("<=", 180.0),
 }
 
 
@@ -131,6 +132,10 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
              f"(cpu {dec['decentralized_n20_cpu_s_per_month']:.2f}), reference "
              f"{dec['decentralized_n20_reference_s_per_month']:.2f} s/month: ratio "
              f"{dec['decentralized_n20_ratio']:.1f} (cpu {dec['decentralized_n20_ratio_cpu']:.1f})")
+    _log("multi-seed study, runs in lockstep on 2 workers vs one by one")
+    study = _try("study benchmark", lambda: run_json(
+        "import sys, bench_study; "
+        f"sys.exit(bench_study.main({['--quick'] if quick else []!r}))", timeout=4 * 3600))
 
     _log("cold start")
     cold = bench_learning.cold_start(trials=1 if quick else 3)
@@ -185,11 +190,19 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
             "decentralized_n20_ratio_cpu")},
         "scaling": rows,
     })
+    # the study's keys (the 20x100 ones are null in the smoke run, which runs 4x4)
+    study = study or {}
+    for key in ("study_20x100_s", "study_20x100_cpu_s", "study_serial_20x100_s",
+                "study_serial_20x100_cpu_s", "study_serial_extrapolated",
+                "study_serial_seeds_measured", "study_speedup_vs_serial",
+                "study_cpu_ratio_vs_serial", "lockstep_cpu_ratio"):
+        result[key] = study.get(key)
     values = {
         "speedup_vs_mpcrl": result["speedup_vs_mpcrl"],
         "paper_experiment_s": result["paper_experiment_s"],
         "peak_rss_mb": result["peak_rss_mb"],
         "n100_ms_per_step": _scaling_value(rows, 100, 12),
+        "study_20x100_s": result["study_20x100_s"],
         "N48_ms_per_step": _scaling_value(rows, 3, 48),
         "cold_start_s": result["cold_start_s"],
         "kernel_us_per_problem": result["kernel_us_per_problem"],
@@ -208,7 +221,7 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
         "mpcrl_bounds_in_lbx": mpcrl_lbx, "mpcrl_cold_fresh_numba": mpcrl_cold,
         "mpcrl_cold_cached_numba": mpcrl_cold_cached, "paper": paper,
         "paper_learning_only": paper_learn, "cold": cold, "kernel": kernel,
-        "decentralized": dec,
+        "decentralized": dec, "study": study,
         "figure": None if figure is None else str(figure),
     }
     result["total_s"] = time.perf_counter() - t_start

@@ -197,6 +197,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="execute only this run id (repeatable); a rerun executes failed/unfinished runs")
     p.add_argument("--notebooks", action="store_true",
                    help="also execute notebook 05 per grid point into DIR/reports/")
+    p.add_argument("--lockstep", type=_positive_int, default=None, metavar="K",
+                   help="runs per task, stepped together in one process (default: each "
+                        "worker's share; 1: one run per task)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
     p = sub.add_parser("study", help="one learning run per seed, judged on J_eval")
@@ -215,6 +218,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default 0.9)")
     p.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
     p.add_argument("--workers", type=_nonneg_int, default=None, help="local workers (0: serial)")
+    p.add_argument("--lockstep", type=_positive_int, default=None, metavar="K",
+                   help="runs per task, stepped together in one process (default: each "
+                        "worker's share; 1: one run per task)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
 
@@ -573,7 +579,8 @@ def cmd_sweep(args: argparse.Namespace) -> int:
 
     try:
         table = run_sweep_cli(args.grid, args.out, scheduler=args.scheduler, workers=args.workers,
-                              notebooks=args.notebooks, progress=not args.quiet, only=args.only)
+                              notebooks=args.notebooks, progress=not args.quiet, only=args.only,
+                              lockstep=args.lockstep)
     except (ValueError, FileNotFoundError) as err:
         raise UsageError(str(err)) from None
     print(json.dumps({"runs": len(table), "failed": int((table["status"] == "failed").sum()),
@@ -594,7 +601,7 @@ def cmd_study(args: argparse.Namespace) -> int:
             args.seeds, args.months, args.out, seed_start=args.seed_start, base=base,
             workers=args.workers, scheduler=args.scheduler, J_star=args.j_star,
             threshold=THRESHOLD if args.threshold is None else args.threshold,
-            progress=not args.quiet)
+            progress=not args.quiet, lockstep=args.lockstep)
     except (ValueError, FileNotFoundError) as err:
         raise UsageError(str(err)) from None
     keys = ("done", "fraction_converged", "J_eval_final_median", "J_eval_final_iqr",

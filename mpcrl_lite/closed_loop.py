@@ -27,6 +27,16 @@ The order of the draws (exploration, then noise, hour by hour) is part of the co
 seeded generator reproduces a run exactly, and without exploration the noise of ``H`` hours
 equals one draw ``sample_noise(rng, (H, D, n))``, so a scenario drawn at once
 (common random numbers) gives the same numbers as a generator used hour by hour.
+
+Runs in lockstep
+----------------
+``K`` runs that share the true system's dynamics and the MPC can advance as one loop of
+``K * D`` days (:mod:`mpcrl_lite.lockstep`): the days of run ``r`` are rows
+``r * D .. (r + 1) * D - 1``, :class:`MPCPolicy` and :func:`run_month` take one theta per run
+(one solver call for all rows), and ``rng`` is a :class:`RunBlocks` holding each run's own
+generator and noise distribution, which draws every block from its run's generator in the
+order above. Every computation of the loop is row by row, so each block is bit for bit the
+run alone.
 """
 
 from __future__ import annotations
@@ -53,6 +63,7 @@ __all__ = [
     "MPCPolicy",
     "Policy",
     "Projection",
+    "RunBlocks",
     "SensitivityRecorder",
     "bounded_exploration",
     "check_margin",
@@ -293,6 +304,53 @@ def bounded_exploration(
                         system.P_bar, bounds == "symmetric")
 
 
+class RunBlocks:
+    """The generators of ``K`` runs stacked in lockstep, one per equal block of rows.
+
+    Stands in for ``rng`` in :func:`simulate`: a draw of shape ``(K * D, ...)`` is the
+    concatenation of each run's draw of shape ``(D, ...)`` from its own generator, so each
+    run's generator sees exactly the calls of the run alone (exploration, then noise, per
+    hour). :meth:`noise` draws each block from its own system's noise distribution.
+
+    Parameters
+    ----------
+    rngs : sequence of numpy.random.Generator
+        One per run, in the order of the blocks.
+    systems : sequence of SystemConfig
+        Each run's true system (its ``noise_mean`` and ``noise_var`` are used).
+    """
+
+    def __init__(self, rngs: Sequence[np.random.Generator], systems: Sequence[SystemConfig]) -> None:
+        self.rngs, self.systems = list(rngs), list(systems)
+        if not self.rngs or len(self.systems) != len(self.rngs):
+            raise ValueError(f"{len(self.rngs)} generators and {len(self.systems)} systems: "
+                             "expected as many of each, at least one")
+        for i, rng in enumerate(self.rngs):
+            if not isinstance(rng, np.random.Generator):
+                raise ValueError(f"rngs[{i}]={rng!r}: expected a numpy.random.Generator")  # noqa: TRY004
+
+    def _block(self, shape: tuple[int, ...]) -> tuple[int, ...]:
+        K = len(self.rngs)
+        if not shape or shape[0] % K:
+            raise ValueError(f"a draw of shape {shape}: expected {K} blocks of equal rows")
+        return (shape[0] // K, *shape[1:])
+
+    def standard_normal(self, shape: tuple[int, ...]) -> np.ndarray:
+        """Each run's ``rng.standard_normal`` of its block's shape, stacked."""
+        block = self._block(tuple(shape))
+        return np.concatenate([rng.standard_normal(block) for rng in self.rngs])
+
+    def noise(self, shape: tuple[int, ...]) -> np.ndarray:
+        """Each run's :func:`~mpcrl_lite.model.sample_noise` of its block's shape, stacked."""
+        block = self._block(tuple(shape))
+        return np.concatenate([sample_noise(rng, block, system)
+                               for rng, system in zip(self.rngs, self.systems, strict=True)])
+
+
+def _draw_noise(rng: Any, shape: tuple[int, int], system: SystemConfig) -> np.ndarray:
+    return rng.noise(shape) if isinstance(rng, RunBlocks) else sample_noise(rng, shape, system)
+
+
 class Projection:
     """Action hook: ``a = project_action(pi)``, the command onto the input bounds and the
     grid limit (a no-op for feasible commands such as an MPC's)."""
@@ -354,9 +412,10 @@ def simulate(
         forecast windows).
     system : SystemConfig
         The true system.
-    rng : numpy.random.Generator, optional
+    rng : numpy.random.Generator or RunBlocks, optional
         Source of the noise (one ``sample_noise`` of shape ``(days, n)`` per hour) unless
-        ``noise`` is given, and of the exploration.
+        ``noise`` is given, and of the exploration; a :class:`RunBlocks` for runs in
+        lockstep.
     noise : array_like, shape ``(hours, days, n)``, optional
         The noise of every hour, for common random numbers (then ``rng`` is not used for it).
     soc0 : float or array_like of shape ``(n,)`` or ``(days, n)``, optional
@@ -382,7 +441,7 @@ def simulate(
         raise ValueError(  # noqa: TRY004
             f"policy={policy!r}: expected a callable policy(hour, soc) -> a"
         )
-    if rng is not None and not isinstance(rng, np.random.Generator):
+    if rng is not None and not isinstance(rng, (np.random.Generator, RunBlocks)):
         raise ValueError(f"rng={rng!r}: expected a numpy.random.Generator (np.random.default_rng)")
     H_day, n = system.hours_per_day, system.n
     buy, sell = _prices("buy", buy, H_day), _prices("sell", sell, H_day)
@@ -413,7 +472,7 @@ def simulate(
         decision = _decision(decide(k, soc.copy()), k, (D, n))
         pi = decision.action
         a = pi if explore is None else explore(k, pi, rng)
-        delta = sample_noise(rng, (D, n), system) if noise is None else noise[k]
+        delta = _draw_noise(rng, (D, n), system) if noise is None else noise[k]
         res = step(soc, a, delta, buy[:, k], sell[:, k], system)
         out["policy"][k], out["a"][k], out["noise"][k] = pi, a, delta
         out["b"][k], out["s"][k], out["correction"][k] = res.b, res.s, res.correction
@@ -513,16 +572,24 @@ class MPCPolicy:
     solver
         A back-end from :func:`mpcrl_lite.solvers.make_solver` (``mpc``, ``solve_batch``,
         ``sensitivity``).
-    theta : Theta
+    theta : Theta or sequence of Theta
+        One theta for all rows, or one per run of runs stacked in lockstep (equal blocks of
+        rows, see the module docstring): then one solver call gets each row's own theta.
     prices
         Anything with ``window(hour, N)`` (a :class:`~mpcrl_lite.prices.Prices`), one row
         per day.
     sensitivities : bool, default False
     """
 
-    def __init__(self, solver: Any, theta: Theta, prices: Any, sensitivities: bool = False) -> None:
-        if not isinstance(theta, Theta) or theta.n != solver.mpc.n:
-            raise ValueError(f"theta={theta!r}: expected a Theta with n={solver.mpc.n}")
+    def __init__(self, solver: Any, theta: Theta | Sequence[Theta], prices: Any,
+                 sensitivities: bool = False) -> None:
+        thetas = [theta] if isinstance(theta, Theta) else list(theta)
+        if not thetas or any(not isinstance(t, Theta) or t.n != solver.mpc.n for t in thetas):
+            raise ValueError(f"theta={theta!r}: expected a Theta with n={solver.mpc.n} "
+                             "(or a non-empty sequence of them)")
+        # one theta per run: the rows' parameter vectors (days, n_theta) at each call
+        self._vectors = None if isinstance(theta, Theta) else np.stack(
+            [t.to_vector() for t in thetas])
         if not isinstance(sensitivities, bool):
             raise ValueError(  # noqa: TRY004
                 f"sensitivities={sensitivities!r}: expected True or False"
@@ -540,7 +607,13 @@ class MPCPolicy:
         mpc = self.solver.mpc
         buy, sell = self.prices.window(hour, mpc.N)
         warm = None if self._x is None or hour != self._hour + 1 else mpc.shift(self._x)
-        sol = self.solver.solve_batch(soc, buy, sell, self.theta, x0=warm)
+        theta = self.theta
+        if self._vectors is not None:
+            runs = len(self._vectors)
+            if len(soc) % runs:
+                raise ValueError(f"{len(soc)} rows for {runs} thetas: expected equal blocks")
+            theta = np.repeat(self._vectors, len(soc) // runs, axis=0)
+        sol = self.solver.solve_batch(soc, buy, sell, theta, x0=warm)
         self.failures += int(np.count_nonzero(~sol.success))
         self._x = sol.x if warm is None else np.where(sol.success[:, None], sol.x, warm)
         self._hour = hour
@@ -559,11 +632,11 @@ class MPCPolicy:
 
 # -- the MPC in closed loop for a month -----------------------------------------------------------
 def run_month(
-    theta: Theta,
+    theta: Theta | Sequence[Theta],
     solver: Any,
     prices: Any,
     system: SystemConfig,
-    rng: np.random.Generator,
+    rng: np.random.Generator | RunBlocks,
     exploration_std: float = 0.0,
     sensitivities: bool = True,
     soc0: float | np.ndarray | None = None,
@@ -579,7 +652,9 @@ def run_month(
     Parameters
     ----------
     theta
-        MPC parameters used all month.
+        MPC parameters used all month; for ``K`` runs in lockstep one per run, and then the
+        record has ``K * days`` days, run by run (the days of ``prices`` repeated, ``rng`` a
+        :class:`RunBlocks`).
     solver
         A back-end from :func:`mpcrl_lite.solvers.make_solver`.
     prices
@@ -607,6 +682,10 @@ def run_month(
         ``grad_pi`` of shape ``(H, D, n_theta, n)`` with ``sensitivities``, else None.
     """
     H = system.hours_per_day
+    if not isinstance(theta, Theta):
+        prices = _TiledPrices(prices, len(theta))
+        if soc0 is not None and np.ndim(soc0) == 2:
+            soc0 = np.tile(np.asarray(soc0, dtype=float), (len(theta), 1))
     recorder = SensitivityRecorder() if sensitivities else None
     explore = (GaussianExploration(exploration_std, system, exploration_bounds,
                                    exploration_margin) if exploration_std > 0 else None)

@@ -162,19 +162,35 @@ class Experiment(Learner):
             self.solver = make_solver(self.mpc, self.mpc_config.replace(backend="ipopt"))
             self.history.backend = self.solver.name
 
+    def month_options(self) -> dict[str, Any]:
+        """The keyword arguments of :func:`~mpcrl_lite.closed_loop.run_month` besides theta,
+        solver, prices, system and rng (runs with equal options can share a loop,
+        :mod:`mpcrl_lite.lockstep`)."""
+        return {"exploration_std": self.learning.exploration_std, "sensitivities": True,
+                "exploration_bounds": self.learning.exploration_bounds,
+                "exploration_margin": self.learning.exploration_margin}
+
+    def begin_month(self) -> Theta:
+        """The theta of the coming month, with the back-end it needs."""
+        self._check_solver(self.theta)
+        return self.theta
+
     def run_one_month(self) -> MonthRecord:
         """Simulate one month with the current theta and update it (and evaluate the
         month's theta when :meth:`evaluation_due`)."""
         t0 = time.perf_counter()
-        theta_used = self.theta
+        theta_used = self.begin_month()
+        record = run_month(theta_used, self.solver, self.prices, self.system, self.rng,
+                           **self.month_options())
+        return self.end_month(record, theta_used, time.perf_counter() - t0)
+
+    def end_month(self, record: MonthRecord, theta_used: Theta, sim_time: float,
+                  evaluation: MonthRecord | None = None) -> MonthRecord:
+        """Learn from the month ``record`` simulated at ``theta_used`` (in ``sim_time``
+        seconds), evaluate ``theta_used`` when due (or take its ``evaluation``) and record
+        the month."""
+        t0 = time.perf_counter() - sim_time
         month = self.history.months
-        self._check_solver(theta_used)
-        record = run_month(
-            theta_used, self.solver, self.prices, self.system, self.rng,
-            exploration_std=self.learning.exploration_std, sensitivities=True,
-            exploration_bounds=self.learning.exploration_bounds,
-            exploration_margin=self.learning.exploration_margin,
-        )
         grad, skipped, info = self.learning_step(record)
         self.theta = self.updater.step(theta_used, grad)
         info.update(self.updater.last_info)
@@ -183,8 +199,9 @@ class Experiment(Learner):
         wall_time = time.perf_counter() - t0
         if self.evaluation_due(month):
             t1 = time.perf_counter()
-            self.history.append_evaluation(month, self.evaluate(theta_used),
-                                           draws=self.learning.eval_draws)
+            if evaluation is None:
+                evaluation = self.evaluate(theta_used)
+            self.history.append_evaluation(month, evaluation, draws=self.learning.eval_draws)
             info["eval_time_s"] = time.perf_counter() - t1
         self.history.append(record, theta_used, grad, skipped, wall_time, info)
         self.history.theta_final = self.theta.to_vector().tolist()

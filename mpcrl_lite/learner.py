@@ -75,7 +75,9 @@ __all__ = [
     "BLAS_THREADS",
     "MAX_FAILED_SOLVE_SHARE",
     "Learner",
+    "close_month",
     "lstd_policy_gradient",
+    "open_run",
     "parse_theta",
     "resolve_setup",
     "run_months",
@@ -191,6 +193,28 @@ def run_months(
     replaced with ``force``, and refused otherwise. ``resume`` in a directory without a run
     starts one.
     """
+    months = open_run(learner, months, out, resume, force)
+    out = Path(out) if out is not None else None
+    history = learner.history
+    bar = tqdm(total=months, initial=min(history.months, months), desc=desc, unit="month",
+               disable=not progress)
+    with bar, threadpool_limits(limits=BLAS_THREADS):
+        while learner.history.months < months:
+            learner.run_one_month()
+            history = learner.history
+            postfix = {"J": f"{history.J[-1]:.1f}"}
+            if history.J_eval:
+                postfix["J_eval"] = f"{history.J_eval[-1]:.1f}"
+            bar.set_postfix(postfix, refresh=False)
+            bar.update(1)
+            close_month(learner, out)
+    return learner.history
+
+
+def open_run(learner: Learner, months: int | None, out: str | Path | None, resume: bool,
+             force: bool) -> int:
+    """Check the arguments of :func:`run_months` and prepare ``out`` (resume, replace or
+    refuse); returns the number of months to reach."""
     months = learner.learning.months if months is None else months
     if isinstance(months, bool) or not isinstance(months, int) or months < 1:
         raise ValueError(f"months={months!r}: expected an integer >= 1")
@@ -215,25 +239,18 @@ def run_months(
             )
         elif found.holds_run:
             rundir.clear(out)
+    return months
+
+
+def close_month(learner: Learner, out: Path | None) -> None:
+    """What follows every month of :func:`run_months`: the warning on failed solves, the
+    checkpoint in ``out`` and the learner's callbacks."""
     history = learner.history
-    bar = tqdm(total=months, initial=min(history.months, months), desc=desc, unit="month",
-               disable=not progress)
-    with bar, threadpool_limits(limits=BLAS_THREADS):
-        while learner.history.months < months:
-            learner.run_one_month()
-            history = learner.history
-            m = history.months - 1
-            postfix = {"J": f"{history.J[-1]:.1f}"}
-            if history.J_eval:
-                postfix["J_eval"] = f"{history.J_eval[-1]:.1f}"
-            bar.set_postfix(postfix, refresh=False)
-            bar.update(1)
-            _warn_failed_solves(history)
-            if out is not None:
-                learner.save_checkpoint(out)
-            for callback in learner.callbacks:
-                callback(m, history, learner)
-    return learner.history
+    _warn_failed_solves(history)
+    if out is not None:
+        learner.save_checkpoint(out)
+    for callback in learner.callbacks:
+        callback(history.months - 1, history, learner)
 
 
 def _warn_failed_solves(history: History) -> None:

@@ -202,8 +202,9 @@ class MPC:
     ) -> np.ndarray:
         """Stack ``(soc0, buy, sell, theta)`` into ``p``; leading batch axes are kept.
 
-        soc0 (..., n), buy and sell (..., N), theta a :class:`Theta` or (n_theta,) vector.
-        Returns (..., np).
+        soc0 (..., n), buy and sell (..., N), theta a :class:`Theta`, an (n_theta,) vector or
+        one vector per problem, (..., n_theta) with the batch axes of the others (runs
+        stacked in lockstep). Returns (..., np).
         """
         soc0 = np.asarray(soc0, dtype=float)
         buy = np.asarray(buy, dtype=float)
@@ -215,9 +216,10 @@ class MPC:
             raise ValueError(
                 f"price windows have shapes {buy.shape}, {sell.shape}; expected (..., N={self.N})"
             )
-        if tvec.shape != (self.n_theta,):
-            raise ValueError(f"theta has shape {tvec.shape}; expected ({self.n_theta},)")
         batch = np.broadcast_shapes(soc0.shape[:-1], buy.shape[:-1], sell.shape[:-1])
+        if tvec.shape[-1:] != (self.n_theta,) or (tvec.ndim > 1 and tvec.shape[:-1] != batch):
+            raise ValueError(f"theta has shape {tvec.shape}; expected ({self.n_theta},) or one "
+                             f"per problem, {batch + (self.n_theta,)}")
         parts = [
             np.broadcast_to(soc0, batch + (self.n,)),
             np.broadcast_to(buy, batch + (self.N,)),

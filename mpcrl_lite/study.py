@@ -219,6 +219,7 @@ def run_study(
     J_star: float | None = None,
     threshold: float = THRESHOLD,
     progress: bool = True,
+    lockstep: int | None = None,
 ) -> dict[str, Any]:
     """Run (or resume) the study and write its files into ``out``; returns the summary.
 
@@ -242,6 +243,9 @@ def run_study(
         The convergence rule (:func:`summarize`).
     progress
         Show the sweep's progress bar.
+    lockstep
+        Runs per task, stepped together in one process (:func:`mpcrl_lite.sweep.run_sweep`;
+        default each worker's share of the seeds).
     """
     for name, value, low in (("seeds", seeds, 1), ("months", months, 1),
                              ("seed_start", seed_start, 0)):
@@ -256,7 +260,8 @@ def run_study(
     # the convergence rule is checked before any run starts
     summarize(pd.DataFrame({"seed": [], "status": []}), J_star, threshold)
     out = Path(out)
-    table = run_sweep(grid, out, scheduler=scheduler, workers=workers, progress=progress)
+    table = run_sweep(grid, out, scheduler=scheduler, workers=workers, progress=progress,
+                      lockstep=lockstep)
     rows, histories = [], {}
     for seed, (_, result) in zip(seed_list, table.iterrows()):
         row: dict[str, Any] = {"seed": seed, "run_id": result["run_id"],

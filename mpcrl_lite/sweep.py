@@ -42,6 +42,13 @@ the report notebook and, for ``scheduler='tcp://...'``, that a Dask scheduler an
 within ``connect_timeout`` seconds. Each failure is a :class:`GridError` (a ``ValueError``)
 with a one-line message; the ``sweep`` command prints it as one line and exits with status 2.
 
+Each task (a Dask task, or the serial loop's step) learns a chunk of runs month by month in
+lockstep in one process (:mod:`mpcrl_lite.lockstep`: runs that share the MPC formulation
+share its solver calls, each run with its own generator, update and checkpoint, and each
+run's results are bit for bit those of the run alone). ``lockstep=K`` sets the runs per
+task; by default each worker gets its share of the runs as one task (serial: all runs), and
+``lockstep=1`` gives one run per task. A finished chunk reports its runs to the table.
+
 Dask workers need ``mpcrl_lite`` importable and, with a remote scheduler, ``out`` on a file
 system they share with the client. Two sweeps must not write into the same ``out`` at once.
 
@@ -50,7 +57,8 @@ The parts, one module each (all public names are importable from here):
 * :mod:`mpcrl_lite.sweep_grid` -- the grid: parsing, validation, run ids (:func:`load_grid`);
 * :mod:`mpcrl_lite.sweep_store` -- the output directory: paths, atomic JSON, checks;
 * :mod:`mpcrl_lite.sweep_table` -- the results table (:func:`load_results`, :func:`summarize`);
-* :mod:`mpcrl_lite.sweep_run` -- one grid point on a worker (learning run, report notebook);
+* :mod:`mpcrl_lite.sweep_run` -- grid points on a worker (learning runs in lockstep,
+  report notebooks);
 * :mod:`mpcrl_lite.sweep_schedule` -- serial or Dask execution, the scheduler check;
 * this module -- :func:`run_sweep` and the ``sweep`` command (:func:`run_sweep_cli`).
 """
@@ -118,7 +126,12 @@ __all__ = [
 ]
 
 
-def _check_arguments(scheduler: Any, workers: Any) -> None:
+def _check_arguments(scheduler: Any, workers: Any, lockstep: Any = None) -> None:
+    if lockstep is not None and (
+        isinstance(lockstep, bool) or not isinstance(lockstep, int) or lockstep < 1
+    ):
+        raise GridError(f"lockstep={lockstep!r}: expected None (each worker's share) or an "
+                        "integer >= 1 (runs per task)")
     if workers is not None and (
         isinstance(workers, bool) or not isinstance(workers, int) or workers < 0
     ):
@@ -145,6 +158,7 @@ def run_sweep(
     notebook: str | os.PathLike | None = None,
     notebook_parameters: Mapping[str, str] | None = None,
     connect_timeout: float = CONNECT_TIMEOUT,
+    lockstep: int | None = None,
 ) -> pd.DataFrame:
     """Run every unfinished grid point; return (and save) one row per run.
 
@@ -174,6 +188,10 @@ def run_sweep(
     connect_timeout
         Seconds to wait for the scheduler at a ``scheduler`` address to answer, checked
         before anything is written (default :data:`CONNECT_TIMEOUT`).
+    lockstep
+        Runs per task, learned month by month in lockstep in one process
+        (:mod:`mpcrl_lite.lockstep`; same results as one by one). Default: each worker's
+        share of the runs as one task (serial: all runs); ``1``: one run per task.
 
     Returns
     -------
@@ -201,7 +219,7 @@ def run_sweep(
     """
     t_start = time.perf_counter()
     sweep = load_grid(grid)
-    _check_arguments(scheduler, workers)
+    _check_arguments(scheduler, workers, lockstep)
     out = Path(out).resolve()
     serial = scheduler == "serial" or workers == 0
     selected = set(sweep.run_ids)
@@ -259,9 +277,9 @@ def run_sweep(
         if not todo:
             pass
         elif serial:
-            run_serial(todo, args, finished, progress)
+            run_serial(todo, args, finished, progress, lockstep)
         else:
-            run_dask(todo, args, finished, progress, scheduler, workers, out)
+            run_dask(todo, args, finished, progress, scheduler, workers, out, lockstep)
     finally:
         table = results_table(sweep, rows, notebooks)
         table.attrs.update({
@@ -284,6 +302,7 @@ def run_sweep_cli(
     progress: bool = True,
     only: Iterable[str] | None = None,
     connect_timeout: float = CONNECT_TIMEOUT,
+    lockstep: int | None = None,
 ) -> pd.DataFrame:
     """The ``sweep`` command: :func:`run_sweep` on a YAML file.
 
@@ -294,4 +313,4 @@ def run_sweep_cli(
     """
     return run_sweep(grid_path, out_dir, scheduler=scheduler, workers=workers,
                      notebooks=notebooks, progress=progress, only=only,
-                     connect_timeout=connect_timeout)
+                     connect_timeout=connect_timeout, lockstep=lockstep)

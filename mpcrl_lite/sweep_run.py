@@ -1,9 +1,13 @@
-"""One grid point of a sweep, as executed on a worker: its learning run and its report.
+"""Grid points of a sweep, as executed on a worker: their learning runs and their reports.
 
-:func:`run_task` is the unit of work the scheduler hands out. It learns (or resumes) the run
-in ``out/runs/<id>/`` and, with a notebook, executes the report; whatever fails is written
-next to the run (``error.json``, ``reports/<id>.error.json``) instead of being raised, so one
-failing grid point never stops the others. It returns the run's table row.
+:func:`run_chunk` is the unit of work the scheduler hands out: a chunk of grid points whose
+learning runs advance month by month in lockstep in one process
+(:func:`mpcrl_lite.lockstep.run_lockstep`: the runs that share an MPC share its solver
+calls; each run's results are bit for bit those of the run alone). Each run is learned (or
+resumed) in ``out/runs/<id>/`` and, with a notebook, its report executed; whatever fails is
+written next to the run (``error.json``, ``reports/<id>.error.json``) instead of being
+raised, so one failing grid point never stops the others. It returns the runs' table rows.
+:func:`run_task` is the chunk of one grid point.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from .experiment import Experiment
+from .lockstep import run_lockstep
 from .report import _check_values, execute_notebook, notebook_parameters
 from .sweep_grid import GridError, MissingFileError, Sweep, SweepRun
 from .sweep_store import (
@@ -36,6 +41,7 @@ __all__ = [
     "InjectedFailure",
     "check_notebook",
     "notebook_values",
+    "run_chunk",
     "run_task",
 ]
 
@@ -73,36 +79,53 @@ def _injected_failure(run_id: str):
     return fail
 
 
-def _learn(run: SweepRun, directory: Path) -> None:
-    directory.mkdir(parents=True, exist_ok=True)
-    for name in ("done.json", "error.json"):
-        (directory / name).unlink(missing_ok=True)
-    write_json(directory / "config.json", {"run_id": run.run_id, **run.configs()})
+def _error(err: BaseException, seconds: float) -> dict[str, Any]:
+    return {
+        "type": type(err).__name__,
+        "message": str(err),
+        "traceback": "".join(traceback.format_exception(err)),
+        "seconds": seconds,
+        "host": platform.node(),
+        "pid": os.getpid(),
+    }
+
+
+def _learn(runs: list[SweepRun], out: Path) -> None:
+    """Learn (or resume) the runs in lockstep; each ends with done.json or error.json."""
     t0 = time.perf_counter()
-    try:
-        # the files a resume reads, checked here so that a damaged one is named in error.json
-        for name in ("checkpoint.json", "history.json"):
-            read_json(directory / name)
-        fail = _injected_failure(run.run_id)
-        exp = Experiment(run.system, run.mpc, run.learning, callbacks=[fail] if fail else ())
-        history = exp.run(out=directory, resume=True, progress=False)
-    except Exception as err:  # noqa: BLE001 (the sweep goes on; the error is kept next to the run)
-        write_json(directory / "error.json", {
-            "type": type(err).__name__,
-            "message": str(err),
-            "traceback": traceback.format_exc(),
-            "seconds": time.perf_counter() - t0,
+    learners, directories, chunk = [], [], []
+    for run in runs:
+        directory = run_dir(out, run)
+        directory.mkdir(parents=True, exist_ok=True)
+        for name in ("done.json", "error.json"):
+            (directory / name).unlink(missing_ok=True)
+        write_json(directory / "config.json", {"run_id": run.run_id, **run.configs()})
+        try:
+            # the files a resume reads, checked here so that a damaged one is named in
+            # error.json
+            for name in ("checkpoint.json", "history.json"):
+                read_json(directory / name)
+            fail = _injected_failure(run.run_id)
+            learners.append(Experiment(run.system, run.mpc, run.learning,
+                                       callbacks=[fail] if fail else ()))
+        except Exception as err:  # noqa: BLE001 (the sweep goes on; the error is kept next to the run)
+            write_json(directory / "error.json", _error(err, time.perf_counter() - t0))
+            continue
+        directories.append(directory)
+        chunk.append(run)
+    results = run_lockstep(learners, outs=directories, resume=True) if learners else []
+    for directory, result in zip(directories, results, strict=True):
+        seconds = time.perf_counter() - t0
+        if isinstance(result, BaseException):
+            write_json(directory / "error.json", _error(result, seconds))
+            continue
+        write_json(directory / "done.json", {
+            "months": result.months,
+            "seconds": seconds,
+            "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
             "host": platform.node(),
             "pid": os.getpid(),
         })
-        return
-    write_json(directory / "done.json", {
-        "months": history.months,
-        "seconds": time.perf_counter() - t0,
-        "finished": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-        "host": platform.node(),
-        "pid": os.getpid(),
-    })
 
 
 # -- the report notebook -------------------------------------------------------------------
@@ -153,29 +176,45 @@ def _execute_report(run: SweepRun, out: Path, notebook: Path, mapping: Mapping[s
 
 
 # -- the unit of work ----------------------------------------------------------------------
-def run_task(
-    run: SweepRun, out: str, notebook: str | None, mapping: Mapping[str, str]
-) -> dict[str, Any]:
-    """Everything a grid point still needs (the learning run, its report); returns its row.
+def run_chunk(
+    runs: list[SweepRun], out: str, notebook: str | None, mapping: Mapping[str, str]
+) -> list[dict[str, Any]]:
+    """Everything some grid points still need (their learning runs, in lockstep, and their
+    reports); returns their rows in the order of ``runs``.
 
     Parameters
     ----------
-    run
-        The grid point.
+    runs
+        The grid points.
     out
         The sweep's output directory (a string, as it travels to Dask workers).
     notebook
         The report notebook, or ``None`` for no report.
     mapping
         Field -> notebook parameter (see :data:`NOTEBOOK_PARAMETERS`).
+
+    Notes
+    -----
+    A row's ``task_time_s`` is its share of the chunk's learning time plus its report's.
     """
     out_dir = Path(out)
-    directory = run_dir(out_dir, run)
     t0 = time.perf_counter()
-    if not is_done(run, directory):
-        _learn(run, directory)
-    if notebook is not None and not report_path(out_dir, run).exists():
-        _execute_report(run, out_dir, Path(notebook), mapping)
-    row = run_row(run, out_dir, notebook is not None)
-    row["task_time_s"] = time.perf_counter() - t0
-    return row
+    _learn([run for run in runs if not is_done(run, run_dir(out_dir, run))], out_dir)
+    share = (time.perf_counter() - t0) / max(len(runs), 1)
+    rows = []
+    for run in runs:
+        t1 = time.perf_counter()
+        if notebook is not None and not report_path(out_dir, run).exists():
+            _execute_report(run, out_dir, Path(notebook), mapping)
+        row = run_row(run, out_dir, notebook is not None)
+        row["task_time_s"] = share + time.perf_counter() - t1
+        rows.append(row)
+    return rows
+
+
+def run_task(
+    run: SweepRun, out: str, notebook: str | None, mapping: Mapping[str, str]
+) -> dict[str, Any]:
+    """Everything a grid point still needs (its learning run, its report); returns its row
+    (:func:`run_chunk` of one grid point)."""
+    return run_chunk([run], out, notebook, mapping)[0]

@@ -1,9 +1,14 @@
 """Where the runs of a sweep execute: serially in this process, or on Dask.
 
-:func:`run_serial` and :func:`run_dask` hand :func:`~mpcrl_lite.sweep_run.run_task` to the
-runs still to do and call ``finished(run, row)`` as each one completes, in completion order.
-A run's own errors are recorded by the task; a task that could not run at all (its worker
-died) is recorded here, so the table always gets a row.
+:func:`run_serial` and :func:`run_dask` hand the runs still to do to
+:func:`~mpcrl_lite.sweep_run.run_chunk` in chunks of ``lockstep`` runs, whose learning runs
+advance month by month in lockstep in one process (:mod:`mpcrl_lite.lockstep`; the results
+are those of the runs one by one), and call ``finished(run, row)`` as each chunk completes,
+in completion order. By default (:func:`chunks` with ``lockstep=None``) each worker gets one
+chunk, its share of the runs, and the serial scheduler one chunk of all runs;
+``lockstep=1`` runs one run per task. A run's own errors are recorded by the task; a task
+that could not run at all (its worker died) is recorded here for each of its runs, so the
+table always gets a row.
 
 :func:`check_scheduler` asks the scheduler at an address who it is, with a short timeout, so a
 wrong address is reported in one line before the sweep writes anything (Dask's own client
@@ -26,7 +31,7 @@ from typing import Any
 from tqdm.auto import tqdm
 
 from .sweep_grid import GridError, SweepRun, one_line
-from .sweep_run import run_task
+from .sweep_run import run_chunk
 from .sweep_store import run_dir, write_json
 from .sweep_table import run_row
 
@@ -35,6 +40,7 @@ __all__ = [
     "DaskMissingError",
     "SchedulerError",
     "check_scheduler",
+    "chunks",
     "require_dask",
     "run_dask",
     "run_serial",
@@ -127,24 +133,39 @@ def check_scheduler(address: str, timeout: float = CONNECT_TIMEOUT) -> None:
         )
 
 
+def chunks(todo: Sequence[SweepRun], lockstep: int | None, workers: int) -> list[list[SweepRun]]:
+    """``todo`` in grid order, cut into chunks of ``lockstep`` runs (default: as equal as
+    possible, one per worker)."""
+    if lockstep is not None and (isinstance(lockstep, bool) or not isinstance(lockstep, int)
+                                 or lockstep < 1):
+        raise GridError(f"lockstep={lockstep!r}: expected an integer >= 1 (runs per chunk)")
+    todo = list(todo)
+    if not todo:
+        return []
+    size = lockstep or math.ceil(len(todo) / max(workers, 1))
+    return [todo[i:i + size] for i in range(0, len(todo), size)]
+
+
 def run_serial(
-    todo: Sequence[SweepRun], args: tuple, finished: Finished, progress: bool
+    todo: Sequence[SweepRun], args: tuple, finished: Finished, progress: bool,
+    lockstep: int | None = None,
 ) -> None:
-    """Run the tasks one after another in this process."""
+    """Run the tasks in this process, ``lockstep`` runs at a time (default all)."""
     with tqdm(total=len(todo), desc="sweep (serial)", unit="run", disable=not progress) as bar:
-        for run in todo:
-            row = run_task(run, *args)
-            finished(run, row)
-            bar.update(1)
+        for chunk in chunks(todo, lockstep, 1):
+            for run, row in zip(chunk, run_chunk(chunk, *args), strict=True):
+                finished(run, row)
+                bar.update(1)
 
 
 def run_dask(
     todo: Sequence[SweepRun], args: tuple, finished: Finished, progress: bool,
-    scheduler: str | None, workers: int | None, out: Path,
+    scheduler: str | None, workers: int | None, out: Path, lockstep: int | None = None,
 ) -> None:
-    """Run the tasks on Dask: a local cluster of ``workers`` processes, or ``scheduler``.
+    """Run the tasks on Dask: a local cluster of ``workers`` processes, or ``scheduler``;
+    each task is a chunk of ``lockstep`` runs (default: one chunk per worker).
 
-    ``args`` are the task's arguments after the run (``out``, notebook, mapping).
+    ``args`` are the task's arguments after the runs (``out``, notebook, mapping).
     """
     require_dask()
     from distributed import Client, LocalCluster, as_completed
@@ -159,29 +180,35 @@ def run_dask(
                 silence_logs=logging.CRITICAL,
             ))
             client = stack.enter_context(Client(cluster))
+            slots = workers or 2
         else:
             client = stack.enter_context(Client(scheduler))
+            slots = sum(w.get("nthreads", 1) for w in client.scheduler_info()["workers"].values())
         token = os.urandom(4).hex()
         futures = {
-            client.submit(run_task, run, *args, key=f"sweep-{token}-{run.run_id}", pure=False): run
-            for run in todo
+            client.submit(run_chunk, chunk, *args, pure=False,
+                          key=f"sweep-{token}-{chunk[0].run_id}-{len(chunk)}"): chunk
+            for chunk in chunks(todo, lockstep, slots)
         }
         failed = 0
         with tqdm(total=len(todo), desc="sweep", unit="run", disable=not progress) as bar:
             for future in as_completed(futures):
-                run = futures[future]
+                chunk = futures[future]
                 try:
-                    row = future.result()
+                    rows = future.result()
                 except Exception as err:  # noqa: BLE001 (the worker died, the task could not run)
-                    directory = run_dir(out, run)
-                    directory.mkdir(parents=True, exist_ok=True)
-                    write_json(directory / "error.json", {
-                        "type": type(err).__name__, "message": str(err),
-                        "traceback": "".join(traceback.format_exception(err)),
-                    })
-                    row = run_row(run, out, args[1] is not None)
-                if row["status"] == "failed":
-                    failed += 1
-                    bar.set_postfix(failed=failed, refresh=False)
-                finished(run, row)
-                bar.update(1)
+                    rows = []
+                    for run in chunk:
+                        directory = run_dir(out, run)
+                        directory.mkdir(parents=True, exist_ok=True)
+                        write_json(directory / "error.json", {
+                            "type": type(err).__name__, "message": str(err),
+                            "traceback": "".join(traceback.format_exception(err)),
+                        })
+                        rows.append(run_row(run, out, args[1] is not None))
+                for run, row in zip(chunk, rows, strict=True):
+                    if row["status"] == "failed":
+                        failed += 1
+                        bar.set_postfix(failed=failed, refresh=False)
+                    finished(run, row)
+                    bar.update(1)

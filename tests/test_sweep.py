@@ -342,7 +342,7 @@ SWEEP_LAYER = {
     "sweep_grid": {"config"},
     "sweep_store": {"sweep_grid"},
     "sweep_table": {"history", "sweep_grid", "sweep_store"},
-    "sweep_run": {"experiment", "report", "sweep_grid", "sweep_store", "sweep_table"},
+    "sweep_run": {"experiment", "lockstep", "report", "sweep_grid", "sweep_store", "sweep_table"},
     "sweep_schedule": {"sweep_grid", "sweep_run", "sweep_store", "sweep_table"},
     "sweep": {"report", "sweep_grid", "sweep_run", "sweep_schedule", "sweep_store",
               "sweep_table"},
