@@ -163,7 +163,8 @@ def plain(data: Any) -> Any:
 
 #: Configuration fields added after run directories existed, with the value the older runs
 #: had: left out of :func:`config_sha256` at that value, so older manifests still match.
-LEGACY_VALUES: dict[str, dict[str, Any]] = {"learning": {"eval_draws": 1}}
+LEGACY_VALUES: dict[str, dict[str, Any]] = {"learning": {"eval_draws": 1},
+                                          "mpc": {"forecast": "paper"}}
 _NO = object()
 
 
