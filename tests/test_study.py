@@ -223,3 +223,23 @@ def test_study_command_passes_forecast_and_target(tmp_path, capsys):
     assert printed["J_star_method"] is None and "regret_median" in printed
     config = json.loads(next((out / "runs").glob("*/config.json")).read_text())
     assert config["mpc"]["forecast"] == "until_midnight"
+
+
+def test_a_sweep_run_written_before_the_forecast_option_is_still_its_own(tmp_path):
+    """config.json of a run from before MPCConfig.forecast reads as the paper's forecast; a
+    run of the other forecast is refused in one line."""
+    from mpcrl_lite.sweep_grid import load_grid
+    from mpcrl_lite.sweep_store import check_run_dirs, run_dir
+
+    sweep = load_grid({"grid": {"learning.seed": [1]}})
+    directory = run_dir(tmp_path, sweep.runs[0])
+    directory.mkdir(parents=True)
+    configs = sweep.runs[0].configs()
+    del configs["mpc"]["forecast"]
+    (directory / "config.json").write_text(json.dumps(configs))
+    check_run_dirs(sweep, tmp_path)  # no error
+    configs["mpc"]["forecast"] = "until_midnight"
+    (directory / "config.json").write_text(json.dumps(configs))
+    with pytest.raises(ValueError, match="mpc.forecast='until_midnight'") as err:
+        check_run_dirs(sweep, tmp_path)
+    assert len(str(err.value).splitlines()) == 1
