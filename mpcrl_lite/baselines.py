@@ -98,6 +98,7 @@ from . import rundir
 from .causal import CausalBound, causal_optimum, compare_with_optimum
 from .closed_loop import MPCPolicy, Policy, Projection, simulate
 from .config import LearningConfig, MPCConfig, SystemConfig
+from .day_end import forecast_prices
 from .history import History
 from .model import penalty, project_action, sample_noise
 from .mpc import MPC
@@ -635,7 +636,8 @@ def evaluate_baselines(
     mpc = MPC(system)
     for name, theta in {"nominal": Theta.nominal(system), **thetas}.items():
         solver = make_solver(mpc, mpc_config, theta)
-        results[name] = evaluate_policy(MPCPolicy(solver, theta, scenario.prices), scenario, name)
+        seen = forecast_prices(scenario.prices, mpc_config)  # MPCConfig.forecast
+        results[name] = evaluate_policy(MPCPolicy(solver, theta, seen), scenario, name)
         results[name].info["backend"] = solver.name
     results["rule_based"] = evaluate_policy(
         RuleBasedPolicy(scenario.prices, system, rule_soc_guard), scenario, "rule_based"
@@ -716,6 +718,11 @@ def run_baselines_cli(
         if not history.theta_final:
             raise ValueError(f"history in {history_dir} has no final theta (no month finished)")
         thetas["learned"] = history.final_theta()
+        if history.mpc.forecast != mpc_config.forecast:
+            warnings.warn(f"history in {history_dir} was learned with forecast="
+                          f"{history.mpc.forecast!r}; evaluating it with forecast="
+                          f"{mpc_config.forecast!r} (pass --forecast to match)", UserWarning,
+                          stacklevel=2)
     if rundir.inspect(out_dir, others=[BASELINES_JSON]).others and not force:
         raise rundir.RunDirError(f"--out {out_dir} already holds {BASELINES_JSON}; pass --force "
                                  "to replace it or choose another --out")

@@ -11,7 +11,10 @@ sweep      a grid of learning runs on Dask
 study      one learning run per seed (through sweep); convergence, spread, learning curves
 
 ``learn``, ``simulate``, ``baselines`` and ``evaluate`` read another month of prices with
-``--prices EXPORT.csv --area AREA --month YYYY-MM`` (a Nord Pool export).
+``--prices EXPORT.csv --area AREA --month YYYY-MM`` (a Nord Pool export). ``learn``,
+``simulate``, ``baselines``, ``evaluate`` and ``study`` take ``--forecast {paper,
+until_midnight}`` (``MPCConfig.forecast``): the paper's MPC by default, or the extension beyond
+the paper whose forecast stops at midnight (:mod:`mpcrl_lite.day_end`).
 
 Bad arguments end with one line on stderr (``mpcrl_lite <command>: error: ...``) and exit
 status 2, never with a traceback; nothing is computed or written before every argument,
@@ -34,7 +37,15 @@ from typing import Any
 import numpy as np
 
 from . import rundir
-from .config import BACKENDS, OPTIMIZERS, PAPER_TAU, LearningConfig, MPCConfig, SystemConfig
+from .config import (
+    BACKENDS,
+    FORECASTS,
+    OPTIMIZERS,
+    PAPER_TAU,
+    LearningConfig,
+    MPCConfig,
+    SystemConfig,
+)
 from .report import PROFILES
 
 # The heavier modules (CasADi, the solvers, matplotlib) are imported inside each command, so
@@ -83,6 +94,10 @@ def _float(text: str) -> float:
     return value
 
 
+#: ``study --target`` choices: :data:`mpcrl_lite.study.TARGETS` (not imported here, it loads
+#: the compiled DP; a test checks that they agree).
+STUDY_TARGETS = ("causal", "best_seen")
+
 # Defaults shown in --help are read from the configs, never copied.
 _SYSTEM, _MPC, _LEARNING = SystemConfig(), MPCConfig(), LearningConfig()
 
@@ -101,7 +116,16 @@ def _add_system_args(p: argparse.ArgumentParser) -> None:
                         f"{PAPER_TAU:g} is the nearly exact MPC)")
     p.add_argument("--backend", choices=BACKENDS, default=None,
                    help=f"MPC solver back-end (default {_MPC.backend})")
+    _add_forecast(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _add_forecast(p: argparse.ArgumentParser, help_text: str | None = None) -> None:
+    p.add_argument("--forecast", choices=FORECASTS, default=None,
+                   help=help_text or (
+                       f"the MPC's price forecast (default {_MPC.forecast}: the paper's, "
+                       "reading on into the next day; until_midnight is an extension beyond "
+                       "the paper whose forecast stops at midnight)"))
 
 
 def _add_price_args(p: argparse.ArgumentParser) -> None:
@@ -186,6 +210,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="days (default the run's days per month, or all of --month)")
     _add_force(p)
     _add_price_args(p)
+    _add_forecast(p, "the MPC's price forecast (default: the run's own; until_midnight is an "
+                     "extension beyond the paper whose forecast stops at midnight)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
     p = sub.add_parser("sweep", help="a grid of learning runs on Dask")
@@ -212,10 +238,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--eval-draws", type=_positive_int, default=None,
                    help=f"evaluation draws (default {_LEARNING.eval_draws})")
     p.add_argument("--j-star", type=_float, default=None,
-                   help="J of the best causal policy (default: the best J_eval reached)")
+                   help="J of the best causal policy (default: computed, see --target)")
+    p.add_argument("--target", choices=STUDY_TARGETS, default="causal",
+                   help="without --j-star: causal (default) computes J* for the study's "
+                        "system and month (the causal DP for n <= 3, else the Lagrangian "
+                        "bound), best_seen judges against the best J_eval reached")
     p.add_argument("--threshold", type=_float, default=None,
                    help="share of the gap nominal -> target a converged seed closes "
                         "(default 0.9)")
+    _add_forecast(p)
     p.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
     p.add_argument("--workers", type=_nonneg_int, default=None, help="local workers (0: serial)")
     p.add_argument("--lockstep", type=_positive_int, default=None, metavar="K",
@@ -239,6 +270,8 @@ def _configs(args: argparse.Namespace, **learning: Any):
         mpc["tau"] = args.tau
     if args.backend is not None:
         mpc["backend"] = args.backend
+    if args.forecast is not None:
+        mpc["forecast"] = args.forecast
     learning = {k: v for k, v in learning.items() if v is not None}
     try:
         return (
@@ -321,6 +354,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     days = prices.days if prices is not None else args.days
     _budget(f"--days {days} --n {system.n}", system.n, days, horizon=system.N)
     out = _out(args, SIMULATE_OUTPUTS)
+    from .day_end import forecast_prices
     from .experiment import run_month
     from .mpc import MPC
     from .plots import plot_day
@@ -330,6 +364,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
 
     if prices is None:
         prices = Prices.month(system, days)
+    prices = forecast_prices(prices, mpc_config)
     theta = Theta.nominal(system)
     mpc = MPC(system)
     solver = make_solver(mpc, mpc_config, theta)
@@ -396,6 +431,17 @@ def _run_learning(out: Path) -> dict[str, Any]:
     return {}
 
 
+def _run_forecast(out: Path) -> str | None:
+    """``mpc.forecast`` of the run in ``out`` (None if there is none to read: the resume then
+    reports what is wrong)."""
+    for name in ("checkpoint.json", "history.json"):
+        try:
+            return MPCConfig.from_dict(json.loads((out / name).read_text())["mpc"]).forecast
+        except (OSError, ValueError, TypeError, KeyError, AttributeError):
+            continue
+    return None
+
+
 def cmd_learn(args: argparse.Namespace) -> int:
     """The ``learn`` command. Everything about ``--out`` is checked before any month runs:
     a directory holding results (a run, a History, a summary or figures of ``learn``) is
@@ -406,6 +452,8 @@ def cmd_learn(args: argparse.Namespace) -> int:
         # a resumed run keeps its evaluation draws (1 for runs from before the option)
         eval_draws = _run_eval_draws(Path(args.out))
     kept = _run_learning(Path(args.out)) if args.resume else {}  # and its learner's settings
+    if args.resume and args.forecast is None:  # and its MPC's forecast
+        args.forecast = _run_forecast(Path(args.out))
     system, mpc_config, learning = _configs(
         args, months=args.months, days_per_month=args.days, step_size=args.step_size,
         optimizer=args.optimizer, exploration_std=args.exploration_std,
@@ -460,7 +508,7 @@ def cmd_learn(args: argparse.Namespace) -> int:
                           progress=not args.quiet)
     except (ValueError, OSError) as err:  # RunDirError, RunWriteError
         raise UsageError(str(err)) from None
-    summary = history.summary()
+    summary = {**history.summary(), "forecast": history.mpc.forecast}
     try:
         rundir.write_atomic(out / rundir.SUMMARY, rundir.dumps(summary))
     except OSError as err:
@@ -544,6 +592,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
         raise UsageError(f"--history {args.history}: no final theta (no month finished); "
                          "expected a run with at least one month")
     system, mpc_config = history.system, history.mpc
+    if args.forecast is not None:
+        mpc_config = mpc_config.replace(forecast=args.forecast)
     prices = _prices(args, system, args.days)
     days = prices.days if prices is not None else (args.days or history.learning.days_per_month)
     _budget(f"--draws {args.draws} --days {days} --n {system.n}", system.n, days,
@@ -596,16 +646,19 @@ def cmd_study(args: argparse.Namespace) -> int:
         base["learning.days_per_month"] = args.days
     if args.eval_draws is not None:
         base["learning.eval_draws"] = args.eval_draws
+    if args.forecast is not None:
+        base["mpc.forecast"] = args.forecast
     try:
         summary = run_study(
             args.seeds, args.months, args.out, seed_start=args.seed_start, base=base,
             workers=args.workers, scheduler=args.scheduler, J_star=args.j_star,
             threshold=THRESHOLD if args.threshold is None else args.threshold,
-            progress=not args.quiet, lockstep=args.lockstep)
+            progress=not args.quiet, lockstep=args.lockstep, target=args.target)
     except (ValueError, FileNotFoundError) as err:
         raise UsageError(str(err)) from None
     keys = ("done", "fraction_converged", "J_eval_final_median", "J_eval_final_iqr",
-            "worst_seed", "largest_late_regression")
+            "worst_seed", "largest_late_regression", "J_target", "J_star_method",
+            "regret_median", "regret_iqr", "late_collapse_count")
     print(json.dumps({**{k: summary[k] for k in keys}, "study": str(args.out / "study.json")},
                      default=str))
     return 0

@@ -110,8 +110,8 @@ the final J has a median of -217 NOK/day (inter-quartile range -222 to -203, wor
 every seed learns. The best causal policy earns J* = -401.5 and the nominal MPC costs +1576,
 so this closes 90 % of the gap in the median; the rest is mostly the policy class: the MPC's
 forecast reads on into the next day, whose prices do not count. With a forecast that stops at
-midnight (:mod:`mpcrl_lite.day_end`, an option beside the paper's class) the same learner
-reaches a median of about -310 NOK/day. With the earlier defaults (projected exploration, one
+midnight (``MPCConfig(forecast='until_midnight')``, :mod:`mpcrl_lite.day_end`: an extension
+beside the paper's class, never a default) the same learner reaches a median of -314 NOK/day. With the earlier defaults (projected exploration, one
 parameter set per battery, ``'paper+hour'``) the median was -180 and 3 of the 20 seeds never
 learned (J ~ 1250).
 
@@ -133,6 +133,7 @@ __all__ = [
     "BACKENDS",
     "EARLIER_BEHAVIOUR",
     "EXPLORATION_BOUNDS",
+    "FORECASTS",
     "HOURS_PER_DAY",
     "OPTIMIZERS",
     "PAPER_EXPLORATION_STD",
@@ -443,6 +444,11 @@ class SystemConfig(_Config):
 #: Solver back-ends known to :mod:`mpcrl_lite.solvers`.
 BACKENDS = ("auto", "ipopt", "batch", "kernel")
 
+#: What the MPC's price forecast covers (:attr:`MPCConfig.forecast`): ``'paper'``, the paper's
+#: 12-hour window that reads on into the next day, and ``'until_midnight'``, an extension beyond
+#: the paper whose forecast stops at the end of the day (:mod:`mpcrl_lite.day_end`).
+FORECASTS = ("paper", "until_midnight")
+
 #: A nearly exact barrier parameter: the policy is then practically the exact MPC's (the
 #: paper does not give the barrier value of its interior-point solver).
 PAPER_TAU = 1e-4
@@ -478,6 +484,14 @@ class MPCConfig(_Config):
     """Start each solve from the previous hour's solution (shifted)."""
     kkt_cond_max: float = 1e12
     """KKT matrices with a larger condition estimate are reported as ill-conditioned."""
+    forecast: str = "paper"
+    """What the MPC's price forecast covers (:data:`FORECASTS`). ``'paper'`` (the default)
+    is the paper's policy class: the ``N``-hour window reads on into the next day's prices.
+    ``'until_midnight'`` is an **extension beyond the paper**, never a default: the forecast
+    prices of the hours after the day's midnight are zero, since nothing after midnight
+    counts in the day's cost (:mod:`mpcrl_lite.day_end`); the MPC, theta and the true cost
+    are unchanged. Every learner, evaluation and baseline that builds the MPC from this
+    config applies it (:func:`mpcrl_lite.day_end.forecast_prices`)."""
 
     def __post_init__(self) -> None:
         set_ = self._set
@@ -487,6 +501,7 @@ class MPCConfig(_Config):
         set_("max_iter", check_int("max_iter", self.max_iter, 1))
         set_("warm_start", check_bool("warm_start", self.warm_start))
         set_("kkt_cond_max", check_real("kkt_cond_max", self.kkt_cond_max, 1.0, low_open=True))
+        set_("forecast", check_choice("forecast", self.forecast, FORECASTS))
 
     @classmethod
     def paper(cls, **changes: Any) -> MPCConfig:

@@ -17,19 +17,22 @@ Measured (``benchmarks/bench_learner_robustness.py``, the default learner, 20 le
 never tuned on, 10 evaluation draws of the month each; ``benchmarks/README.md``): with this
 forecast the final J has a median of -314 NOK/day (worst -281; the best causal policy earns
 -401.5), against -217 (worst -167) for the paper's MPC. This is *not* the paper's policy class
-and is never a default: pass ``prices=until_midnight(prices)`` to
-:class:`~mpcrl_lite.experiment.Experiment` (and to any evaluation of the learned theta) to use
-it.
+and is never a default. It is chosen in one place, ``MPCConfig(forecast='until_midnight')``
+(:data:`mpcrl_lite.config.FORECASTS`; ``--forecast until_midnight`` on the command line):
+every learner, evaluation and baseline that builds the MPC from that config passes its prices
+through :func:`forecast_prices`, and the run's History records the choice. Passing
+``prices=until_midnight(prices)`` to :class:`~mpcrl_lite.experiment.Experiment` does the same
+(the learner then records ``forecast='until_midnight'``).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .config import HOURS_PER_DAY, check_instance
+from .config import FORECASTS, HOURS_PER_DAY, MPCConfig, check_choice, check_instance
 from .prices import Prices
 
-__all__ = ["DayEndPrices", "until_midnight"]
+__all__ = ["DayEndPrices", "forecast_of", "forecast_prices", "until_midnight"]
 
 
 class DayEndPrices(Prices):
@@ -68,3 +71,35 @@ def until_midnight(prices: Prices) -> DayEndPrices:
     check_instance("prices", prices, Prices)
     return DayEndPrices(prices.buy, sell_ratio=prices.sell_ratio, unit=prices.unit,
                         source=f"{prices.source}; forecast until midnight")
+
+
+def forecast_prices(prices: Prices, forecast: str | MPCConfig) -> Prices:
+    """``prices`` as the MPC of ``forecast`` sees them.
+
+    Parameters
+    ----------
+    prices : Prices
+        The month; its :attr:`~Prices.buy` and :attr:`~Prices.sell` are what the true system
+        is charged, whatever the forecast.
+    forecast : str or MPCConfig
+        One of :data:`~mpcrl_lite.config.FORECASTS`, or an MPC config (its ``forecast``).
+
+    Returns
+    -------
+    Prices
+        ``prices`` itself for ``'paper'``; :func:`until_midnight` of them for
+        ``'until_midnight'`` (``prices`` itself if they already stop at midnight).
+    """
+    check_instance("prices", prices, Prices)
+    if isinstance(forecast, MPCConfig):
+        forecast = forecast.forecast
+    forecast = check_choice("forecast", forecast, FORECASTS)
+    if forecast == "paper" or isinstance(prices, DayEndPrices):
+        return prices
+    return until_midnight(prices)
+
+
+def forecast_of(prices: Prices) -> str:
+    """The forecast ``prices`` give the MPC: ``'until_midnight'`` for :class:`DayEndPrices`,
+    else ``'paper'``."""
+    return "until_midnight" if isinstance(prices, DayEndPrices) else "paper"

@@ -84,7 +84,9 @@ class Experiment(Learner):
         Configurations (defaults: the paper's).
     prices
         The month's prices (default: the embedded NO3 profile, first
-        ``learning.days_per_month`` days).
+        ``learning.days_per_month`` days); the MPC sees them through
+        ``mpc_config.forecast`` (:func:`mpcrl_lite.day_end.forecast_prices`), kept as
+        :attr:`prices`.
     theta0
         Initial parameters (default :meth:`Theta.nominal`).
     callbacks

@@ -28,10 +28,12 @@ Checkpoints
 After every month the run directory (:mod:`mpcrl_lite.rundir`) gets one commit holding
 ``history.json``, ``history.npz`` and ``checkpoint.json``; the latter has ``format`` (the
 learner's), ``months_done``, ``theta``, the optimizer state (``updater``, or ``updaters``
-per battery), the generator state ``rng`` and the configurations. :meth:`Learner.load_checkpoint`
-verifies everything -- checksums, formats, the learner kind, months_done against the History
-and the manifest, every series one entry per month, the configurations -- before changing
+per battery), the generator state ``rng``, the configurations and ``prices``, a fingerprint of
+the month's prices (:func:`prices_fingerprint`). :meth:`Learner.load_checkpoint` verifies
+everything -- checksums, formats, the learner kind, months_done against the History and the
+manifest, every series one entry per month, the configurations, the prices -- before changing
 anything: a directory that does not verify is refused with one line, never half-resumed.
+Checkpoints written before the price fingerprint existed resume without that check.
 
 One thread of linear algebra
 ----------------------------
@@ -51,6 +53,7 @@ the ``learn`` command exits with status 2 when the whole run exceeds it.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 from collections.abc import Callable
@@ -63,6 +66,7 @@ from tqdm.auto import tqdm
 
 from . import rundir
 from .config import LearningConfig, MPCConfig, SystemConfig
+from .day_end import forecast_of, forecast_prices
 from .dpg import policy_gradient
 from .history import History
 from .lstd import compatible_features, lstd_q, value_baseline_features
@@ -79,6 +83,7 @@ __all__ = [
     "lstd_policy_gradient",
     "open_run",
     "parse_theta",
+    "prices_fingerprint",
     "resolve_setup",
     "run_months",
 ]
@@ -103,7 +108,12 @@ def resolve_setup(
 ) -> tuple[SystemConfig, MPCConfig, LearningConfig, Prices, Theta]:
     """Defaults and consistency checks shared by every learner: the paper's configs, the
     shipped month cut to ``days_per_month`` days, theta0 = the nominal model; prices with
-    another number of days or a theta0 for another ``n`` are errors."""
+    another number of days or a theta0 for another ``n`` are errors.
+
+    The prices returned are those the MPC sees (:func:`mpcrl_lite.day_end.forecast_prices`
+    of ``MPCConfig.forecast``); prices given already as
+    :func:`~mpcrl_lite.day_end.until_midnight` set ``forecast='until_midnight'`` in the
+    returned config, so that the run records what its MPC saw."""
     system = system or SystemConfig()
     mpc_config = mpc_config or MPCConfig()
     learning = learning or LearningConfig()
@@ -113,10 +123,31 @@ def resolve_setup(
         raise ValueError(
             f"prices have {prices.days} days; expected days_per_month={learning.days_per_month}"
         )
+    if forecast_of(prices) != mpc_config.forecast and mpc_config.forecast == "paper":
+        mpc_config = mpc_config.replace(forecast=forecast_of(prices))
+    prices = forecast_prices(prices, mpc_config)
     theta0 = theta0 or Theta.nominal(system)
     if theta0.n != system.n:
         raise ValueError(f"theta0 has n={theta0.n}; expected n={system.n}")
     return system, mpc_config, learning, prices, theta0
+
+
+def prices_fingerprint(prices: Prices) -> dict[str, Any]:
+    """What identifies a month of prices in a checkpoint.
+
+    Returns
+    -------
+    dict
+        ``sha256`` (of the shape and the float64 bytes of :attr:`Prices.buy` and
+        :attr:`Prices.sell`, what the true system is charged), ``shape`` (``[days, 24]``) and
+        ``source`` (informational, not compared).
+    """
+    buy = np.ascontiguousarray(prices.buy, dtype="<f8")
+    sell = np.ascontiguousarray(prices.sell, dtype="<f8")
+    digest = hashlib.sha256(json.dumps([list(buy.shape), list(sell.shape)]).encode())
+    digest.update(buy.tobytes())
+    digest.update(sell.tobytes())
+    return {"sha256": digest.hexdigest(), "shape": list(buy.shape), "source": prices.source}
 
 
 def lstd_policy_gradient(
@@ -345,6 +376,7 @@ class Learner:
             **self.learner_state(),
             "rng": self.rng.bit_generator.state,
             **{key: cfg.to_dict() for key, cfg in self.configs().items()},
+            "prices": prices_fingerprint(self.prices),
         }
 
     def save_checkpoint(self, directory: str | Path) -> None:
@@ -381,10 +413,11 @@ class Learner:
             raise RunDirError(f"{where}: format {state.get('format')!r}, expected "
                               f"{self.FORMAT!r}; {RECOVER}")
         self._check_kind(kind, directory, rundir.CHECKPOINT)
-        missing = [k for k in self.checkpoint_state() if k not in state]
+        missing = [k for k in self.checkpoint_state() if k not in state and k not in _LATER_KEYS]
         if missing:
             raise RunDirError(f"{where} lacks {', '.join(map(repr, missing))}; {RECOVER}")
         saved = self._check_configs(state, directory, where)
+        self._check_prices(state.get("prices"), directory, where)
         history = History.from_files(run.files, directory)
         months_done = state["months_done"]
         if isinstance(months_done, bool) or not isinstance(months_done, int) or months_done < 0:
@@ -423,6 +456,23 @@ class Learner:
                 f"{directory} holds a {kind} run ({source}); this is a {self.KIND} learner: "
                 f"resume it with {self.RESUME_WITH.get(kind, kind)}")
 
+    def _check_prices(self, saved: Any, directory: Path, where: str) -> None:
+        """The run's prices (``checkpoint.json``'s ``prices``) must be the learner's."""
+        if saved is None:  # written before the fingerprint existed: nothing to compare
+            return
+        if not (isinstance(saved, dict) and isinstance(saved.get("sha256"), str)):
+            raise RunDirError(f"{where}: bad 'prices' ({saved!r:.80}); {RECOVER}")
+        now = prices_fingerprint(self.prices)
+        if saved["sha256"] != now["sha256"]:
+            def show(p: dict[str, Any]) -> str:
+                shape = "x".join(map(str, p.get("shape") or [])) or "?"
+                return f"{p.get('source', '?')!r} ({shape}, sha256 {p['sha256'][:12]})"
+
+            raise RunDirError(
+                f"checkpoint in {directory} was written with other prices: {show(saved)} in "
+                f"the run, {show(now)} now (resume with the run's --prices/--area/--month, or "
+                "start over with --force / force=True)")
+
     def _check_configs(self, state: dict[str, Any], directory: Path, where: str) -> dict[str, Any]:
         """The saved configurations, which must equal the learner's (months aside)."""
         saved: dict[str, Any] = {}
@@ -447,6 +497,10 @@ class Learner:
                 f"config: {'; '.join(fields)} (resume with the run's settings, or start over "
                 "with --force / force=True)")
         return saved
+
+
+#: Keys of ``checkpoint.json`` added after checkpoints existed (an older one lacks them).
+_LATER_KEYS = ("prices",)
 
 
 def _plain_configs(configs: dict[str, Any]) -> dict[str, Any]:

@@ -48,6 +48,7 @@ from .plot_style import (
     u_bar_lines,
 )
 from .prices import Prices
+from .rundir import atomic_output
 from .theta import PARTS
 
 __all__ = [
@@ -588,7 +589,8 @@ def save_paper_figures(
         fig = make()
         try:
             path = directory / name
-            fig.savefig(path, dpi=dpi, bbox_inches="tight")
+            with atomic_output(path) as tmp:  # a kill never leaves half a figure
+                fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
             paths.append(path)
         finally:
             plt.close(fig)

@@ -284,9 +284,13 @@ def run_report(
     summary: dict[str, Any] = {"profile": profile, "notebooks": {}}
     for path in paths:
         t0 = time.perf_counter()
-        nb = execute_notebook(path, out / path.name, params.get(path.stem, {}), cwd=out)
+        # papermill saves the notebook after every cell: written aside, renamed when done
+        with rundir.atomic_output(out / path.name,
+                                  failed=out / f"{path.stem}.failed.ipynb") as partial:
+            nb = execute_notebook(path, partial, params.get(path.stem, {}), cwd=out)
         seconds = time.perf_counter() - t0
-        write_html(nb, out / f"{path.stem}.html")
+        with rundir.atomic_output(out / f"{path.stem}.html") as partial:
+            write_html(nb, partial)
         summary["notebooks"][path.stem] = {
             "seconds": round(seconds, 1),
             "parameters": params.get(path.stem, {}),

@@ -64,7 +64,8 @@ import os
 import re
 import signal
 import tempfile
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -88,6 +89,7 @@ __all__ = [
     "RunDirError",
     "RunDirMissing",
     "RunWriteError",
+    "atomic_output",
     "check_output_dir",
     "clear",
     "commit",
@@ -163,7 +165,8 @@ def plain(data: Any) -> Any:
 
 #: Configuration fields added after run directories existed, with the value the older runs
 #: had: left out of :func:`config_sha256` at that value, so older manifests still match.
-LEGACY_VALUES: dict[str, dict[str, Any]] = {"learning": {"eval_draws": 1}}
+LEGACY_VALUES: dict[str, dict[str, Any]] = {"learning": {"eval_draws": 1},
+                                          "mpc": {"forecast": "paper"}}
 _NO = object()
 
 
@@ -248,6 +251,48 @@ def write_atomic(path: str | os.PathLike, data: bytes) -> None:
     tmp = path.with_name(f".{path.name}.tmp")
     try:
         _write_file(tmp, data)
+        _replace(tmp, path)
+        _fsync_dir(path.parent)
+    except OSError as err:
+        tmp.unlink(missing_ok=True)
+        raise RunWriteError(err.errno, f"could not write {path}: {_reason(err)}") from err
+
+
+@contextmanager
+def atomic_output(path: str | os.PathLike,
+                  failed: str | os.PathLike | None = None) -> Iterator[Path]:
+    """A temporary path to write ``path``'s new content to, for writers that want a path
+    (``savefig``, papermill): on leaving the block it is fsynced and renamed onto ``path``
+    (then the directory is fsynced), so ``path`` is the old file or the whole new one, never a
+    part of one.
+
+    The temporary file, ``.<stem>.partial<suffix>`` in the same directory, keeps the suffix
+    (writers choose the format by it). If the block raises, it is removed (or, with
+    ``failed``, renamed to that path, e.g. a notebook executed up to its failing cell, kept
+    for inspection), ``path`` is left as it was and the error goes on.
+
+    Examples
+    --------
+    >>> with atomic_output(directory / "fig2_performance.png") as tmp:  # doctest: +SKIP
+    ...     fig.savefig(tmp)
+
+    Raises
+    ------
+    RunWriteError
+        (an ``OSError``) if the new file cannot be fsynced or renamed into place.
+    """
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
+    try:
+        yield tmp
+    except BaseException:
+        if failed is not None and tmp.exists():
+            os.replace(tmp, failed)
+        tmp.unlink(missing_ok=True)
+        raise
+    try:
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())
         _replace(tmp, path)
         _fsync_dir(path.parent)
     except OSError as err:

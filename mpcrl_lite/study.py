@@ -17,10 +17,21 @@ least ``threshold`` of the gap,
 .. math::
    \frac{J_{nom} - J_{eval,final}}{J_{nom} - J_{target}} \ge \text{threshold}.
 
-``J_target`` is the best causal policy's J* when given (``J_star``, e.g. a causal dynamic
-programming bound evaluated on the same draws); otherwise the best ``J_eval`` any seed
-reached in any month (then at least one seed's curve touches the target, and the fraction
-measures how many seeds end near the best seen).
+``J_target`` is the best causal policy's J*. When it is not given (``J_star``),
+:func:`run_study` computes it for the study's system and month (``target='causal'``, the
+default; :func:`causal_target`): the coupled dynamic program of :mod:`mpcrl_lite.causal`
+where it is exact enough to run (``n <= 3``: seconds per day of prices), else the Lagrangian
+lower bound of :mod:`mpcrl_lite.causal_dual`; if neither can be solved for the system, or
+with ``target='best_seen'``, the target is the best ``J_eval`` any seed reached in any month
+(then at least one seed's curve touches the target, and the fraction measures how many seeds
+end near the best seen). ``study.json`` says which (``J_star_method``, ``J_star_note``).
+
+Every seed is also judged by
+
+* its **regret** ``J_eval_final - J_target`` (NOK/day: what a causal policy could still gain);
+* its **late collapse**: ``(J_eval_final - J_eval_best) / (J_nom - J_target)``, the share of
+  the gap lost between its best evaluation and its last one; a seed collapses late when
+  this exceeds :data:`LATE_COLLAPSE` (5 %).
 
 Written into ``out`` next to the sweep's files (``runs/``, ``results.csv``, ``sweep.json``):
 
@@ -28,11 +39,14 @@ Written into ``out`` next to the sweep's files (``runs/``, ``results.csv``, ``sw
 * ``study_curves.csv`` -- tidy learning curves: one row per (seed, evaluated month) with
   ``J_eval`` and its confidence interval over the draws;
 * ``study.json`` -- the summary (:func:`summarize`);
+* ``study_j_star.json`` -- the computed J* and what it was computed for (reused when the
+  study is run again on the same system and prices);
 * ``study_curves.png`` -- every seed's ``J_eval`` curve and their median over seeds.
 """
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from collections.abc import Mapping
@@ -44,20 +58,35 @@ import numpy as np
 import pandas as pd
 
 from . import rundir
+from .causal import causal_optimum
+from .causal_dual import lagrangian_bound
+from .config import SystemConfig
 from .history import History
+from .learner import prices_fingerprint
+from .prices import Prices
 from .sweep import run_sweep
+from .sweep_grid import load_grid
+from .sweep_store import check_out_dir
 
-__all__ = ["SEED_COLUMNS", "THRESHOLD", "gap_closed", "plot_curves", "run_study", "seed_row",
-           "summarize"]
+__all__ = ["LATE_COLLAPSE", "SEED_COLUMNS", "TARGETS", "THRESHOLD", "causal_target",
+           "gap_closed", "plot_curves", "run_study", "seed_row", "summarize"]
 
 #: Default share of the gap ``J_nom - J_target`` a seed must close to count as converged.
 THRESHOLD = 0.9
+#: Largest share of the gap ``J_nom - J_target`` a seed may lose between its best evaluation
+#: and its final one (more is a late collapse).
+LATE_COLLAPSE = 0.05
+#: What :func:`run_study` judges against when ``J_star`` is not given: ``'causal'`` (J*
+#: computed, :func:`causal_target`) or ``'best_seen'`` (the best J_eval of any seed).
+TARGETS = ("causal", "best_seen")
+#: File of the computed J* in a study's directory.
+J_STAR_FILE = "study_j_star.json"
 #: Columns of ``study.csv``, one row per seed.
 SEED_COLUMNS = (
     "seed", "run_id", "status", "error", "months", "evaluations", "J_eval_nominal",
     "J_eval_final", "J_eval_final_ci_low", "J_eval_final_ci_high", "J_eval_best",
     "best_month", "late_regression", "gap_closed", "converged", "max_P_applied",
-    "hours_above_P_bar_last",
+    "hours_above_P_bar_last", "regret", "late_regression_share", "late_collapse",
 )
 
 
@@ -102,17 +131,25 @@ def seed_row(history: History) -> dict[str, Any]:
 
 def summarize(
     table: pd.DataFrame, J_star: float | None = None, threshold: float = THRESHOLD,
+    J_star_method: str = "given", J_star_note: str = "",
 ) -> tuple[pd.DataFrame, dict[str, Any]]:
     """Judge the seeds of ``table`` (rows of :func:`seed_row` with ``seed`` and ``status``).
 
-    Returns the table with ``gap_closed`` and ``converged`` filled in, and the summary of
+    Returns the table with ``gap_closed``, ``converged``, ``regret``,
+    ``late_regression_share`` and ``late_collapse`` filled in, and the summary of
     ``study.json``: ``seeds``, ``done``, ``failed_seeds``, ``definition`` (the convergence
     rule in words), ``threshold``, ``J_nominal``, ``J_target``, ``target`` ('J_star' or
     'best_J_eval_reached'), ``fraction_converged`` (of the finished seeds),
     ``converged_seeds``, ``J_eval_final_median``, ``J_eval_final_iqr`` ([q25, q75]),
-    ``worst_seed`` ({seed, J_eval_final}), ``late_regression`` ({seed: value}) and
-    ``largest_late_regression`` ({seed, value}). Statistics are over the finished seeds with
-    an evaluation; NaN (``null``) when there is none.
+    ``worst_seed`` ({seed, J_eval_final, regret}), ``late_regression`` ({seed: value}) and
+    ``largest_late_regression`` ({seed, value}); and, against the target, ``J_star`` (None
+    without one), ``J_star_method`` and ``J_star_note`` (how J* was obtained, as given),
+    ``regret`` ({seed: J_eval_final - J_target}), ``regret_median``, ``regret_iqr``
+    ([q25, q75]), ``late_collapse_limit`` (:data:`LATE_COLLAPSE`), ``late_regression_share``
+    ({seed: late_regression / (J_nominal - J_target)}), ``late_collapse_seeds`` (those above
+    the limit), ``late_collapse_count`` and ``no_late_collapse`` (True when that count is 0
+    and some seed finished). Statistics are over the finished seeds with an evaluation; NaN
+    (``null``) when there is none.
     """
     if isinstance(threshold, bool) or not (isinstance(threshold, (int, float))
                                            and 0 < threshold <= 1):
@@ -135,10 +172,20 @@ def summarize(
               for f, use in zip(table["J_eval_final"], ok)]
     table["gap_closed"] = closed
     table["converged"] = [bool(use and c >= threshold) for c, use in zip(closed, ok)]
+    gap = J_nominal - J_target
+    table["regret"] = np.where(ok, table["J_eval_final"] - J_target, np.nan)
+    share = (table["late_regression"] / gap if math.isfinite(gap) and gap > 0
+             else pd.Series(math.nan, index=table.index))
+    table["late_regression_share"] = np.where(ok, share, np.nan)
+    table["late_collapse"] = [bool(use and v > LATE_COLLAPSE)
+                              for v, use in zip(table["late_regression_share"], ok)]
+    good = table[ok]
     final = good["J_eval_final"].to_numpy(float)
+    regret = good["regret"].to_numpy(float)
     worst = good.loc[good["J_eval_final"].idxmax()] if len(good) else None
     regress = good.set_index("seed")["late_regression"]
     largest = regress.idxmax() if len(regress) else None
+    collapsed = [int(s) for s in good.loc[good["late_collapse"], "seed"]]
     summary = {
         "seeds": [int(s) for s in table["seed"]],
         "done": int(ok.sum()),
@@ -147,8 +194,10 @@ def summarize(
             f"a seed converges when its final J_eval closes at least {threshold:g} of the "
             "gap between the nominal MPC's J_eval (month 0) and J_target: "
             "(J_nominal - J_eval_final) / (J_nominal - J_target) >= threshold; J_target is "
-            + ("the best causal policy's J* (given)" if J_star is not None
-               else "the best J_eval reached by any seed in any month")),
+            + (f"the best causal policy's J* ({J_star_method})" if J_star is not None
+               else "the best J_eval reached by any seed in any month")
+            + f". A seed collapses late when J_eval_final - J_eval_best exceeds "
+            f"{LATE_COLLAPSE:g} of that gap; its regret is J_eval_final - J_target"),
         "threshold": float(threshold),
         "J_nominal": J_nominal,
         "J_target": J_target,
@@ -158,13 +207,87 @@ def summarize(
         "J_eval_final_median": float(np.median(final)) if final.size else math.nan,
         "J_eval_final_iqr": ([float(np.percentile(final, 25)), float(np.percentile(final, 75))]
                              if final.size else [math.nan, math.nan]),
-        "worst_seed": ({"seed": int(worst["seed"]), "J_eval_final": float(worst["J_eval_final"])}
+        "worst_seed": ({"seed": int(worst["seed"]), "J_eval_final": float(worst["J_eval_final"]),
+                        "regret": float(worst["regret"])}
                        if worst is not None else None),
         "late_regression": {str(int(s)): float(v) for s, v in regress.items()},
         "largest_late_regression": ({"seed": int(largest), "value": float(regress[largest])}
                                     if largest is not None else None),
+        "J_star": float(J_star) if J_star is not None else None,
+        "J_star_method": J_star_method if J_star is not None else None,
+        "J_star_note": J_star_note,
+        "regret": {str(int(s)): float(v) for s, v in zip(good["seed"], regret)},
+        "regret_median": float(np.median(regret)) if regret.size else math.nan,
+        "regret_iqr": ([float(np.percentile(regret, 25)), float(np.percentile(regret, 75))]
+                       if regret.size else [math.nan, math.nan]),
+        "late_collapse_limit": LATE_COLLAPSE,
+        # null where there is no gap to share (as study.json writes it)
+        "late_regression_share": {str(int(s)): float(v) if math.isfinite(v) else None
+                                  for s, v in zip(good["seed"], good["late_regression_share"])},
+        "late_collapse_seeds": collapsed,
+        "late_collapse_count": len(collapsed),
+        "no_late_collapse": bool(len(good)) and not collapsed,
     }
     return table, summary
+
+
+def causal_target(system: SystemConfig, prices: Prices) -> dict[str, Any]:
+    """J* of the best causal policy on ``prices``, by the best method that runs for ``system``.
+
+    The coupled dynamic program (:func:`mpcrl_lite.causal.causal_optimum`, 41 soc nodes) for
+    up to three batteries; beyond, or if it refuses the system, the Lagrangian bound
+    (:func:`mpcrl_lite.causal_dual.lagrangian_bound`); if that is refused too, none.
+
+    Returns
+    -------
+    dict
+        ``J_star`` (NOK/day, None when none could be computed), ``method``
+        (``'causal_dp'``, ``'lagrangian_bound'`` or None), ``note`` (what the figure is, in
+        words), ``wall_time_s``.
+    """
+    problems = []
+    if system.n <= 3:
+        try:
+            bound = causal_optimum(system, prices, keep_values=False)
+        except ValueError as err:
+            problems.append(f"causal_optimum: {err}")
+        else:
+            return {"J_star": bound.J_star, "method": "causal_dp", "wall_time_s": bound.wall_time_s,
+                    "note": "J* is the coupled DP's optimum of the grid model at 41 soc nodes "
+                            "(mpcrl_lite.causal): an estimate, pessimistic by about 2 NOK/day "
+                            "for the paper's system (-399.3 against -401.5 refined)"}
+    else:
+        problems.append(f"causal_optimum: n={system.n} is too large for the exact DP")
+    try:
+        dual = lagrangian_bound(system, prices)
+    except ValueError as err:
+        problems.append(f"lagrangian_bound: {err}")
+    else:
+        return {"J_star": dual.J_bound, "method": "lagrangian_bound",
+                "wall_time_s": dual.wall_time_s,
+                "note": f"{problems[0]}; J* is replaced by the Lagrangian lower bound "
+                        "(mpcrl_lite.causal_dual), below the true J*: the regret is overstated "
+                        "and the gap closed understated"}
+    return {"J_star": None, "method": None, "wall_time_s": 0.0,
+            "note": f"no causal J* for this system ({'; '.join(problems)}): the target is the "
+                    "best J_eval reached by any seed in any month"}
+
+
+def _study_target(out: Path, system: SystemConfig, prices: Prices) -> dict[str, Any]:
+    """:func:`causal_target`, read back from ``out/study_j_star.json`` when it was computed
+    for the same system and prices (a rerun of the study does not solve the DP again)."""
+    key = {"system": system.to_dict(), "prices": prices_fingerprint(prices)["sha256"]}
+    path = out / J_STAR_FILE
+    try:
+        saved = json.loads(path.read_text())
+        if saved.get("for") == rundir.plain(key):
+            return saved["target"]
+    except (OSError, ValueError, AttributeError, KeyError):
+        pass
+    target = causal_target(system, prices)
+    out.mkdir(parents=True, exist_ok=True)
+    rundir.write_atomic(path, rundir.dumps({"for": key, "target": target}))
+    return target
 
 
 def curves_table(histories: Mapping[int, History]) -> pd.DataFrame:
@@ -220,6 +343,7 @@ def run_study(
     threshold: float = THRESHOLD,
     progress: bool = True,
     lockstep: int | None = None,
+    target: str = "causal",
 ) -> dict[str, Any]:
     """Run (or resume) the study and write its files into ``out``; returns the summary.
 
@@ -240,17 +364,24 @@ def run_study(
         As for :func:`mpcrl_lite.sweep.run_sweep` (default: a local Dask cluster of 2
         workers; ``workers=0`` or ``scheduler='serial'``: in this process).
     J_star, threshold
-        The convergence rule (:func:`summarize`).
+        The convergence rule (:func:`summarize`). Without ``J_star`` the target is set by
+        ``target``.
     progress
         Show the sweep's progress bar.
     lockstep
         Runs per task, stepped together in one process (:func:`mpcrl_lite.sweep.run_sweep`;
         default each worker's share of the seeds).
+    target
+        One of :data:`TARGETS`: ``'causal'`` (default) computes J* for the study's system and
+        month before any run starts (:func:`causal_target`; kept in ``study_j_star.json``),
+        ``'best_seen'`` judges against the best J_eval reached.
     """
     for name, value, low in (("seeds", seeds, 1), ("months", months, 1),
                              ("seed_start", seed_start, 0)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
             raise ValueError(f"{name}={value!r}: expected an integer >= {low}")
+    if target not in TARGETS:
+        raise ValueError(f"target={target!r}: expected one of {', '.join(map(repr, TARGETS))}")
     base = dict(base or {})
     clash = [k for k in base if k in ("learning.seed", "learning.months")]
     if clash:
@@ -260,6 +391,16 @@ def run_study(
     # the convergence rule is checked before any run starts
     summarize(pd.DataFrame({"seed": [], "status": []}), J_star, threshold)
     out = Path(out)
+    method, note = "given", ""
+    check_out_dir(out)  # before the DP writes its result there
+    if J_star is None and target == "causal":
+        # every run shares the system and the month (only the seed varies)
+        run = load_grid(grid).runs[0]
+        found = _study_target(out, run.system,
+                              Prices.month(run.system, run.learning.days_per_month))
+        J_star, method, note = found["J_star"], found["method"], found["note"]
+    elif J_star is None:
+        note = "target='best_seen': judged against the best J_eval reached"
     table = run_sweep(grid, out, scheduler=scheduler, workers=workers, progress=progress,
                       lockstep=lockstep)
     rows, histories = [], {}
@@ -271,7 +412,8 @@ def run_study(
             histories[seed] = history
             row.update(seed_row(history))
         rows.append(row)
-    seed_table, summary = summarize(pd.DataFrame(rows), J_star, threshold)
+    seed_table, summary = summarize(pd.DataFrame(rows), J_star, threshold,
+                                    J_star_method=method or "given", J_star_note=note)
     seed_table = seed_table.reindex(columns=list(SEED_COLUMNS))
     curves = curves_table(histories)
     seed_table.to_csv(out / "study.csv", index=False)
@@ -279,8 +421,11 @@ def run_study(
     summary = {"months": int(months), "eval_draws": _eval_draws(histories), **summary}
     rundir.write_atomic(out / "study.json", rundir.dumps(summary))
     fig = plot_curves(curves, summary["J_target"])
-    fig.savefig(out / "study_curves.png", dpi=120, bbox_inches="tight")
-    plt.close(fig)
+    try:
+        with rundir.atomic_output(out / "study_curves.png") as tmp:
+            fig.savefig(tmp, dpi=120, bbox_inches="tight")
+    finally:
+        plt.close(fig)
     return summary
 
 

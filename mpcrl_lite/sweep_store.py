@@ -19,6 +19,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from .rundir import LEGACY_VALUES
 from .sweep_grid import SECTIONS, GridError, Sweep, SweepRun, one_line
 
 __all__ = [
@@ -163,6 +164,8 @@ def check_run_dirs(sweep: Sweep, out: Path) -> None:
         for section in SECTIONS:
             old, new = saved.get(section, {}), dict(mine[section])
             old = dict(old) if isinstance(old, dict) else {}
+            # a field added since the run was written reads as what that run did
+            old = {**LEGACY_VALUES.get(section, {}), **old}
             if section == "learning":
                 old.pop("months", None)
                 new.pop("months", None)

@@ -18,6 +18,7 @@ from scipy import stats
 
 from .closed_loop import evaluate_mpc
 from .config import MPCConfig, SystemConfig
+from .day_end import forecast_prices
 from .mpc import MPC
 from .prices import Prices
 from .solvers import make_solver
@@ -85,13 +86,14 @@ def evaluate_thetas(
         raise ValueError(f"draws={draws!r}: expected an integer >= 1")
     seeds = [int(seed) + k for k in range(draws)]
     mpc = MPC(system)
+    seen = forecast_prices(prices, mpc_config)  # what the MPC forecasts (MPCConfig.forecast)
     policies: dict[str, Any] = {}
     for name, theta in thetas.items():
         solver = make_solver(mpc, mpc_config, theta)
         runs = []
         t0 = time.perf_counter()
         for s in seeds:
-            runs.append(evaluate_mpc(theta, solver, prices, system, s).summary())
+            runs.append(evaluate_mpc(theta, solver, seen, system, s).summary())
         policies[name] = {
             "J": [r["J"] for r in runs],
             "J_stats": mean_ci([r["J"] for r in runs]),

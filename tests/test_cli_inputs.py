@@ -483,3 +483,74 @@ def test_fuzz_small_real_runs_end_in_exit_0_or_one_line(command, data, tmp_path,
     else:
         json.loads((base / "out" / "summary.json").read_text())
         assert not list((base / "out").glob(".*.tmp"))
+
+
+# -- the MPC's forecast (--forecast) and the run's prices on --resume ---------------------------
+def test_learn_with_the_day_end_forecast_records_and_keeps_it(tmp_path, capsys):
+    out = tmp_path / "run"
+    base = ["learn", "--days", "2", "--out", out, "--no-figures", "--quiet"]
+    code, err = run_cli([*base, "--months", "1", "--forecast", "until_midnight"], capsys)
+    assert code == 0, err
+    assert json.loads((out / "summary.json").read_text())["forecast"] == "until_midnight"
+    assert History.load(out).mpc.forecast == "until_midnight"
+    # the paper's forecast on resume is another policy class: refused in one line
+    code, err = run_cli([*base, "--months", "2", "--resume", "--forecast", "paper"], capsys)
+    assert code == 2 and len(err) == 1
+    assert "mpc.forecast='until_midnight' in the run, 'paper' now" in err[0]
+    # without --forecast a resume keeps the run's
+    code, err = run_cli([*base, "--months", "2", "--resume"], capsys)
+    assert code == 0, err
+    assert History.load(out).months == 2
+
+
+def test_simulate_and_evaluate_honour_the_forecast(tmp_path, capsys):
+    runs = {}
+    for forecast in ("paper", "until_midnight"):
+        out = tmp_path / forecast
+        code, err = run_cli(["simulate", "--days", "1", "--out", out, "--seed", "3", "--quiet",
+                             "--forecast", forecast], capsys)
+        assert code == 0, err
+        runs[forecast] = json.loads((out / "summary.json").read_text())
+        assert runs[forecast]["mpc"]["forecast"] == forecast
+    assert runs["paper"]["J"] != pytest.approx(runs["until_midnight"]["J"], rel=1e-6)
+    # evaluate: the run's own forecast by default, --forecast overrides it
+    found = {}
+    for extra in ([], ["--forecast", "until_midnight"]):
+        out = tmp_path / f"eval{len(extra)}"
+        code, err = run_cli(["evaluate", "--history", RUN, "--days", "1", "--draws", "1",
+                             "--out", out, *extra], capsys)
+        assert code == 0, err
+        found[len(extra)] = json.loads((out / "summary.json").read_text())
+    assert found[0]["mpc"]["forecast"] == History.load(RUN).mpc.forecast == "paper"
+    assert found[2]["mpc"]["forecast"] == "until_midnight"
+    assert found[0]["policies"]["nominal"]["J"] != pytest.approx(
+        found[2]["policies"]["nominal"]["J"], rel=1e-6)
+
+
+@pytest.mark.parametrize("command", ["learn", "simulate", "baselines", "evaluate", "study"])
+def test_a_bad_forecast_is_one_line(command, tmp_path):
+    proc = subprocess.run(
+        [os.sys.executable, "-m", "mpcrl_lite", command, "--forecast", "midnight", "--out",
+         str(tmp_path / "x")], capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--forecast" in lines[0] and "'midnight'" in lines[0], proc.stderr
+    assert "until_midnight" in lines[0]
+    assert not (tmp_path / "x").exists()
+
+
+def test_learn_resume_with_other_prices_is_refused_in_one_line(export, tmp_path, capsys):
+    out = tmp_path / "run"
+    base = ["learn", "--days", "2", "--prices", export, "--month", "2021-02", "--out", out,
+            "--no-figures", "--quiet"]
+    code, err = run_cli([*base, "--months", "1"], capsys)
+    assert code == 0, err
+    before = (out / "checkpoint.json").read_bytes()
+    for other in ([*base, "--area", "Oslo"],  # another column of the same export
+                  ["learn", "--days", "2", "--out", out, "--no-figures", "--quiet"]):  # shipped
+        code, err = run_cli([*other, "--months", "2", "--resume"], capsys)
+        assert code == 2 and len(err) == 1, err
+        assert "other prices" in err[0] and "Tr.heim" in err[0], err[0]
+        assert (out / "checkpoint.json").read_bytes() == before
+    code, err = run_cli([*base, "--months", "2", "--resume"], capsys)
+    assert code == 0, err

@@ -381,3 +381,104 @@ def test_batch_and_ipopt_back_ends_give_the_same_history():
     np.testing.assert_allclose(fast.theta_final, ref.theta_final, rtol=1e-5, atol=1e-8)
     assert fast.solver_failures == ref.solver_failures == [0, 0]
     assert fast.skipped_steps == ref.skipped_steps
+
+
+# -- the day-end forecast as an option of MPCConfig -----------------------------------------
+def test_forecast_option_changes_only_the_forecast():
+    """``MPCConfig(forecast='until_midnight')``: the MPC's windows are zero after midnight,
+    everything else (the true cost, the random draws, the hours whose windows end before
+    midnight) is the paper's."""
+    from mpcrl_lite.day_end import DayEndPrices
+    from mpcrl_lite.model import agent_costs
+
+    learning = LearningConfig(days_per_month=3, months=1, seed=7, eval_every=0)
+    paper = Experiment(system=SMALL, learning=learning)
+    late = Experiment(system=SMALL, mpc_config=MPCConfig(forecast="until_midnight"),
+                      learning=learning)
+    assert paper.mpc_config.forecast == "paper" and not isinstance(paper.prices, DayEndPrices)
+    assert isinstance(late.prices, DayEndPrices)
+    np.testing.assert_array_equal(late.prices.buy, paper.prices.buy)  # what is charged
+    np.testing.assert_array_equal(late.prices.sell, paper.prices.sell)
+    N = SMALL.N
+    for hour in (0, 17, 18, 20, 23):
+        buy, sell = late.prices.window(hour, N)
+        ref_buy, ref_sell = paper.prices.window(hour, N)
+        today = hour + np.arange(N) < 24
+        np.testing.assert_array_equal(buy[:, today], ref_buy[:, today])
+        np.testing.assert_array_equal(sell[:, today], ref_sell[:, today])
+        assert np.all(buy[:, ~today] == 0.0) and np.all(sell[:, ~today] == 0.0)
+    a = paper.run_one_month()
+    b = late.run_one_month()
+    early = 24 - N  # windows of hours 0 .. 17 end before midnight: the same MPC, same actions
+    np.testing.assert_allclose(b.a[:early], a.a[:early], rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(b.noise, a.noise)  # the same draws
+    assert np.abs(b.a[early:] - a.a[early:]).max() > 1e-3  # the late hours plan otherwise
+    # the true cost is charged at the real prices, hour by hour
+    real_buy, real_sell = paper.prices.buy, paper.prices.sell
+    for k in range(24):
+        cost = agent_costs(b.soc[k], b.b[k], b.s[k], real_buy[:, k], real_sell[:, k], SMALL)
+        np.testing.assert_allclose(b.agent_cost[k], cost, rtol=1e-12, atol=1e-9)
+
+
+def test_forecast_round_trips_through_history_and_checkpoint(tmp_path):
+    from mpcrl_lite.day_end import until_midnight
+
+    learning = LearningConfig(days_per_month=3, months=2, seed=7, eval_every=0)
+    late = MPCConfig(forecast="until_midnight")
+    Experiment(system=SMALL, mpc_config=late, learning=learning).run(months=1, out=tmp_path,
+                                                                     progress=False)
+    assert History.load(tmp_path).mpc.forecast == "until_midnight"
+    saved = json.loads((tmp_path / "checkpoint.json").read_text())
+    assert saved["mpc"]["forecast"] == "until_midnight"
+    # a resume with the paper's forecast is refused in one line naming the field
+    with pytest.raises(ValueError, match="mpc.forecast='until_midnight' in the run, 'paper' "
+                                         "now") as err:
+        Experiment(system=SMALL, learning=learning).run(out=tmp_path, resume=True,
+                                                        progress=False)
+    assert len(str(err.value).splitlines()) == 1
+    # prices given as until_midnight(...) are the same option, recorded as such
+    prices = until_midnight(Prices.month(SMALL, 3))
+    again = Experiment(system=SMALL, learning=learning, prices=prices)
+    assert again.mpc_config.forecast == "until_midnight"
+    history = again.run(out=tmp_path, resume=True, progress=False)
+    assert history.months == 2 and history.mpc.forecast == "until_midnight"
+
+
+def test_a_run_from_before_the_forecast_option_resumes_with_the_paper_forecast(tmp_path):
+    """Checkpoints and manifests written before ``MPCConfig.forecast`` (and the price
+    fingerprint) existed resume unchanged."""
+    from mpcrl_lite import rundir
+
+    small_experiment(months=2).run(months=1, out=tmp_path, progress=False)
+    state = json.loads((tmp_path / "checkpoint.json").read_text())
+    history = json.loads((tmp_path / "history.json").read_text())
+    for data in (state, history):
+        del data["mpc"]["forecast"]
+    del state["prices"]
+    files = {"checkpoint.json": rundir.dumps(state), "history.json": rundir.dumps(history),
+             "history.npz": (tmp_path / "history.npz").read_bytes()}
+    configs = {key: state[key] for key in ("system", "mpc", "learning")}
+    configs["learning"] = {k: v for k, v in configs["learning"].items() if k != "months"}
+    rundir.commit(tmp_path, files, kind="centralized", months_done=1,
+                  configs_hash=rundir.config_sha256(configs))
+    resumed = small_experiment(months=2).run(out=tmp_path, resume=True, progress=False)
+    assert resumed.months == 2 and resumed.mpc.forecast == "paper"
+
+
+def test_resume_refuses_other_prices_in_one_line(tmp_path):
+    learning = LearningConfig(days_per_month=3, months=2, seed=7, eval_every=0)
+    Experiment(system=SMALL, learning=learning).run(months=1, out=tmp_path, progress=False)
+    saved = json.loads((tmp_path / "checkpoint.json").read_text())["prices"]
+    assert saved["shape"] == [3, 24] and len(saved["sha256"]) == 64
+    shipped = Prices.month(SMALL, 3)
+    other = Prices(shipped.buy[::-1], source="other month")
+    with pytest.raises(ValueError, match="other prices") as err:
+        Experiment(system=SMALL, learning=learning, prices=other).run(
+            out=tmp_path, resume=True, progress=False)
+    message = str(err.value)
+    assert len(message.splitlines()) == 1
+    assert "'other month'" in message and repr(shipped.source) in message
+    assert saved["sha256"][:12] in message
+    # the same prices resume
+    assert Experiment(system=SMALL, learning=learning, prices=Prices.month(SMALL, 3)).run(
+        out=tmp_path, resume=True, progress=False).months == 2

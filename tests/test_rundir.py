@@ -240,3 +240,87 @@ def test_check_output_dir_refuses_a_read_only_directory():
     assert os.WEXITSTATUS(status) == 3, message
     assert "cannot write there (Permission denied); expected a writable directory" in message
     assert left == []
+
+
+# -- outputs written by other writers (figures, notebooks) ----------------------------------
+def test_atomic_output_replaces_whole_or_not_at_all(tmp_path):
+    path = tmp_path / "fig.png"
+    path.write_bytes(b"old figure")
+    with pytest.raises(RuntimeError, match="killed"), rundir.atomic_output(path) as tmp:
+        assert tmp.parent == tmp_path and tmp.suffix == ".png" and tmp != path
+        tmp.write_bytes(b"half a fig")
+        raise RuntimeError("killed half-way")
+    assert path.read_bytes() == b"old figure"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fig.png"]  # nothing partial left
+    with rundir.atomic_output(path) as tmp:
+        tmp.write_bytes(b"new figure")
+        assert path.read_bytes() == b"old figure"  # until the block ends
+    assert path.read_bytes() == b"new figure"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fig.png"]
+    # a writer that wrote nothing: the old file stays, the error is a RunWriteError
+    with pytest.raises(RunWriteError, match="could not write"), rundir.atomic_output(path):
+        pass
+    assert path.read_bytes() == b"new figure"
+    # failed=: what the writer left is kept aside for inspection
+    kept = tmp_path / "nb.failed.ipynb"
+    with pytest.raises(RuntimeError), rundir.atomic_output(tmp_path / "nb.ipynb",
+                                                           failed=kept) as tmp:
+        tmp.write_text("executed up to the failing cell")
+        raise RuntimeError("a cell failed")
+    assert not (tmp_path / "nb.ipynb").exists()
+    assert (tmp_path / "nb.failed.ipynb").read_text() == "executed up to the failing cell"
+
+
+def test_a_figure_that_fails_half_way_leaves_the_old_one(tmp_path, monkeypatch):
+    """save_paper_figures (``learn``'s figures): a write killed half-way leaves the figure of
+    the previous call, never a truncated file."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    from mpcrl_lite.history import History
+    from mpcrl_lite.paper_figures import PAPER_FIGURES, save_paper_figures
+
+    history = History.load(Path(__file__).resolve().parent / "fixtures" / "run_v0_centralized")
+    save_paper_figures(history, tmp_path)
+    before = {name: (tmp_path / name).read_bytes() for name in PAPER_FIGURES}
+    assert all(data.startswith(b"\x89PNG") for data in before.values())
+    real = Figure.savefig
+    calls = []
+
+    def dying(self, fname, *args, **kwargs):
+        calls.append(fname)
+        if len(calls) == 2:  # the second figure: half of it written, then the process dies
+            real(self, fname, *args, **kwargs)
+            data = Path(fname).read_bytes()
+            Path(fname).write_bytes(data[: len(data) // 2])
+            raise KeyboardInterrupt
+        return real(self, fname, *args, **kwargs)
+
+    monkeypatch.setattr(Figure, "savefig", dying)
+    with pytest.raises(KeyboardInterrupt):
+        save_paper_figures(history, tmp_path)
+    assert Path(calls[1]).name != PAPER_FIGURES[1]  # written aside, not in place
+    for name in PAPER_FIGURES:
+        assert (tmp_path / name).read_bytes().startswith(b"\x89PNG")
+    assert (tmp_path / PAPER_FIGURES[1]).read_bytes() == before[PAPER_FIGURES[1]]
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(PAPER_FIGURES)
+
+
+def test_a_report_notebook_that_fails_is_not_left_as_the_result(tmp_path, monkeypatch):
+    """run_report writes each executed notebook aside and renames it when papermill is done;
+    a failing notebook leaves ``<name>.failed.ipynb`` and no ``<name>.ipynb``."""
+    from mpcrl_lite import report
+
+    def failing(path, output, parameters=None, cwd=None, timeout=3600):
+        Path(output).write_text('{"cells": [')  # papermill saves after every cell
+        raise RuntimeError("cell 3 raised")
+
+    monkeypatch.setattr(report, "execute_notebook", failing)
+    monkeypatch.setattr(report, "copy_mathjax", lambda out: out)
+    name = report.notebook_paths(None)[0]
+    with pytest.raises(RuntimeError, match="cell 3"):
+        report.run_report(tmp_path / "r", profile="ci", notebooks=[name.stem])
+    names = sorted(p.name for p in (tmp_path / "r").iterdir())
+    assert names == [f"{name.stem}.failed.ipynb"]

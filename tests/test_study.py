@@ -9,9 +9,21 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from mpcrl_lite.cli import main
+from mpcrl_lite import study
+from mpcrl_lite.causal import causal_optimum
+from mpcrl_lite.cli import STUDY_TARGETS, main
+from mpcrl_lite.config import SystemConfig
 from mpcrl_lite.history import History
-from mpcrl_lite.study import SEED_COLUMNS, gap_closed, run_study, summarize
+from mpcrl_lite.prices import Prices
+from mpcrl_lite.study import (
+    LATE_COLLAPSE,
+    SEED_COLUMNS,
+    TARGETS,
+    causal_target,
+    gap_closed,
+    run_study,
+    summarize,
+)
 
 
 def test_gap_closed_is_the_share_of_the_gap():
@@ -48,7 +60,7 @@ def test_convergence_on_synthetic_seeds():
     assert s["converged_seeds"] == [0] and s["failed_seeds"] == [3] and s["done"] == 3
     assert s["J_eval_final_median"] == 20.0
     assert s["J_eval_final_iqr"] == [15.0, 160.0]
-    assert s["worst_seed"] == {"seed": 2, "J_eval_final": 300.0}
+    assert s["worst_seed"] == {"seed": 2, "J_eval_final": 300.0, "regret": 400.0}
     assert s["largest_late_regression"] == {"seed": 2, "value": 400.0}
     assert s["late_regression"] == {"0": 10.0, "1": 0.0, "2": 400.0}
     # a given J* replaces the best reached; a looser threshold admits seed 1
@@ -68,7 +80,8 @@ def test_convergence_on_synthetic_seeds():
 def test_tiny_study_matches_the_runs(tmp_path):
     out = tmp_path / "study"
     base = {"learning.days_per_month": 2, "learning.eval_draws": 3, "learning.eval_every": 1}
-    summary = run_study(2, 2, out, seed_start=3, base=base, workers=0, progress=False)
+    summary = run_study(2, 2, out, seed_start=3, base=base, workers=0, progress=False,
+                        target="best_seen")
     table = pd.read_csv(out / "study.csv")
     assert tuple(table.columns) == SEED_COLUMNS
     assert list(table["seed"]) == [3, 4] and list(table["status"]) == ["done", "done"]
@@ -103,7 +116,8 @@ def test_tiny_study_matches_the_runs(tmp_path):
     assert len(curves) == 4 and set(curves["seed"]) == {3, 4}
     assert (out / "study_curves.png").read_bytes().startswith(b"\x89PNG")
     # run again: every seed is finished, nothing is recomputed, same summary
-    again = run_study(2, 2, out, seed_start=3, base=base, workers=0, progress=False)
+    again = run_study(2, 2, out, seed_start=3, base=base, workers=0, progress=False,
+                      target="best_seen")
     assert json.loads(json.dumps(again)) == saved
 
 
@@ -114,3 +128,118 @@ def test_study_command_checks_its_arguments(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["study", "--seeds", "0", "--months", "1", "--out", str(tmp_path / "s")])
     assert not (tmp_path / "s").exists()
+
+
+def test_regret_and_late_collapse_on_synthetic_seeds():
+    # nominal 1000, J* = -100: the gap is 1100, 5 % of it is 55
+    table = synthetic([
+        {"seed": 0, "status": "done", "J_eval_nominal": 1000.0, "J_eval_final": -50.0,
+         "J_eval_best": -60.0, "late_regression": 10.0},     # 10 / 1100 < 5 %
+        {"seed": 1, "status": "done", "J_eval_nominal": 1000.0, "J_eval_final": 40.0,
+         "J_eval_best": -40.0, "late_regression": 80.0},     # 80 / 1100 > 5 %: collapsed
+        {"seed": 2, "status": "done", "J_eval_nominal": 1000.0, "J_eval_final": 0.0,
+         "J_eval_best": -55.0, "late_regression": 55.0},     # exactly 5 %: allowed
+        {"seed": 3, "status": "failed"},
+    ])
+    out, s = summarize(table, J_star=-100.0, J_star_method="causal_dp", J_star_note="a note")
+    np.testing.assert_allclose(out["regret"][:3], [50.0, 140.0, 100.0])
+    assert math.isnan(out["regret"][3])
+    np.testing.assert_allclose(out["late_regression_share"][:3], [10 / 1100, 80 / 1100, 0.05])
+    assert list(out["late_collapse"]) == [False, True, False, False]
+    assert s["J_star"] == -100.0 and s["J_star_method"] == "causal_dp"
+    assert s["J_star_note"] == "a note" and "(causal_dp)" in s["definition"]
+    assert s["regret"] == {"0": 50.0, "1": 140.0, "2": 100.0}
+    assert s["regret_median"] == 100.0 and s["regret_iqr"] == [75.0, 120.0]
+    assert s["worst_seed"] == {"seed": 1, "J_eval_final": 40.0, "regret": 140.0}
+    assert s["late_collapse_limit"] == LATE_COLLAPSE == 0.05
+    assert s["late_collapse_seeds"] == [1] and s["late_collapse_count"] == 1
+    assert s["no_late_collapse"] is False
+    _, s = summarize(table[table["seed"] != 1], J_star=-100.0)
+    assert s["late_collapse_count"] == 0 and s["no_late_collapse"] is True
+    # without a J*: judged against the best reached, J_star null
+    _, s = summarize(table)
+    assert s["J_star"] is None and s["J_star_method"] is None and s["J_target"] == -60.0
+
+
+def test_causal_target_chooses_the_method_the_system_allows():
+    one = SystemConfig(n=1, P_bar=0.8)
+    prices = Prices.month(one, 2)
+    found = causal_target(one, prices)
+    assert found["method"] == "causal_dp"
+    assert found["J_star"] == pytest.approx(causal_optimum(one, prices,
+                                                           keep_values=False).J_star)
+    # a soc grid the DP cannot use for this alpha: no causal J*, said in words
+    odd = SystemConfig(n=1, P_bar=0.8, alpha=0.1)
+    found = causal_target(odd, Prices.month(odd, 1))
+    assert found["J_star"] is None and found["method"] is None
+    assert "best J_eval" in found["note"]
+    assert STUDY_TARGETS == TARGETS
+
+
+def test_study_judges_against_the_causal_optimum_by_default(tmp_path, monkeypatch):
+    out = tmp_path / "study"
+    base = {"learning.days_per_month": 2, "learning.eval_draws": 2, "learning.eval_every": 1,
+            "system.n": 1, "system.P_bar": 0.8, "mpc.forecast": "until_midnight"}
+    summary = run_study(2, 2, out, seed_start=5, base=base, workers=0, progress=False)
+    system = SystemConfig(n=1, P_bar=0.8)
+    J_star = causal_optimum(system, Prices.month(system, 2), keep_values=False).J_star
+    saved = json.loads((out / "study.json").read_text())
+    assert saved == json.loads(json.dumps(summary))
+    assert saved["target"] == "J_star" and saved["J_star_method"] == "causal_dp"
+    assert saved["J_target"] == pytest.approx(J_star) and saved["J_star"] == pytest.approx(J_star)
+    assert "41 soc nodes" in saved["J_star_note"]
+    table = pd.read_csv(out / "study.csv")
+    assert tuple(table.columns) == SEED_COLUMNS
+    gap = saved["J_nominal"] - J_star
+    for _, row in table.iterrows():
+        history = History.load(out / "runs" / row["run_id"])
+        assert history.mpc.forecast == "until_midnight"  # the base reaches every run
+        assert row["regret"] == pytest.approx(history.J_eval[-1] - J_star)
+        share = (history.J_eval[-1] - min(history.J_eval)) / gap
+        assert row["late_regression_share"] == pytest.approx(share)
+        assert row["late_collapse"] == (share > LATE_COLLAPSE)
+        assert saved["regret"][str(row["seed"])] == pytest.approx(row["regret"])
+    assert saved["regret_median"] == pytest.approx(table["regret"].median())
+    assert saved["late_collapse_count"] == int(table["late_collapse"].sum())
+    # run again: J* is read back from study_j_star.json, not solved again
+    assert (out / study.J_STAR_FILE).exists()
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("the DP was solved again")
+
+    monkeypatch.setattr(study, "causal_optimum", refuse)
+    again = run_study(2, 2, out, seed_start=5, base=base, workers=0, progress=False)
+    assert json.loads(json.dumps(again)) == saved
+    with pytest.raises(ValueError, match="target='best'"):
+        run_study(2, 2, out, seed_start=5, base=base, workers=0, progress=False, target="best")
+
+
+def test_study_command_passes_forecast_and_target(tmp_path, capsys):
+    out = tmp_path / "s"
+    assert main(["study", "--seeds", "1", "--months", "1", "--days", "1", "--out", str(out),
+                 "--forecast", "until_midnight", "--target", "best_seen", "--workers", "0",
+                 "--quiet"]) == 0
+    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert printed["J_star_method"] is None and "regret_median" in printed
+    config = json.loads(next((out / "runs").glob("*/config.json")).read_text())
+    assert config["mpc"]["forecast"] == "until_midnight"
+
+
+def test_a_sweep_run_written_before_the_forecast_option_is_still_its_own(tmp_path):
+    """config.json of a run from before MPCConfig.forecast reads as the paper's forecast; a
+    run of the other forecast is refused in one line."""
+    from mpcrl_lite.sweep_grid import load_grid
+    from mpcrl_lite.sweep_store import check_run_dirs, run_dir
+
+    sweep = load_grid({"grid": {"learning.seed": [1]}})
+    directory = run_dir(tmp_path, sweep.runs[0])
+    directory.mkdir(parents=True)
+    configs = sweep.runs[0].configs()
+    del configs["mpc"]["forecast"]
+    (directory / "config.json").write_text(json.dumps(configs))
+    check_run_dirs(sweep, tmp_path)  # no error
+    configs["mpc"]["forecast"] = "until_midnight"
+    (directory / "config.json").write_text(json.dumps(configs))
+    with pytest.raises(ValueError, match="mpc.forecast='until_midnight'") as err:
+        check_run_dirs(sweep, tmp_path)
+    assert len(str(err.value).splitlines()) == 1

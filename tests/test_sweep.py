@@ -340,7 +340,7 @@ def test_notebook_route(tiny_notebook: Path, tmp_path: Path) -> None:
 #: in a function counts too): grid -> store -> table -> run -> schedule -> sweep.
 SWEEP_LAYER = {
     "sweep_grid": {"config"},
-    "sweep_store": {"sweep_grid"},
+    "sweep_store": {"rundir", "sweep_grid"},  # rundir: LEGACY_VALUES of older configs
     "sweep_table": {"history", "sweep_grid", "sweep_store"},
     "sweep_run": {"experiment", "lockstep", "report", "sweep_grid", "sweep_store", "sweep_table"},
     "sweep_schedule": {"sweep_grid", "sweep_run", "sweep_store", "sweep_table"},
