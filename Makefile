@@ -61,14 +61,17 @@ site: $(STAMP)
 ## multi-seed study: SEEDS runs of MONTHS months (seeds from SEED_START) into STUDY_OUT
 ## (study.csv, study.json, study_curves.png; resumes an interrupted study). Each of the 2
 ## workers steps its share of the seeds in lockstep; LOCKSTEP=K sets the runs per task.
+## FORECAST=until_midnight studies the day-end MPC (an extension beyond the paper's class).
 SEEDS ?= 20
 MONTHS ?= 100
 SEED_START ?= 0
 STUDY_OUT ?= study
 LOCKSTEP ?=
+FORECAST ?= paper
 study: $(STAMP)
 	$(BIN)/python -m mpcrl_lite study --seeds $(SEEDS) --months $(MONTHS) \
-		--seed-start $(SEED_START) --out $(STUDY_OUT) $(if $(LOCKSTEP),--lockstep $(LOCKSTEP))
+		--seed-start $(SEED_START) --out $(STUDY_OUT) --forecast $(FORECAST) \
+		$(if $(LOCKSTEP),--lockstep $(LOCKSTEP))
 
 clean:
 	rm -rf reports site .pytest_cache

@@ -7,8 +7,10 @@ Prints ONE JSON line. Three measurements, each in a fresh interpreter:
 
 * ``study``: ``run_study(seeds, months, workers=2)`` as ``make study`` runs it (a local Dask
   cluster of 2 processes, each learning its share of the seeds in lockstep), including the
-  cluster's start and numba's cache load: what a user waits for. CPU time is this process's
-  plus that of its (finished) worker processes.
+  cluster's start and numba's cache load: what a user waits for, less the causal DP that
+  gives the study its target J* (computed once per system and month and kept in the study's
+  folder; timed apart, ``study_j_star_s``). CPU time is this process's plus that of its
+  (finished) worker processes. Runs evaluate on one draw (:data:`EVAL_DRAWS`).
 * ``one_by_one``: ``ref_seeds`` of the runs one after another in one process (the reference);
   the time of all ``seeds`` runs is extrapolated from them (``serial_extrapolated``) when
   ``ref_seeds < seeds``, as the runs cost the same up to their noise.
@@ -49,13 +51,22 @@ EVAL_DRAWS = 1
 
 def study(seeds: int, months: int, workers: int = 2) -> dict:
     """``run_study`` on a local cluster of ``workers`` processes (lockstep by default)."""
-    from mpcrl_lite.study import run_study
+    from mpcrl_lite.config import LearningConfig, SystemConfig
+    from mpcrl_lite.prices import Prices
+    from mpcrl_lite.study import causal_target, run_study
 
+    # J* (the causal DP the study judges against) is computed once per system and month and
+    # kept in the study's folder; it is timed apart from the runs
+    system = SystemConfig()
+    t0, c0 = time.perf_counter(), _cpu()
+    target = causal_target(system, Prices.month(system, LearningConfig().days_per_month))
+    j_star_s, j_star_cpu_s = time.perf_counter() - t0, _cpu() - c0
     t0, c0 = time.perf_counter(), _cpu()
     with tempfile.TemporaryDirectory() as out:
         summary = run_study(seeds, months, out, workers=workers, progress=False,
-                            base={"learning.eval_draws": EVAL_DRAWS})
-    return {"s": time.perf_counter() - t0, "cpu_s": _cpu() - c0, "done": summary["done"]}
+                            base={"learning.eval_draws": EVAL_DRAWS}, J_star=target["J_star"])
+    return {"s": time.perf_counter() - t0, "cpu_s": _cpu() - c0, "done": summary["done"],
+            "j_star_s": j_star_s, "j_star_cpu_s": j_star_cpu_s}
 
 
 def _runs(seeds: int, months: int) -> list:
@@ -112,6 +123,8 @@ def run(quick: bool = False, ref_seeds: int | None = None) -> dict:
         "study_seeds": seeds,
         "study_months": months,
         "study_eval_draws": EVAL_DRAWS,
+        "study_j_star_s": full["j_star_s"],
+        "study_j_star_cpu_s": full["j_star_cpu_s"],
         "study_s": full["s"],
         "study_cpu_s": full["cpu_s"],
         "study_serial_s": serial_s,

@@ -205,7 +205,8 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
     for key in ("study_20x100_s", "study_20x100_cpu_s", "study_serial_20x100_s",
                 "study_serial_20x100_cpu_s", "study_serial_extrapolated",
                 "study_serial_seeds_measured", "study_speedup_vs_serial",
-                "study_cpu_ratio_vs_serial", "lockstep_cpu_ratio"):
+                "study_cpu_ratio_vs_serial", "lockstep_cpu_ratio", "study_j_star_s",
+                "study_j_star_cpu_s", "study_eval_draws"):
         result[key] = study.get(key)
     values = {
         "speedup_vs_mpcrl": result["speedup_vs_mpcrl"],
