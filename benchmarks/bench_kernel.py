@@ -33,8 +33,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, median
 
 from mpcrl_lite.batch_solver import BatchSolver
-from mpcrl_lite.closed_loop import GaussianExploration, MPCPolicy, SensitivityRecorder, simulate
+from mpcrl_lite.closed_loop import MPCPolicy, SensitivityRecorder, simulate
 from mpcrl_lite.config import ConfigWarning, LearningConfig, MPCConfig, SystemConfig
+from mpcrl_lite.exploration import GaussianExploration
 from mpcrl_lite.kernel_solver import KernelSolver, warm_up
 from mpcrl_lite.mpc import MPC
 from mpcrl_lite.prices import Prices

@@ -231,7 +231,8 @@ def _closed_loop_ms(solver, system, prices, theta, hours: int, seed: int = 0) ->
     solver calls only)."""
     import numpy as np
 
-    from mpcrl_lite.closed_loop import GaussianExploration, MPCPolicy, simulate
+    from mpcrl_lite.closed_loop import MPCPolicy, simulate
+    from mpcrl_lite.exploration import GaussianExploration
 
     timed = _TimedSolver(solver)
     H = system.hours_per_day

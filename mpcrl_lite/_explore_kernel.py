@@ -1,4 +1,4 @@
-r"""The bounded exploration of :func:`mpcrl_lite.closed_loop.bounded_exploration`, compiled.
+r"""The bounded exploration of :func:`mpcrl_lite.exploration.bounded_exploration`, compiled.
 
 Exploring is done every hour of every learning month for every day at once, on arrays of
 a few numbers per day; written with numpy the work is a few dozen array calls per hour, and
@@ -6,7 +6,7 @@ their call overhead was a fifth of a learning month's CPU time once the MPC itse
 compiled (:mod:`mpcrl_lite._kernel`). These functions do the same arithmetic row by row in
 compiled loops. The mathematics -- the radial step, the slide along the grid faces, the
 projection onto the feasible set -- is documented where it is used
-(:func:`~mpcrl_lite.closed_loop.bounded_exploration`) and, for the projection, in
+(:func:`~mpcrl_lite.exploration.bounded_exploration`) and, for the projection, in
 :func:`mpcrl_lite.model.project_action`, whose numpy form is the reference: every operation
 here is taken in the order numpy takes it (sums from the first entry on, ``maximum``,
 ``minimum`` and ``clip`` with numpy's rules), so for a few batteries the results are those of
@@ -202,7 +202,7 @@ def project_rows(a, upper, total):
 @_jit
 def explore_rows(pi, e, upper, total, symmetric):
     """The commanded action for the policy's ``pi`` and the exploration ``e`` (days, n):
-    :func:`mpcrl_lite.closed_loop.bounded_exploration` with ``bounds='symmetric'`` (when
+    :func:`mpcrl_lite.exploration.bounded_exploration` with ``bounds='symmetric'`` (when
     ``symmetric``) or ``'radial'``."""
     days, n = pi.shape
     out = np.empty((days, n))

@@ -96,9 +96,10 @@ from scipy.optimize import linprog
 
 from . import rundir
 from .causal import CausalBound, causal_optimum, compare_with_optimum
-from .closed_loop import MPCPolicy, Policy, Projection, simulate
+from .closed_loop import MPCPolicy, Policy, simulate
 from .config import LearningConfig, MPCConfig, SystemConfig
 from .day_end import forecast_prices
+from .exploration import Projection
 from .history import History
 from .model import penalty, project_action, sample_noise
 from .mpc import MPC
@@ -303,7 +304,7 @@ def evaluate_policy(policy: Policy, scenario: Scenario, name: str = "policy") ->
 
     :func:`mpcrl_lite.closed_loop.simulate` with the scenario's noise (common random
     numbers) and the command projected onto the input bounds and the grid limit
-    (:class:`~mpcrl_lite.closed_loop.Projection`; a no-op for feasible commands such as the
+    (:class:`~mpcrl_lite.exploration.Projection`; a no-op for feasible commands such as the
     MPC's): at hour ``k``, ``a = project_action(policy(k, soc))``, then
     :func:`mpcrl_lite.model.step` with ``noise[k]`` and the prices of the hour.
 

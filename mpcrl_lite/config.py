@@ -62,7 +62,7 @@ Choices the paper leaves open (each is a field below, with the reason in its com
   (+0.04 MW in the first month), while the compatible critic assumes a zero mean: the state
   part of the cost then leaks into its weights. By default the exploration is an odd function
   of the Gaussian draw, hence zero-mean (``exploration_bounds='symmetric'``,
-  :func:`mpcrl_lite.closed_loop.bounded_exploration`): it slides along the grid faces and is
+  :func:`mpcrl_lite.exploration.bounded_exploration`): it slides along the grid faces and is
   shrunk just enough that ``pi + e`` and ``pi - e`` are both feasible; the grid limit is
   nearly active in 84 % of the hours, and there it keeps about half of the exploration where a
   radial shrink keeps 2-12 %. Recentring it away from the bounds (``exploration_margin``)
@@ -515,7 +515,7 @@ OPTIMIZERS = ("sgd", "adam", "natural")
 #: Feature sets of the critic's value baseline (see :data:`mpcrl_lite.lstd.FEATURE_SETS`).
 VALUE_FEATURES = ("paper", "paper+hour", "hour", "hour*paper")
 #: How the exploration respects the input bounds and the grid limit
-#: (:class:`mpcrl_lite.closed_loop.GaussianExploration`).
+#: (:class:`mpcrl_lite.exploration.GaussianExploration`).
 EXPLORATION_BOUNDS = ("symmetric", "radial", "project")
 #: What runs did before a field of :class:`LearningConfig` existed: a saved config without
 #: the field reads back with this value (:meth:`LearningConfig.from_dict`), so a resumed run
@@ -551,7 +551,7 @@ class LearningConfig(_Config):
     like 1 / std)."""
     exploration_bounds: str = "symmetric"
     """How the explored action respects the input bounds and the grid limit
-    (:func:`mpcrl_lite.closed_loop.bounded_exploration`). ``'symmetric'`` slides the
+    (:func:`mpcrl_lite.exploration.bounded_exploration`). ``'symmetric'`` slides the
     exploration along the grid faces it could reach, clips each entry to the distance of the
     policy's action to its nearer bound and shrinks the vector until both ``pi + e`` and
     ``pi - e`` are feasible: the map is odd in ``e``, so the applied exploration keeps a zero
@@ -561,7 +561,7 @@ class LearningConfig(_Config):
     whole vector (zero mean too, but little is left where the grid limit is active)."""
     exploration_margin: float = 0.0
     """In MW: the exploration is centred on the policy's action pulled this far away from
-    the input bounds and the grid limits (:func:`mpcrl_lite.closed_loop.exploration_center`),
+    the input bounds and the grid limits (:func:`mpcrl_lite.exploration.exploration_center`),
     and the critic's compatible features use that centre. A battery whose action sits at a
     bound then still explores both ways with zero mean. 0 (the default) centres on the
     action itself; 0.2 made no measurable difference with tied batteries. Needs

@@ -58,7 +58,7 @@ from typing import Any
 
 import numpy as np
 
-from .closed_loop import Decision, GaussianExploration, simulate
+from .closed_loop import Decision, simulate
 from .config import (
     CoordinationConfig,
     LearningConfig,
@@ -69,6 +69,7 @@ from .config import (
 from .coordination import CoordinatedMPC, CoordinatedSolution, join_theta, split_theta
 from .dpg import DPGUpdater
 from .experiment import Experiment
+from .exploration import GaussianExploration
 from .history import History, MonthRecord
 from .learner import Learner, lstd_policy_gradient, parse_theta, resolve_setup
 from .local_qp import local_system
@@ -171,7 +172,7 @@ def run_month_decentralized(
     exploration_std : float
         Std of the Gaussian exploration added to each battery's action (then kept jointly
         within the input bounds and the grid limit as ``exploration_bounds`` says,
-        :class:`~mpcrl_lite.closed_loop.GaussianExploration`).
+        :class:`~mpcrl_lite.exploration.GaussianExploration`).
     sensitivities : bool
         Compute :math:`\\nabla_{\\theta^i}\\pi^i` (needed for learning).
     soc0 : float or array, optional

@@ -6,7 +6,7 @@ Every month (paper, Section IV):
    ``k`` one call solves the MPC of every day (:mod:`mpcrl_lite.solvers`), the policy
    sensitivities are computed at the solutions (:mod:`mpcrl_lite.sensitivity`), Gaussian
    exploration is added to the MPC action and kept within the input bounds and the grid
-   limit with a zero mean (:func:`mpcrl_lite.closed_loop.bounded_exploration`,
+   limit with a zero mean (:func:`mpcrl_lite.exploration.bounded_exploration`,
    ``LearningConfig.exploration_bounds``), and the true system takes a step
    (:func:`mpcrl_lite.model.step`) -- the one closed loop,
    :func:`mpcrl_lite.closed_loop.run_month`;
@@ -46,9 +46,10 @@ from typing import Any
 
 import numpy as np
 
-from .closed_loop import evaluate_mpc, exploration_center, run_month
+from .closed_loop import evaluate_mpc, run_month
 from .config import LearningConfig, MPCConfig, SystemConfig
 from .dpg import DPGUpdater
+from .exploration import exploration_center
 from .history import History
 from .learner import Learner, lstd_policy_gradient, parse_theta, resolve_setup, run_months
 from .lstd import value_baseline_features

@@ -37,7 +37,7 @@ LAYERS: list[set[str]] = [
     # the back-end registry
     {"solvers"},
     # the one closed loop and its record
-    {"record", "closed_loop"},
+    {"record", "exploration", "closed_loop"},
     # learning algorithms and results as data
     {"lstd", "update_rules", "dpg", "rundir", "history"},
     # what learners, coordination and bounds share

@@ -2,7 +2,7 @@
 same arithmetic: equal to the last bit for a few batteries, feasible and odd for many.
 
 The numpy functions below are the reference: vectorised over days, written as the
-mathematics of :func:`mpcrl_lite.closed_loop.bounded_exploration` reads (the radial step,
+mathematics of :func:`mpcrl_lite.exploration.bounded_exploration` reads (the radial step,
 the slide along the grid faces, both around the projection of pi).
 """
 
@@ -13,7 +13,7 @@ import pytest
 
 from mpcrl_lite import SystemConfig
 from mpcrl_lite._explore_kernel import project_rows
-from mpcrl_lite.closed_loop import bounded_exploration
+from mpcrl_lite.exploration import bounded_exploration
 from mpcrl_lite.model import project_action
 
 
