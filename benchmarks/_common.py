@@ -102,3 +102,14 @@ def machine() -> dict[str, Any]:
         except ImportError:
             pass
     return info
+
+
+def print_result(result: dict[str, Any]) -> int:
+    """Print ``result`` as ONE JSON line, with the load average at the end of the run added
+    to ``result["machine"]``; returns the exit status 0."""
+    try:
+        result["machine"]["loadavg_end"] = [round(x, 2) for x in os.getloadavg()]
+    except OSError:
+        pass
+    print(json.dumps(result))
+    return 0

@@ -22,8 +22,6 @@ line.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
 import time
 import warnings
@@ -33,7 +31,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import machine, median
+from _common import machine, median, print_result
 
 from mpcrl_lite.config import LearningConfig, MPCConfig, SystemConfig
 from mpcrl_lite.decentralized import DecentralizedExperiment
@@ -124,12 +122,7 @@ def main(argv: list[str] | None = None) -> int:
         "total_s": time.perf_counter() - t_start,
         "machine": info,
     }
-    try:
-        result["machine"]["loadavg_end"] = [round(x, 2) for x in os.getloadavg()]
-    except OSError:
-        pass
-    print(json.dumps(result))
-    return 0
+    return print_result(result)
 
 
 if __name__ == "__main__":

@@ -19,8 +19,6 @@ JSON line. The kernels are compiled (or loaded from numba's cache) before timing
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
 import time
 import warnings
@@ -30,7 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _common import machine, median
+from _common import machine, median, print_result
 
 from mpcrl_lite.batch_solver import BatchSolver
 from mpcrl_lite.closed_loop import MPCPolicy, SensitivityRecorder, simulate
@@ -173,12 +171,7 @@ def main(argv: list[str] | None = None) -> int:
         "total_s": time.perf_counter() - t0,
         "machine": info,
     }
-    try:
-        result["machine"]["loadavg_end"] = [round(x, 2) for x in os.getloadavg()]
-    except OSError:
-        pass
-    print(json.dumps(result))
-    return 0
+    return print_result(result)
 
 
 if __name__ == "__main__":
