@@ -605,7 +605,8 @@ def evaluate_baselines(
         Also measure against the best causal policy (:mod:`mpcrl_lite.causal`): True solves
         the coupled DP of the scenario's days (about 2 s of CPU per distinct day for three
         batteries), or pass a :class:`~mpcrl_lite.causal.CausalBound` solved on these prices.
-        The DP policy's closed loop is added as ``"causal_dp"``, and ``"causal"`` holds
+        The DP policy's closed loop is added as ``"causal_dp"`` (not for a bound without value
+        tables, e.g. :func:`mpcrl_lite.causal_table.causal_bound`), and ``"causal"`` holds
         ``J_star`` (mean over the scenario's days), ``grid``, and for every policy the regret
         ``J - J_star`` (NOK/day) and the gap closed ``(J_nominal - J)/(J_nominal - J_star)``.
 
@@ -649,9 +650,10 @@ def evaluate_baselines(
         if causal is True:
             causal = causal_optimum(system, scenario.prices)
         j_star = float(causal.J_star_for(scenario.prices).mean())
-        results["causal_dp"] = evaluate_policy(causal.policy(scenario.prices), scenario,
-                                               "causal_dp")
-        order.insert(1, "causal_dp")
+        if causal.values is not None:  # a bound without value tables gives J*, no policy
+            results["causal_dp"] = evaluate_policy(causal.policy(scenario.prices), scenario,
+                                                   "causal_dp")
+            order.insert(1, "causal_dp")
         table = compare_with_optimum({name: results[name].J for name in order}, j_star)
         extra["causal"] = {"J_star": j_star, "grid": causal.grid.describe(),
                            "regret": {k: v["regret"] for k, v in table.items()},

@@ -41,7 +41,7 @@ LAYERS: list[set[str]] = [
     # learning algorithms and results as data
     {"lstd", "update_rules", "dpg", "rundir", "history"},
     # what learners, coordination and bounds share
-    {"learner", "coordination", "causal_grid", "causal_dual", "causal"},
+    {"learner", "coordination", "causal_grid", "causal_dual", "causal", "causal_table"},
     # learners, baselines and evaluation
     {"experiment", "decentralized", "baselines", "evaluation", "transfer"},
     # figures
