@@ -176,6 +176,19 @@ def test_causal_target_chooses_the_method_the_system_allows():
     assert STUDY_TARGETS == TARGETS
 
 
+def test_the_paper_system_reads_its_j_star_from_the_stored_table():
+    """The default system's month is in data/causal_j_star.csv: no DP is solved, and the
+    figure is the table's (itself checked against a fresh solve in test_causal_table)."""
+    from mpcrl_lite.causal_table import TABLE_CSV, stored_bound
+
+    system = SystemConfig()
+    prices = Prices.month(system, 30)
+    target = study.causal_target(system, prices)
+    assert target["source"].endswith(TABLE_CSV) and target["method"] == "causal_dp"
+    assert target["J_star"] == pytest.approx(stored_bound(system, prices).J_star_for(prices).mean())
+    assert -402.0 < target["J_star"] < -398.0  # -399.3 on the 41-point grid
+
+
 def test_study_judges_against_the_causal_optimum_by_default(tmp_path, monkeypatch):
     out = tmp_path / "study"
     base = {"learning.days_per_month": 2, "learning.eval_draws": 2, "learning.eval_every": 1,
@@ -207,7 +220,7 @@ def test_study_judges_against_the_causal_optimum_by_default(tmp_path, monkeypatc
     def refuse(*args, **kwargs):
         raise AssertionError("the DP was solved again")
 
-    monkeypatch.setattr(study, "causal_optimum", refuse)
+    monkeypatch.setattr(study, "causal_bound", refuse)
     again = run_study(2, 2, out, seed_start=5, base=base, workers=0, progress=False)
     assert json.loads(json.dumps(again)) == saved
     with pytest.raises(ValueError, match="target='best'"):
