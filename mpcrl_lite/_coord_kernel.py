@@ -48,8 +48,14 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 
-from ._kernel import _jit
+from ._kernel import CACHED
+
+# IEEE semantics kept (NaN and inf are detected), reassociation and fused multiply-adds allowed
+_FAST = {"reassoc", "contract", "nsz", "arcp"}
+_jit = njit(cache=CACHED, error_model="numpy", fastmath=_FAST)
+_inline = njit(cache=CACHED, error_model="numpy", fastmath=_FAST, inline="always")
 
 _ETA = 0.995  # fraction to the boundary
 _ARMIJO = 1e-4
@@ -57,7 +63,7 @@ _BACKTRACKS = 40
 
 
 # ----------------------------------------------------------------------- linear algebra ----
-@_jit
+@_inline
 def _lu(a, piv):
     """In-place LU factorisation with partial pivoting of the square ``a``; False if a
     pivot is zero or not finite."""
@@ -85,7 +91,7 @@ def _lu(a, piv):
     return True
 
 
-@_jit
+@_inline
 def _lu_solve(a, piv, b):
     """Solve ``a_orig z = b`` in place for ``b`` of shape ``(m,)`` or ``(m, k)`` given
     :func:`_lu`'s factors (``b`` 2-d: every column)."""
@@ -118,7 +124,7 @@ def _lu_solve(a, piv, b):
 # ``A[r] = sum_k aval[r, k] e_{acol[r, k]}'`` (padded with zero values), their blocks
 # ``ablo[r]..abhi[r]``, and per stage the inequality entries ``Cb[j, cr, cc] = cv`` and the
 # products ``C' D C`` needs, ``W[wa, wb] += D[wr] wv``.
-@_jit
+@_inline
 def _kkt_day(Hd, q0, aval, e, acol, cr, cc, cv, db, kb, ks, P_bar, x, lam, mu, nu, tau,
              qeff, h, rc, c, rx):
     """Barrier KKT residuals of one day (``n`` batteries): fills ``qeff (n, nx)``,
@@ -367,7 +373,7 @@ def _direction_day(Hd, aval, e, acol, ablo, abhi, cr, cc, cv, wr, wa, wb, wv, pe
     return finite == 0.0
 
 
-@_jit
+@_inline
 def _step_length(cr, cc, cv, mu, nu, h, c, dx, dmu, dnu, dc, dh, kb, ks):
     """The largest ``t <= 1`` keeping the fraction 0.995 of the distance to every bound."""
     n, N, nh = h.shape
