@@ -102,18 +102,20 @@ Choices the paper leaves open (each is a field below, with the reason in its com
   (``eval_every``, ``eval_seed``); that series (``History.J_eval``, the mean over the draws,
   with a 95 % confidence interval) shows the learning trend of the paper's Fig. 2.
 
-With these defaults the 100-month run (30 days, n = 3) takes about 12 s with the compiled
-kernel back-end on a quiet two-core machine when evaluated on one draw (about 40 s with the
-numpy batch back-end; ten evaluation draws cost about 1.7x the CPU time). On 20 learning
-seeds never used to choose these settings (200-219), evaluated on 10 noise draws of the month,
-the final J has a median of -217 NOK/day (inter-quartile range -222 to -203, worst -167);
-every seed learns. The best causal policy earns J* = -401.5 and the nominal MPC costs +1576,
-so this closes 90 % of the gap in the median; the rest is mostly the policy class: the MPC's
-forecast reads on into the next day, whose prices do not count. With a forecast that stops at
-midnight (``MPCConfig(forecast='until_midnight')``, :mod:`mpcrl_lite.day_end`: an extension
-beside the paper's class, never a default) the same learner reaches a median of -314 NOK/day. With the earlier defaults (projected exploration, one
-parameter set per battery, ``'paper+hour'``) the median was -180 and 3 of the 20 seeds never
-learned (J ~ 1250).
+With these defaults the 100-month run (30 days, n = 3) takes 7-10 s with the compiled
+kernel back-end on a two-core machine when evaluated on one draw (about 40 s with the numpy
+batch back-end; the default ten evaluation draws cost 1.6-2.1x the CPU time). On two sets of
+20 learning seeds never used to choose these settings (200-219 and 500-519), evaluated on 10
+noise draws of the month, the final J has a median of -217 and -219 NOK/day (worst -167 and
+-125); every seed learns, 13-14 of 20 close 90 % of the gap between the nominal MPC (+1576)
+and the best causal policy (J* = -401.5), and the median regret is 180-185 NOK/day. The rest
+is mostly the policy class: the MPC's forecast reads on into the next day, whose prices do
+not count. With a forecast that stops at midnight (``MPCConfig(forecast='until_midnight')``,
+:mod:`mpcrl_lite.day_end`: an extension beyond the paper's class, never a default) the same
+learner reaches medians of -314 and -311, every seed closes 90 % of the gap and the median
+regret is 87-88. With the earlier defaults (projected exploration, one parameter set per
+battery, ``'paper+hour'``) the median was -180 and 3 of the 20 seeds never learned
+(J ~ 1250).
 
 :meth:`LearningConfig.paper` and :meth:`MPCConfig.paper` give the paper's literal settings
 (where it states them) for comparison.
