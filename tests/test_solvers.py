@@ -90,7 +90,9 @@ SOLVER_LAYER = {
     "batch_solver": {"batch_adjoint", "batch_kkt", "batch_linalg", "config", "mpc", "solution",
                      "theta"},
     "ipopt_solver": {"config", "mpc", "sensitivity", "solution", "theta"},
-    "kernel_solver": {"_kernel", "config", "mpc", "solution", "theta"},
+    # the kernels of the exploration and the coordination rounds only for the cache warm-up
+    "kernel_solver": {"_coord_kernel", "_explore_kernel", "_kernel", "config", "mpc", "solution",
+                      "theta"},
     "solvers": {"batch_solver", "config", "ipopt_solver", "kernel_solver", "mpc", "solution",
                 "theta"},
 }
