@@ -7,7 +7,9 @@ tests build their cases from them at import time.
 
 from __future__ import annotations
 
+import ast
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,6 +21,23 @@ from mpcrl_lite.theta import Theta
 
 
 # -- helpers ----------------------------------------------------------------------------------
+def assert_imports_within(module: str, allowed: set[str]) -> None:
+    """Every relative import of ``mpcrl_lite/<module>.py`` is at the top level and names a
+    module of ``allowed``; read from the source (ast), so an import hidden in a function
+    counts too."""
+    import mpcrl_lite
+
+    tree = ast.parse((Path(mpcrl_lite.__file__).parent / f"{module}.py").read_text())
+    top_level = {id(node) for node in tree.body}
+    for node in ast.walk(tree):
+        if not isinstance(node, ast.ImportFrom) or not node.level:
+            continue
+        assert id(node) in top_level, f"{module}: import inside a function, line {node.lineno}"
+        names = [node.module] if node.module else [alias.name for alias in node.names]
+        for name in names:
+            assert name.split(".")[0] in allowed, f"{module} imports {name} (line {node.lineno})"
+
+
 def window(prices: np.ndarray, day: int, hour: int, N: int) -> np.ndarray:
     """The N buying prices from (day, hour) on, running past midnight (the month repeats)."""
     flat = np.asarray(prices).ravel()

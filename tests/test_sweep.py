@@ -9,7 +9,6 @@ one small cluster with a single worker for the scheduler-address route.
 
 from __future__ import annotations
 
-import ast
 import json
 import logging
 import os
@@ -24,6 +23,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from conftest import assert_imports_within
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -351,15 +351,7 @@ SWEEP_LAYER = {
 
 @pytest.mark.parametrize("module", sorted(SWEEP_LAYER))
 def test_sweep_modules_import_only_downwards(module: str) -> None:
-    tree = ast.parse((Path(sweep_module.__file__).parent / f"{module}.py").read_text())
-    top_level = {id(node) for node in tree.body}
-    for node in ast.walk(tree):
-        if not isinstance(node, ast.ImportFrom) or not node.level:
-            continue
-        assert id(node) in top_level, f"{module}: import inside a function, line {node.lineno}"
-        names = [node.module] if node.module else [alias.name for alias in node.names]
-        for name in names:
-            assert name.split(".")[0] in SWEEP_LAYER[module], f"{module} imports {name}"
+    assert_imports_within(module, SWEEP_LAYER[module])
 
 
 def test_public_names_stay_importable_from_sweep() -> None:
