@@ -68,6 +68,15 @@ NATURAL_BETAS: tuple[float, float] = (0.9, 0.999)
 NATURAL_DAMPING: float = 1e-3
 
 
+
+def _check_betas(betas: tuple[float, float]) -> tuple[float, float]:
+    """The two moment decay rates of Adam-like rules, each in ``[0, 1)``, else an error."""
+    if len(betas) != 2:
+        raise ValueError(f"betas={betas!r}: expected two values in [0, 1)")
+    return (check_real("betas[0]", betas[0], 0.0, 1.0, high_open=True),
+            check_real("betas[1]", betas[1], 0.0, 1.0, high_open=True))
+
+
 class UpdateRule:
     """Base class: turns the masked gradient into the direction of a step.
 
@@ -186,12 +195,7 @@ class Adam(UpdateRule):
         betas: tuple[float, float] = ADAM_BETAS,
         eps: float = ADAM_EPS,
     ) -> None:
-        if len(betas) != 2:
-            raise ValueError(f"betas={betas!r}: expected two values in [0, 1)")
-        self.betas = (
-            check_real("betas[0]", betas[0], 0.0, 1.0, high_open=True),
-            check_real("betas[1]", betas[1], 0.0, 1.0, high_open=True),
-        )
+        self.betas = _check_betas(betas)
         self.eps = check_real("eps", eps, 0.0, low_open=True)
         self.scale = np.asarray(scale, dtype=float)
         if self.scale.shape != (int(size),):
@@ -316,12 +320,7 @@ class NaturalGradient(UpdateRule):
         damping: float = NATURAL_DAMPING,
         eps: float = ADAM_EPS,
     ) -> None:
-        if len(betas) != 2:
-            raise ValueError(f"betas={betas!r}: expected two values in [0, 1)")
-        self.betas = (
-            check_real("betas[0]", betas[0], 0.0, 1.0, high_open=True),
-            check_real("betas[1]", betas[1], 0.0, 1.0, high_open=True),
-        )
+        self.betas = _check_betas(betas)
         self.damping = check_real("damping", damping, 0.0)
         self.eps = check_real("eps", eps, 0.0, low_open=True)
         super().__init__(size)
