@@ -14,7 +14,7 @@ $(STAMP): environment-requirements.txt pyproject.toml
 	$(BIN)/python -m pip install --quiet -r environment-requirements.txt
 	$(BIN)/python -m pip install --quiet --no-deps -e .
 	$(BIN)/python -m ipykernel install --sys-prefix --name python3 --display-name "Python 3 (mpcrl_lite)" >/dev/null
-	$(BIN)/python -m mpcrl_lite.kernel_solver --warm
+	$(BIN)/python -m mpcrl_lite.cli.warm
 	touch $(STAMP)
 
 setup: $(STAMP)
@@ -56,7 +56,7 @@ student: $(STAMP)
 SITE_PROFILE ?= classroom
 SITE_FROM ?=
 site: $(STAMP)
-	$(BIN)/python -m mpcrl_lite.site --out site --profile $(SITE_PROFILE) $(if $(SITE_FROM),--report $(SITE_FROM))
+	$(BIN)/python -m mpcrl_lite.publish.site --out site --profile $(SITE_PROFILE) $(if $(SITE_FROM),--report $(SITE_FROM))
 
 ## multi-seed study: SEEDS runs of MONTHS months (seeds from SEED_START) into STUDY_OUT
 ## (study.csv, study.json, study_curves.png; resumes an interrupted study). Each of the 2

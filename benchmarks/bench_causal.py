@@ -14,7 +14,7 @@ Prints progress on stderr and ONE JSON line on stdout:
   single-battery grid (241 nodes, 0.05 MW: the converged bound on the true system);
   ``J_relaxed``: the coupling dropped (``lambda = 0``), same grids;
 * ``dp_policy``: the DP policy of the 41-node DP in closed loop on the true system
-  (:func:`mpcrl_lite.baselines.evaluate_policy`) on ``--days`` days of the repeated month, mean
+  (:func:`mpcrl_lite.bounds.baselines.evaluate_policy`) on ``--days`` days of the repeated month, mean
   and 95 % confidence interval -- an achievable cost;
 * ``single_battery_refinement``: ``J_relaxed`` (one battery x 3) on grids 21..241, to show the
   grid error and its ``h^2`` rate;
@@ -34,11 +34,11 @@ import warnings
 
 import numpy as np
 
-from mpcrl_lite.baselines import evaluate_policy, make_scenario
-from mpcrl_lite.causal import causal_optimum
-from mpcrl_lite.causal_dual import lagrangian_bound
+from mpcrl_lite.bounds.baselines import evaluate_policy, make_scenario
+from mpcrl_lite.bounds.causal.dp import causal_optimum
+from mpcrl_lite.bounds.causal.dual import lagrangian_bound
 from mpcrl_lite.config import SystemConfig
-from mpcrl_lite.prices import Prices
+from mpcrl_lite.system.prices import Prices
 
 
 def _log(msg: str) -> None:

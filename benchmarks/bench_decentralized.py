@@ -1,7 +1,7 @@
 """The decentralized learner with n = 20 batteries: seconds per learning month.
 
 One month is :meth:`DecentralizedExperiment.run_one_month
-<mpcrl_lite.decentralized.DecentralizedExperiment.run_one_month>` with the default
+<mpcrl_lite.decentralized.learner.DecentralizedExperiment.run_one_month>` with the default
 configurations and ``SystemConfig(n=20)`` (30 days x 24 hours, coordination of the 20 local
 MPCs at every hour, their sensitivities, each battery's LSTD fit and DPG step). Measured
 with the compiled coordination (``MPCConfig()``, back-end ``'auto'``) and, as the
@@ -34,8 +34,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import machine, median, print_result
 
 from mpcrl_lite.config import LearningConfig, MPCConfig, SystemConfig
-from mpcrl_lite.decentralized import DecentralizedExperiment
-from mpcrl_lite.kernel_solver import warm_up
+from mpcrl_lite.decentralized.learner import DecentralizedExperiment
+from mpcrl_lite.mpc.backends.kernel import warm_up
 
 SYSTEM = SystemConfig(n=20)
 #: the target quoted in the issue (reported, never asserted)

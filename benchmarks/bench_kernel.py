@@ -2,8 +2,8 @@
 
 For each size (n agents, horizon N) a month of ``days`` days runs in closed loop for a few
 hours (as ``run_month``: warm start from the shifted previous plan, Gaussian exploration, the
-true system), once with :class:`~mpcrl_lite.kernel_solver.KernelSolver` and once with
-:class:`~mpcrl_lite.batch_solver.BatchSolver` from the same states, prices and random draws
+true system), once with :class:`~mpcrl_lite.mpc.backends.kernel.KernelSolver` and once with
+:class:`~mpcrl_lite.mpc.backends.batch.BatchSolver` from the same states, prices and random draws
 (their policies agree to 1e-14, so both see the same problems). Only the solver calls are
 timed: ``solve_batch`` + ``sensitivity`` of every hour. Reported per problem (one day-hour)
 in microseconds, wall (``time.perf_counter``) and CPU (``time.process_time``), the median
@@ -30,13 +30,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import machine, median, print_result
 
-from mpcrl_lite.batch_solver import BatchSolver
-from mpcrl_lite.closed_loop import MPCPolicy, SensitivityRecorder, simulate
+from mpcrl_lite.mpc.backends.batch import BatchSolver
+from mpcrl_lite.sim.closed_loop import MPCPolicy, SensitivityRecorder, simulate
 from mpcrl_lite.config import ConfigWarning, LearningConfig, MPCConfig, SystemConfig
-from mpcrl_lite.exploration import GaussianExploration
-from mpcrl_lite.kernel_solver import KernelSolver, warm_up
-from mpcrl_lite.mpc import MPC
-from mpcrl_lite.prices import Prices
+from mpcrl_lite.sim.exploration import GaussianExploration
+from mpcrl_lite.mpc.backends.kernel import KernelSolver, warm_up
+from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.system.prices import Prices
 from mpcrl_lite.theta import Theta
 
 #: (n, N, hours per run): the paper's size, many agents, a long horizon
@@ -78,7 +78,7 @@ class _Timed:
 
 
 def closed_loop(solver, system: SystemConfig, prices: Prices, hours: int, seed: int) -> dict:
-    """``hours`` closed-loop hours (:func:`mpcrl_lite.closed_loop.simulate`, the nominal theta,
+    """``hours`` closed-loop hours (:func:`mpcrl_lite.sim.closed_loop.simulate`, the nominal theta,
     the default exploration) with ``solver``; times of its calls and what it returned."""
     timed = _Timed(solver)
     recorder = SensitivityRecorder()

@@ -1,7 +1,7 @@
 r"""How reliably the learner learns on seeds nobody tuned it on, and how close it gets.
 
 For every candidate (a set of :class:`~mpcrl_lite.config.LearningConfig` fields, optionally
-the day-end forecast of :mod:`mpcrl_lite.day_end`) and every learning seed, a full run of
+the day-end forecast of :mod:`mpcrl_lite.system.forecast`) and every learning seed, a full run of
 ``--months`` months is made; the parameters in use every 10th month and the final ones are
 evaluated on ``--draws`` noise draws of the month (seeds ``7000 .. 7000 + draws - 1``, common
 to every candidate and seed, without exploration), and every 5th month on the fixed
@@ -41,10 +41,10 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np
 
-from mpcrl_lite.closed_loop import evaluate_mpc
+from mpcrl_lite.sim.closed_loop import evaluate_mpc
 from mpcrl_lite.config import LearningConfig
-from mpcrl_lite.day_end import until_midnight
-from mpcrl_lite.experiment import Experiment
+from mpcrl_lite.system.forecast import until_midnight
+from mpcrl_lite.learning.experiment import Experiment
 
 J_STAR = -401.5
 J_NOMINAL = 1576.0

@@ -3,7 +3,7 @@ r"""Timings of mpcrl_lite's learning loop, the paper experiment, the cold start 
 Every figure is a wall-clock time on this machine (see benchmarks/README.md for how to
 read them under load).
 
-* **ms per learning step** -- :func:`mpcrl_lite.closed_loop.run_month` with sensitivities
+* **ms per learning step** -- :func:`mpcrl_lite.sim.closed_loop.run_month` with sensitivities
   and exploration, 30 days x 24 h, default back-end (``MPCConfig()``, 'auto'), divided by
   the 720 day-hours it simulates, plus the month's LSTD fit and DPG update
   (:meth:`Experiment.learning_step` and :meth:`DPGUpdater.step`) divided by 720. Median over
@@ -64,9 +64,9 @@ def learning_step(months: int = 2, warmup: int = 1, warm_start: bool = True) -> 
     """
     import numpy as np
 
-    from mpcrl_lite.closed_loop import run_month
+    from mpcrl_lite.sim.closed_loop import run_month
     from mpcrl_lite.config import MPCConfig
-    from mpcrl_lite.experiment import Experiment
+    from mpcrl_lite.learning.experiment import Experiment
 
     exp = Experiment(mpc_config=MPCConfig(warm_start=warm_start))
     H, D = exp.system.hours_per_day, exp.learning.days_per_month
@@ -108,7 +108,7 @@ _PAPER_CODE = r"""
 import json, resource, time
 t0 = time.perf_counter()
 from mpcrl_lite.config import LearningConfig, MPCConfig
-from mpcrl_lite.experiment import Experiment
+from mpcrl_lite.learning.experiment import Experiment
 exp = Experiment(mpc_config=MPCConfig(warm_start={warm_start}),
                  learning=LearningConfig(months={months}{extra}))
 def cpu():
@@ -154,9 +154,9 @@ t_launch = float(os.environ["BENCH_T0"])
 t_start = time.time()
 import mpcrl_lite
 from mpcrl_lite.config import MPCConfig, SystemConfig
-from mpcrl_lite.mpc import MPC
-from mpcrl_lite.prices import Prices
-from mpcrl_lite.solvers import make_solver
+from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.system.prices import Prices
+from mpcrl_lite.mpc.backends.registry import make_solver
 from mpcrl_lite.theta import Theta
 t_import = time.time()
 system = SystemConfig()
@@ -197,7 +197,7 @@ def cold_start(trials: int = 3) -> dict:
 # -- scaling -------------------------------------------------------------------------------
 class _TimedSolver:
     """A solver back-end that times its own ``solve_batch`` and ``sensitivity`` calls, so the
-    closed loop (:func:`mpcrl_lite.closed_loop.simulate`) runs unchanged around it."""
+    closed loop (:func:`mpcrl_lite.sim.closed_loop.simulate`) runs unchanged around it."""
 
     def __init__(self, solver) -> None:
         self.solver, self.mpc = solver, solver.mpc
@@ -231,8 +231,8 @@ def _closed_loop_ms(solver, system, prices, theta, hours: int, seed: int = 0) ->
     solver calls only)."""
     import numpy as np
 
-    from mpcrl_lite.closed_loop import MPCPolicy, simulate
-    from mpcrl_lite.exploration import GaussianExploration
+    from mpcrl_lite.sim.closed_loop import MPCPolicy, simulate
+    from mpcrl_lite.sim.exploration import GaussianExploration
 
     timed = _TimedSolver(solver)
     H = system.hours_per_day
@@ -258,9 +258,9 @@ def scaling_point(n: int, N: int, backend: str, hours: int, days: int = 30,
     import warnings
 
     from mpcrl_lite.config import ConfigWarning, MPCConfig, SystemConfig
-    from mpcrl_lite.mpc import MPC
-    from mpcrl_lite.prices import Prices
-    from mpcrl_lite.solvers import make_solver
+    from mpcrl_lite.mpc.formulation import MPC
+    from mpcrl_lite.system.prices import Prices
+    from mpcrl_lite.mpc.backends.registry import make_solver
     from mpcrl_lite.theta import Theta
 
     with warnings.catch_warnings():

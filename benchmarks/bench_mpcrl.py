@@ -2,21 +2,21 @@ r"""The reference library: the same MPC and learning loop written with ``mpcrl``
 
 The paper's MPC (eq. 9 with eq. 14, n = 3 batteries, N = 12, Table I values, theta0 nominal)
 is built with ``csnlp.Nlp`` and ``csnlp.wrappers.Mpc`` and handed to ``mpcrl.LstdDpgAgent``;
-a gymnasium environment wraps :func:`mpcrl_lite.model.step` and steps one day hour by hour,
-exactly like :func:`mpcrl_lite.experiment.run_month` does for each of its days.
+a gymnasium environment wraps :func:`mpcrl_lite.system.battery.step` and steps one day hour by hour,
+exactly like :func:`mpcrl_lite.learning.experiment.run_month` does for each of its days.
 
 Mapping onto mpcrl, and where it cannot be the very same problem
 -------------------------------------------------------------------
 * **Variables and constraints.** ``soc`` is an Mpc state (multiple shooting: csnlp adds
   ``soc[:, 0]`` as a variable tied to the parameter ``soc_0``, n variables and n equalities
-  more than :mod:`mpcrl_lite.mpc`, which substitutes it). ``b`` and ``s`` are Mpc actions
+  more than :mod:`mpcrl_lite.mpc.formulation`, which substitutes it). ``b`` and ``s`` are Mpc actions
   with the bounds ``[0, U_bar]`` as variable bounds, the slacks ``sigma_hi, sigma_lo`` plain
   variables with ``lb = 0`` (stages 1..N, like ours), the dynamics, the two grid rows per stage
   and the soft soc band general constraints. Cost: eq. 9a with eq. 14, the same discounting
-  as :class:`mpcrl_lite.mpc.MPC` (the constant ``phi(soc_0)`` term is kept, on ``soc[:, 0]``).
+  as :class:`mpcrl_lite.mpc.formulation.MPC` (the constant ``phi(soc_0)`` term is kept, on ``soc[:, 0]``).
 * **Actions.** mpcrl's policy is the stack of the Mpc's first actions, ``(b_0, s_0)`` (2n
   numbers); the environment applies ``a = b - s``, projected onto the input bounds and the
-  grid limit like ours (:func:`mpcrl_lite.model.project_action`). The sensitivity mpcrl
+  grid limit like ours (:func:`mpcrl_lite.system.battery.project_action`). The sensitivity mpcrl
   computes is therefore ``d(b_0, s_0)/d theta`` (ours: ``d(b_0 - s_0)/d theta``) -- the
   same linear solve with twice the right-hand sides.
 * **Exploration.** mpcrl's ``GreedyExploration(mode="additive")`` adds Gaussian noise to
@@ -34,7 +34,7 @@ Mapping onto mpcrl, and where it cannot be the very same problem
   ``Adam`` with ``LearningConfig.step_size``). Every number (``tau``, exploration, step
   size, bounds) comes from the package's default configs, so the two sides stay the same
   problem when those defaults change.
-* **Solver.** IPOPT with the reference options of :mod:`mpcrl_lite.solvers`
+* **Solver.** IPOPT with the reference options of :mod:`mpcrl_lite.mpc.backends.registry`
   (``mu_target = tau``, no scaling, no bound relaxation, ``kappa_d = 0``, constant
   derivatives, silent), warm started from the last successful solution (mpcrl's default;
   ours shifts the previous plan). mpcrl computes the KKT sensitivities itself (CasADi
@@ -83,7 +83,7 @@ def available() -> bool:
 
 
 def _ipopt_options(tau: float, tol: float, max_iter: int) -> dict:
-    # the reference options of mpcrl_lite.solvers (kept literal here on purpose: the
+    # the reference options of mpcrl_lite.mpc.backends.registry (kept literal here on purpose: the
     # benchmark must describe exactly what mpcrl is given)
     return {
         "print_time": False,
@@ -174,10 +174,10 @@ def _make_env_class():
     import gymnasium as gym
     import numpy as np
 
-    from mpcrl_lite.model import project_action, sample_noise, step
+    from mpcrl_lite.system.battery import project_action, sample_noise, step
 
     class BatteryDayEnv(gym.Env):
-        """One day of the true battery system (``mpcrl_lite.model``), hour by hour.
+        """One day of the true battery system (``mpcrl_lite.system.battery``), hour by hour.
 
         Observation: soc (n,). Action: ``(b, s)`` (2n,), applied as ``a = b - s`` after
         the projection onto the input bounds and the grid limit. Cost (not reward): the
@@ -236,7 +236,7 @@ def build(system=None, mpc_config=None, learning=None, prices=None, seed: int = 
     from mpcrl.optim import Adam, GradientDescent
 
     from mpcrl_lite.config import LearningConfig, MPCConfig, SystemConfig
-    from mpcrl_lite.prices import Prices
+    from mpcrl_lite.system.prices import Prices
     from mpcrl_lite.theta import PARTS, Theta
 
     system = system or SystemConfig()
@@ -318,8 +318,8 @@ def consistency_check(agent, env, system, mpc_config) -> dict:
     differences), so the comparison is known to be between equal problems."""
     import numpy as np
 
-    from mpcrl_lite.mpc import MPC
-    from mpcrl_lite.solvers import IpoptSolver
+    from mpcrl_lite.mpc.formulation import MPC
+    from mpcrl_lite.mpc.backends.registry import IpoptSolver
     from mpcrl_lite.theta import PARTS, Theta
 
     env.reset()

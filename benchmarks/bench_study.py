@@ -15,7 +15,7 @@ Prints ONE JSON line. Three measurements, each in a fresh interpreter:
   the time of all ``seeds`` runs is extrapolated from them (``serial_extrapolated``) when
   ``ref_seeds < seeds``, as the runs cost the same up to their noise.
 * ``lockstep``: the same ``ref_seeds`` runs in lockstep in one process
-  (:func:`mpcrl_lite.lockstep.run_lockstep`), the gain of the lockstep alone.
+  (:func:`mpcrl_lite.studies.lockstep.run_lockstep`), the gain of the lockstep alone.
 
 The last two exclude the kernels' loading (a warm-up first). Every ratio is computed from
 figures of this run; nothing is asserted.
@@ -52,8 +52,8 @@ EVAL_DRAWS = 1
 def study(seeds: int, months: int, workers: int = 2) -> dict:
     """``run_study`` on a local cluster of ``workers`` processes (lockstep by default)."""
     from mpcrl_lite.config import LearningConfig, SystemConfig
-    from mpcrl_lite.prices import Prices
-    from mpcrl_lite.study import causal_target, run_study
+    from mpcrl_lite.system.prices import Prices
+    from mpcrl_lite.studies.study import causal_target, run_study
 
     # J* (the causal DP the study judges against) is computed once per system and month and
     # kept in the study's folder; it is timed apart from the runs
@@ -71,8 +71,8 @@ def study(seeds: int, months: int, workers: int = 2) -> dict:
 
 def _runs(seeds: int, months: int) -> list:
     from mpcrl_lite.config import LearningConfig
-    from mpcrl_lite.experiment import Experiment
-    from mpcrl_lite.kernel_solver import warm_up
+    from mpcrl_lite.learning.experiment import Experiment
+    from mpcrl_lite.mpc.backends.kernel import warm_up
 
     warm_up()
     return [Experiment(learning=LearningConfig(months=months, seed=s, eval_draws=EVAL_DRAWS))
@@ -91,7 +91,7 @@ def one_by_one(seeds: int, months: int) -> dict:
 
 def lockstep(seeds: int, months: int) -> dict:
     """The runs in lockstep in this process."""
-    from mpcrl_lite.lockstep import run_lockstep
+    from mpcrl_lite.studies.lockstep import run_lockstep
 
     runs = _runs(seeds, months)
     t0, c0 = time.perf_counter(), time.process_time()

@@ -1,7 +1,7 @@
-"""``python -m mpcrl_lite``: see :mod:`mpcrl_lite.cli`."""
+"""``python -m mpcrl_lite``: see :mod:`mpcrl_lite.cli.main`."""
 
 import sys
 
-from .cli import main
+from .cli.main import main
 
 sys.exit(main())

@@ -8,7 +8,7 @@ Four frozen dataclasses:
 * :class:`LearningConfig` -- the LSTD / DPG learning loop (step size, months, exploration,
   safeguards).
 * :class:`CoordinationConfig` -- how the decentralized MPCs are coordinated on the grid limit
-  (:mod:`mpcrl_lite.decentralized`).
+  (:mod:`mpcrl_lite.decentralized.learner`).
 
 All of them validate themselves at construction and raise a :class:`ValueError` that names
 the field, the value given and the range allowed, before any work starts. Numeric fields are
@@ -62,7 +62,7 @@ Choices the paper leaves open (each is a field below, with the reason in its com
   (+0.04 MW in the first month), while the compatible critic assumes a zero mean: the state
   part of the cost then leaks into its weights. By default the exploration is an odd function
   of the Gaussian draw, hence zero-mean (``exploration_bounds='symmetric'``,
-  :func:`mpcrl_lite.exploration.bounded_exploration`): it slides along the grid faces and is
+  :func:`mpcrl_lite.sim.exploration.bounded_exploration`): it slides along the grid faces and is
   shrunk just enough that ``pi + e`` and ``pi - e`` are both feasible; the grid limit is
   nearly active in 84 % of the hours, and there it keeps about half of the exploration where a
   radial shrink keeps 2-12 %. Recentring it away from the bounds (``exploration_margin``)
@@ -90,7 +90,7 @@ Choices the paper leaves open (each is a field below, with the reason in its com
   such different units: the first gradient has a norm of ~1e8, almost all of it in
   theta_alpha, so one step throws theta_alpha to several units while the cost weights do not
   move. By default the step is Adam with a typical magnitude per part
-  (:data:`mpcrl_lite.dpg.DEFAULT_SCALE`), moving each entry by about 2 % of its magnitude per
+  (:data:`mpcrl_lite.learning.dpg.DEFAULT_SCALE`), moving each entry by about 2 % of its magnitude per
   month at most (``optimizer='adam'``, ``step_size=0.02``; with 0.05 single batteries were
   pushed into the penalised zone for tens of months). The paper's rule is
   ``optimizer='sgd'``, ``step_size=PAPER_STEP_SIZE``. The natural gradient in the metric of
@@ -111,7 +111,7 @@ noise draws of the month, the final J has a median of -217 and -219 NOK/day (wor
 and the best causal policy (J* = -401.5), and the median regret is 180-185 NOK/day. The rest
 is mostly the policy class: the MPC's forecast reads on into the next day, whose prices do
 not count. With a forecast that stops at midnight (``MPCConfig(forecast='until_midnight')``,
-:mod:`mpcrl_lite.day_end`: an extension beyond the paper's class, never a default) the same
+:mod:`mpcrl_lite.system.forecast`: an extension beyond the paper's class, never a default) the same
 learner reaches medians of -314 and -311, every seed closes 90 % of the gap and the median
 regret is 87-88. With the earlier defaults (projected exploration, one parameter set per
 battery, ``'paper+hour'``) the median was -180 and 3 of the 20 seeds never learned
@@ -160,7 +160,7 @@ __all__ = [
 PRICE_UNIT = "NOK/MWh"
 
 #: Clock hours in one day of price data; an episode (``SystemConfig.hours_per_day``) lasts at
-#: most this long, since the price matrices (:class:`mpcrl_lite.prices.Prices`) are indexed by
+#: most this long, since the price matrices (:class:`mpcrl_lite.system.prices.Prices`) are indexed by
 #: day and clock hour.
 HOURS_PER_DAY = 24
 
@@ -443,12 +443,12 @@ class SystemConfig(_Config):
         return math.sqrt(self.noise_var)
 
 
-#: Solver back-ends known to :mod:`mpcrl_lite.solvers`.
+#: Solver back-ends known to :mod:`mpcrl_lite.mpc.backends.registry`.
 BACKENDS = ("auto", "ipopt", "batch", "kernel")
 
 #: What the MPC's price forecast covers (:attr:`MPCConfig.forecast`): ``'paper'``, the paper's
 #: 12-hour window that reads on into the next day, and ``'until_midnight'``, an extension beyond
-#: the paper whose forecast stops at the end of the day (:mod:`mpcrl_lite.day_end`).
+#: the paper whose forecast stops at the end of the day (:mod:`mpcrl_lite.system.forecast`).
 FORECASTS = ("paper", "until_midnight")
 
 #: A nearly exact barrier parameter: the policy is then practically the exact MPC's (the
@@ -491,9 +491,9 @@ class MPCConfig(_Config):
     is the paper's policy class: the ``N``-hour window reads on into the next day's prices.
     ``'until_midnight'`` is an **extension beyond the paper**, never a default: the forecast
     prices of the hours after the day's midnight are zero, since nothing after midnight
-    counts in the day's cost (:mod:`mpcrl_lite.day_end`); the MPC, theta and the true cost
+    counts in the day's cost (:mod:`mpcrl_lite.system.forecast`); the MPC, theta and the true cost
     are unchanged. Every learner, evaluation and baseline that builds the MPC from this
-    config applies it (:func:`mpcrl_lite.day_end.forecast_prices`)."""
+    config applies it (:func:`mpcrl_lite.system.forecast.forecast_prices`)."""
 
     def __post_init__(self) -> None:
         set_ = self._set
@@ -512,12 +512,12 @@ class MPCConfig(_Config):
         return cls(**{"tau": PAPER_TAU, **changes})
 
 
-#: Names of the DPG update rules (:data:`mpcrl_lite.update_rules.UPDATE_RULES`).
+#: Names of the DPG update rules (:data:`mpcrl_lite.learning.update_rules.UPDATE_RULES`).
 OPTIMIZERS = ("sgd", "adam", "natural")
-#: Feature sets of the critic's value baseline (see :data:`mpcrl_lite.lstd.FEATURE_SETS`).
+#: Feature sets of the critic's value baseline (see :data:`mpcrl_lite.learning.lstd.FEATURE_SETS`).
 VALUE_FEATURES = ("paper", "paper+hour", "hour", "hour*paper")
 #: How the exploration respects the input bounds and the grid limit
-#: (:class:`mpcrl_lite.exploration.GaussianExploration`).
+#: (:class:`mpcrl_lite.sim.exploration.GaussianExploration`).
 EXPLORATION_BOUNDS = ("symmetric", "radial", "project")
 #: What runs did before a field of :class:`LearningConfig` existed: a saved config without
 #: the field reads back with this value (:meth:`LearningConfig.from_dict`), so a resumed run
@@ -540,7 +540,7 @@ class LearningConfig(_Config):
     step_size: float = 0.02
     """DPG step size. With ``optimizer='adam'`` (default) a relative move per update: each
     learnable entry moves by at most about ``step_size`` times its typical magnitude
-    (:data:`mpcrl_lite.dpg.DEFAULT_SCALE`). With ``'sgd'`` the multiplier of the gradient (the
+    (:data:`mpcrl_lite.learning.dpg.DEFAULT_SCALE`). With ``'sgd'`` the multiplier of the gradient (the
     paper's alpha = 5e-8, :data:`PAPER_STEP_SIZE`)."""
     months: int = 100
     """Number of learning steps; one update per month."""
@@ -553,7 +553,7 @@ class LearningConfig(_Config):
     like 1 / std)."""
     exploration_bounds: str = "symmetric"
     """How the explored action respects the input bounds and the grid limit
-    (:func:`mpcrl_lite.exploration.bounded_exploration`). ``'symmetric'`` slides the
+    (:func:`mpcrl_lite.sim.exploration.bounded_exploration`). ``'symmetric'`` slides the
     exploration along the grid faces it could reach, clips each entry to the distance of the
     policy's action to its nearer bound and shrinks the vector until both ``pi + e`` and
     ``pi - e`` are feasible: the map is odd in ``e``, so the applied exploration keeps a zero
@@ -563,12 +563,12 @@ class LearningConfig(_Config):
     whole vector (zero mean too, but little is left where the grid limit is active)."""
     exploration_margin: float = 0.0
     """In MW: the exploration is centred on the policy's action pulled this far away from
-    the input bounds and the grid limits (:func:`mpcrl_lite.exploration.exploration_center`),
+    the input bounds and the grid limits (:func:`mpcrl_lite.sim.exploration.exploration_center`),
     and the critic's compatible features use that centre. A battery whose action sits at a
     bound then still explores both ways with zero mean. 0 (the default) centres on the
     action itself; 0.2 made no measurable difference with tied batteries. Needs
     ``exploration_bounds`` other than ``'project'``; a record simulated with a margin must be
-    learned from with the same margin (:meth:`mpcrl_lite.experiment.Experiment.learning_step`
+    learned from with the same margin (:meth:`mpcrl_lite.learning.experiment.Experiment.learning_step`
     reads it from this config)."""
     ridge: float = 1e-6
     """Ridge (Tikhonov) term of the LSTD normal equations, relative to their scale."""
@@ -578,13 +578,13 @@ class LearningConfig(_Config):
     of the day (the cost to go of a 24-hour day depends on the hour); ``'hour'`` keeps only
     the indicators; ``'hour*paper'`` (the default) is the paper's features once per hour, so
     that the soc slope of the value, which enters the critic's action gradient, may change
-    through the day (:mod:`mpcrl_lite.lstd`)."""
+    through the day (:mod:`mpcrl_lite.learning.lstd`)."""
     learn_constants: bool = False
     """Also update phi3 and T3 (their policy gradient is always zero)."""
     optimizer: str = "adam"
     """'adam' (per-part scaled Adam, the default), 'sgd' (the paper's plain gradient step) or
     'natural' (the natural gradient in the metric of the actions, normalised so that
-    ``step_size`` is the RMS change of the action in MW; :mod:`mpcrl_lite.update_rules`)."""
+    ``step_size`` is the RMS change of the action in MW; :mod:`mpcrl_lite.learning.update_rules`)."""
     grad_clip: float | None = None
     """If set, rescale each update so that ||step|| <= grad_clip."""
     tie_agents: bool = True
@@ -597,7 +597,7 @@ class LearningConfig(_Config):
     paper's 24 parameters; :meth:`paper`)."""
     natural_damping: float = 1e-3
     """``optimizer='natural'`` only: relative damping ``lambda`` of the metric,
-    ``(F + lambda diag F)^-1 g`` (:func:`mpcrl_lite.update_rules.natural_direction`)."""
+    ``(F + lambda diag F)^-1 g`` (:func:`mpcrl_lite.learning.update_rules.natural_direction`)."""
     step_warmup: int = 0
     """Months of a linear warm-up of the step size, ``step_size * min(1, t / step_warmup)``
     at update ``t``: the first gradients are the noisiest relative to what they teach, and
@@ -705,7 +705,7 @@ class LearningConfig(_Config):
 class CoordinationConfig(_Config):
     """How the decentralized MPCs are coordinated on the grid limit.
 
-    Used by :class:`mpcrl_lite.coordination.CoordinatedMPC`: per-stage grid prices found with
+    Used by :class:`mpcrl_lite.decentralized.coordination.CoordinatedMPC`: per-stage grid prices found with
     a decomposed Newton method (see that module's docstring).
     """
 

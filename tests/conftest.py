@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from mpcrl_lite.config import MPCConfig, SystemConfig
-from mpcrl_lite.mpc import MPC
-from mpcrl_lite.solvers import IpoptSolver
+from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.mpc.backends.registry import IpoptSolver
 from mpcrl_lite.theta import Theta
 
 

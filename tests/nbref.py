@@ -7,7 +7,7 @@ committed, its id, a hash of its source, whether its output is ignored, and its 
 outputs after execution with the CI profile (``notebooks/ci_parameters.yaml``):
 
 * ``stdout`` streams, joined per cell;
-* ``text/plain`` of results and displays, and the JSON of :func:`mpcrl_lite.report.show_summary`
+* ``text/plain`` of results and displays, and the JSON of :func:`mpcrl_lite.publish.report.show_summary`
   (keys sorted);
 * *excluded*: ``stderr`` (warnings, progress bars), figures (``image/*``), widgets, HTML, and
   every output of cells tagged ``nbval-ignore-output`` (timings, interactive sections).
@@ -217,7 +217,7 @@ def compare(reference: dict[str, Any], executed: Any) -> list[Mismatch]:
 
 # -- execution -----------------------------------------------------------------------------
 def ci_parameters() -> dict[str, dict[str, Any]]:
-    from mpcrl_lite.report import profile_parameters
+    from mpcrl_lite.publish.report import profile_parameters
 
     return profile_parameters("ci")
 
@@ -233,7 +233,7 @@ def stems() -> list[str]:
 def execute_ci(stem: str, workdir: Path, timeout: int = 600) -> Any:
     """Execute one notebook with its CI parameters in ``workdir`` (also the working directory),
     with ``MPLBACKEND=Agg``; returns the executed notebook."""
-    from mpcrl_lite.report import execute_notebook
+    from mpcrl_lite.publish.report import execute_notebook
 
     workdir.mkdir(parents=True, exist_ok=True)
     old = os.environ.get("MPLBACKEND")

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from mpcrl_lite.baselines import (
+from mpcrl_lite.bounds.baselines import (
     MPCPolicy,
     RuleBasedPolicy,
     Scenario,
@@ -19,12 +19,12 @@ from mpcrl_lite.baselines import (
     run_baselines_cli,
 )
 from mpcrl_lite.config import LearningConfig, MPCConfig, SystemConfig
-from mpcrl_lite.experiment import run_month
-from mpcrl_lite.history import History
-from mpcrl_lite.model import penalty
-from mpcrl_lite.mpc import MPC
-from mpcrl_lite.prices import Prices
-from mpcrl_lite.solvers import IpoptSolver
+from mpcrl_lite.learning.experiment import run_month
+from mpcrl_lite.learning.history import History
+from mpcrl_lite.system.battery import penalty
+from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.system.prices import Prices
+from mpcrl_lite.mpc.backends.registry import IpoptSolver
 from mpcrl_lite.theta import Theta
 
 SYSTEM = SystemConfig()

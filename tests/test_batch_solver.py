@@ -1,9 +1,9 @@
-"""Tests of the batch interior point (mpcrl_lite.batch_solver, with its structured KKT system
-mpcrl_lite.batch_kkt and its sensitivities mpcrl_lite.batch_adjoint).
+"""Tests of the batch interior point (mpcrl_lite.mpc.backends.batch, with its structured KKT system
+mpcrl_lite.mpc.backends.batch_kkt and its sensitivities mpcrl_lite.mpc.backends.batch_adjoint).
 
 The batch back-end must solve the same barrier problem as the IPOPT reference
-(:class:`~mpcrl_lite.solvers.IpoptSolver`) and return the same sensitivities as
-:class:`~mpcrl_lite.sensitivity.PolicySensitivity`: its QP data equal the CasADi formulation's,
+(:class:`~mpcrl_lite.mpc.backends.registry.IpoptSolver`) and return the same sensitivities as
+:class:`~mpcrl_lite.mpc.sensitivity.PolicySensitivity`: its QP data equal the CasADi formulation's,
 its closed-form ``dR/dtheta`` equals CasADi's, and its solutions satisfy the KKT conditions to
 rounding level, over states near the soft soc bounds, a binding grid limit, random thetas and
 several sizes. Failures are reported per problem without exceptions.
@@ -18,18 +18,18 @@ import numpy as np
 import pytest
 from conftest import convex_theta
 
-import mpcrl_lite.batch_adjoint as adjoint
-from mpcrl_lite.batch_adjoint import grad_weights
-from mpcrl_lite.batch_solver import (
+import mpcrl_lite.mpc.backends.batch_adjoint as adjoint
+from mpcrl_lite.mpc.backends.batch_adjoint import grad_weights
+from mpcrl_lite.mpc.backends.batch import (
     STATUS_CONVERGED,
     STATUS_MAX_ITER,
     BatchSolver,
     shift,
 )
 from mpcrl_lite.config import MPCConfig, SystemConfig
-from mpcrl_lite.mpc import MPC
-from mpcrl_lite.sensitivity import PolicySensitivity
-from mpcrl_lite.solvers import BatchSolution, make_solver
+from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.mpc.sensitivity import PolicySensitivity
+from mpcrl_lite.mpc.backends.registry import BatchSolution, make_solver
 from mpcrl_lite.theta import PARTS, Theta
 
 SEED = 20240601  # random states and thetas of the scenarios
@@ -363,7 +363,7 @@ def test_failures_are_logged_once_per_call(prices, mpc_of, caplog):
         sol = BatchSolver(mpc, MPCConfig(tau=1e-11)).solve_batch(soc0, buy, sell, theta)
     assert sol.failures == 24 and set(sol.status) == {STATUS_MAX_ITER}
     (record,) = caplog.records
-    assert record.levelno == logging.WARNING and record.name == "mpcrl_lite.batch_solver"
+    assert record.levelno == logging.WARNING and record.name == "mpcrl_lite.mpc.backends.batch"
     assert "batch back-end: 24 of 24 MPC problems failed (max_iter_reached: 24)" in (
         record.getMessage())
 

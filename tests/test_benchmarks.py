@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from mpcrl_lite import SystemConfig
-from mpcrl_lite.batch_solver import BatchSolver
-from mpcrl_lite.kernel_solver import KernelSolver
-from mpcrl_lite.mpc import MPC
-from mpcrl_lite.prices import Prices
+from mpcrl_lite.mpc.backends.batch import BatchSolver
+from mpcrl_lite.mpc.backends.kernel import KernelSolver
+from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.system.prices import Prices
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 MODULES = sorted(p.stem for p in BENCHMARKS.glob("bench_*.py"))

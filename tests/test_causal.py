@@ -10,7 +10,7 @@ import pytest
 from scipy import integrate
 from scipy.stats import norm
 
-from mpcrl_lite.baselines import (
+from mpcrl_lite.bounds.baselines import (
     MPCPolicy,
     RuleBasedPolicy,
     clairvoyant,
@@ -18,16 +18,16 @@ from mpcrl_lite.baselines import (
     evaluate_policy,
     make_scenario,
 )
-from mpcrl_lite.causal import MAX_POST_VALUES, causal_optimum, compare_with_optimum
-from mpcrl_lite.causal_dual import dual_function, lagrangian_bound
-from mpcrl_lite.causal_grid import (
+from mpcrl_lite.bounds.causal.dp import MAX_POST_VALUES, causal_optimum, compare_with_optimum
+from mpcrl_lite.bounds.causal.dual import dual_function, lagrangian_bound
+from mpcrl_lite.bounds.causal.grid import (
     SocGrid,
     expected_agent_cost,
     expected_net_power,
     hinge_expectations,
     interpolation_weights,
 )
-from mpcrl_lite.causal_kernels import (
+from mpcrl_lite.bounds.causal.kernels import (
     bellman_min,
     bellman_min3,
     expected_cost_rows,
@@ -35,10 +35,10 @@ from mpcrl_lite.causal_kernels import (
     greedy_actions,
 )
 from mpcrl_lite.config import ConfigWarning, MPCConfig, SystemConfig
-from mpcrl_lite.model import project_action, step
-from mpcrl_lite.mpc import MPC
-from mpcrl_lite.prices import Prices
-from mpcrl_lite.solvers import make_solver
+from mpcrl_lite.system.battery import project_action, step
+from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.system.prices import Prices
+from mpcrl_lite.mpc.backends.registry import make_solver
 from mpcrl_lite.theta import Theta
 
 SYSTEM = SystemConfig()
@@ -109,7 +109,7 @@ def test_interpolation_weights_without_noise_are_the_hat_functions():
 @pytest.mark.parametrize("soc, a", [(0.02, -1.0), (0.05, 0.3), (0.5, 0.7), (0.98, 1.0),
                                     (0.95, -0.2), (0.0, 0.0), (1.0, -1.0), (0.6, 0.0)])
 def test_expected_cost_matches_quadrature_of_the_true_step(soc, a):
-    """E[L~_i] in closed form equals the integral of mpcrl_lite.model.step over the noise."""
+    """E[L~_i] in closed form equals the integral of mpcrl_lite.system.battery.step over the noise."""
     sysc = one_battery()
     buy, sell = 73.0, 36.5
     alpha = sysc.alpha

@@ -8,11 +8,11 @@ import warnings
 import numpy as np
 import pytest
 
-from mpcrl_lite.baselines import evaluate_baselines
-from mpcrl_lite.causal import causal_optimum
-from mpcrl_lite.causal_table import causal_bound, provenance, stored_bound
+from mpcrl_lite.bounds.baselines import evaluate_baselines
+from mpcrl_lite.bounds.causal.dp import causal_optimum
+from mpcrl_lite.bounds.causal.table import causal_bound, provenance, stored_bound
 from mpcrl_lite.config import ConfigWarning, MPCConfig, SystemConfig
-from mpcrl_lite.prices import Prices
+from mpcrl_lite.system.prices import Prices
 
 #: The systems notebooks 06 and 07 read from the table (07's default grid).
 STORED = [(p, v) for p in (1.0, 1.5, 2.0) for v in (0.2, 0.5)]

@@ -9,10 +9,10 @@ import sys
 
 import pytest
 
-from mpcrl_lite.cli import build_parser, main
+from mpcrl_lite.cli.main import build_parser, main
 from mpcrl_lite.config import BACKENDS, OPTIMIZERS, LearningConfig, MPCConfig, SystemConfig
-from mpcrl_lite.experiment import CHECKPOINT
-from mpcrl_lite.report import PROFILES
+from mpcrl_lite.learning.experiment import CHECKPOINT
+from mpcrl_lite.publish.report import PROFILES
 
 
 def test_simulate_writes_summary_and_figure(tmp_path, capsys):

@@ -1,4 +1,4 @@
-"""The one closed loop (mpcrl_lite.closed_loop) and its record (mpcrl_lite.record)."""
+"""The one closed loop (mpcrl_lite.sim.closed_loop) and its record (mpcrl_lite.sim.record)."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from mpcrl_lite import history
-from mpcrl_lite.closed_loop import (
+from mpcrl_lite.learning import history
+from mpcrl_lite.sim.closed_loop import (
     Decision,
     GaussianExploration,
     MPCPolicy,
@@ -18,10 +18,10 @@ from mpcrl_lite.closed_loop import (
     simulate,
 )
 from mpcrl_lite.config import SystemConfig
-from mpcrl_lite.model import discounted_return, project_action, sample_noise
-from mpcrl_lite.mpc import MPC
-from mpcrl_lite.prices import Prices
-from mpcrl_lite.record import RECORD_ARRAYS, MonthRecord, Record, Trajectory
+from mpcrl_lite.system.battery import discounted_return, project_action, sample_noise
+from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.system.prices import Prices
+from mpcrl_lite.sim.record import RECORD_ARRAYS, MonthRecord, Record, Trajectory
 from mpcrl_lite.theta import Theta
 
 SYSTEM = SystemConfig()

@@ -1,4 +1,4 @@
-"""The local barrier QPs and their price coordination (mpcrl_lite.local_qp, .coordination)."""
+"""The local barrier QPs and their price coordination (mpcrl_lite.decentralized.local_qp, .coordination)."""
 
 from __future__ import annotations
 
@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 
 from mpcrl_lite.config import CoordinationConfig, MPCConfig, SystemConfig
-from mpcrl_lite.coordination import CoordinatedMPC, join_theta, split_theta
-from mpcrl_lite.ipopt_solver import IpoptSolver
-from mpcrl_lite.local_qp import LocalQP, local_system
-from mpcrl_lite.mpc import GRID_INEQUALITIES, INEQUALITIES, MPC
-from mpcrl_lite.prices import Prices
+from mpcrl_lite.decentralized.coordination import CoordinatedMPC, join_theta, split_theta
+from mpcrl_lite.mpc.backends.ipopt import IpoptSolver
+from mpcrl_lite.decentralized.local_qp import LocalQP, local_system
+from mpcrl_lite.mpc.formulation import GRID_INEQUALITIES, INEQUALITIES, MPC
+from mpcrl_lite.system.prices import Prices
 from mpcrl_lite.theta import Theta
 
 IPOPT = MPCConfig(backend="ipopt")

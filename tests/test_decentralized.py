@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mpcrl_lite.config import ConfigWarning, LearningConfig, MPCConfig, SystemConfig
-from mpcrl_lite.decentralized import (
+from mpcrl_lite.decentralized.learner import (
     CoordinatedMPC,
     CoordinationConfig,
     DecentralizedExperiment,
@@ -17,10 +17,10 @@ from mpcrl_lite.decentralized import (
     local_system,
     split_theta,
 )
-from mpcrl_lite.experiment import Experiment
-from mpcrl_lite.mpc import MPC
-from mpcrl_lite.prices import Prices
-from mpcrl_lite.solvers import IpoptSolver
+from mpcrl_lite.learning.experiment import Experiment
+from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.system.prices import Prices
+from mpcrl_lite.mpc.backends.registry import IpoptSolver
 from mpcrl_lite.theta import Theta
 
 IPOPT = MPCConfig(backend="ipopt")

@@ -1,5 +1,5 @@
-"""The compiled coordination rounds (mpcrl_lite._coord_kernel) against the reference rounds
-of mpcrl_lite.coordination: the same iteration, so the same solutions, sensitivities and
+"""The compiled coordination rounds (mpcrl_lite.decentralized.coordination_kernel) against the reference rounds
+of mpcrl_lite.decentralized.coordination: the same iteration, so the same solutions, sensitivities and
 learning run."""
 
 from __future__ import annotations
@@ -7,12 +7,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mpcrl_lite import _coord_kernel
+from mpcrl_lite.decentralized.learner import coordination_kernel as _coord_kernel
 from mpcrl_lite.config import CoordinationConfig, LearningConfig, MPCConfig, SystemConfig
-from mpcrl_lite.coordination import CoordinatedMPC
-from mpcrl_lite.decentralized import DecentralizedExperiment
-from mpcrl_lite.kernel_solver import warm_up
-from mpcrl_lite.prices import Prices
+from mpcrl_lite.decentralized.coordination import CoordinatedMPC
+from mpcrl_lite.decentralized.learner import DecentralizedExperiment
+from mpcrl_lite.mpc.backends.kernel import warm_up
+from mpcrl_lite.system.prices import Prices
 from mpcrl_lite.theta import Theta
 
 FAST = MPCConfig()  # 'auto': compiled for a convex theta

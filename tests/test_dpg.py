@@ -15,7 +15,7 @@ from mpcrl_lite.config import (
     LearningConfig,
     SystemConfig,
 )
-from mpcrl_lite.dpg import (
+from mpcrl_lite.learning.dpg import (
     ADAM_BETAS,
     ADAM_EPS,
     ADAM_STEP_SIZE,
@@ -27,7 +27,7 @@ from mpcrl_lite.dpg import (
     policy_metric,
 )
 from mpcrl_lite.theta import CONSTANT_PARTS, PARTS, Theta
-from mpcrl_lite.update_rules import (
+from mpcrl_lite.learning.update_rules import (
     UPDATE_RULES,
     Adam,
     GradientDescent,

@@ -3,7 +3,7 @@ run directories, and the one-line refusals of ``learn`` and ``baselines --histor
 
 The kill tests run ``learn`` in a child process (forked from this one, so that the imports
 are paid once) with ``MPCRL_LITE_KILL_AFTER_WRITE=i`` / ``MPCRL_LITE_KILL_MID_WRITE=i``
-(:mod:`mpcrl_lite.rundir`): the child kills itself with SIGKILL after (or half-way through)
+(:mod:`mpcrl_lite.learning.rundir`): the child kills itself with SIGKILL after (or half-way through)
 its ``i``-th write to the run directory, for every ``i`` of an uninterrupted run; a few more
 runs are real ``python -m mpcrl_lite learn`` processes killed at random times. After each kill
 ``learn --resume`` must either finish with results identical to the uninterrupted run (the
@@ -27,13 +27,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mpcrl_lite import LearningConfig, MPCConfig, SystemConfig, Theta, rundir
-from mpcrl_lite.cli import main
-from mpcrl_lite.decentralized import DecentralizedExperiment
-from mpcrl_lite.experiment import Experiment
-from mpcrl_lite.history import History
-from mpcrl_lite.record import RECORD_ARRAYS
-from mpcrl_lite.rundir import RunDirError, RunWriteError
+from mpcrl_lite import LearningConfig, MPCConfig, SystemConfig, Theta
+from mpcrl_lite.learning import rundir
+from mpcrl_lite.cli.main import main
+from mpcrl_lite.decentralized.learner import DecentralizedExperiment
+from mpcrl_lite.learning.experiment import Experiment
+from mpcrl_lite.learning.history import History
+from mpcrl_lite.sim.record import RECORD_ARRAYS
+from mpcrl_lite.learning.rundir import RunDirError, RunWriteError
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
 LEGACY = {"": FIXTURES / "run_v0_centralized", "--decentralized": FIXTURES / "run_v0_decentralized"}
@@ -559,7 +560,7 @@ def strict_json(path: Path):
 
 
 def test_all_solves_failing_writes_valid_json_and_exits_2(tmp_path, capsys, monkeypatch):
-    import mpcrl_lite.cli as cli_module
+    import mpcrl_lite.cli.main as cli_module
 
     real = cli_module._configs
 
@@ -676,7 +677,7 @@ def test_decentralized_learner_api_refuses_the_same(tmp_path):
 
 
 def test_baselines_name_only_the_differing_system_fields(tmp_path):
-    from mpcrl_lite.baselines import run_baselines_cli
+    from mpcrl_lite.bounds.baselines import run_baselines_cli
 
     system = SystemConfig(P_bar=1.2)
     learning = LearningConfig(days_per_month=1)

@@ -9,12 +9,12 @@ import pytest
 from scipy import stats
 
 from mpcrl_lite import LearningConfig, MPCConfig, SystemConfig, Theta
-from mpcrl_lite.closed_loop import draw_J, evaluate_mpc
-from mpcrl_lite.experiment import Experiment, run_month
-from mpcrl_lite.history import History
-from mpcrl_lite.mpc import MPC
-from mpcrl_lite.prices import Prices
-from mpcrl_lite.solvers import make_solver
+from mpcrl_lite.sim.closed_loop import draw_J, evaluate_mpc
+from mpcrl_lite.learning.experiment import Experiment, run_month
+from mpcrl_lite.learning.history import History
+from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.system.prices import Prices
+from mpcrl_lite.mpc.backends.registry import make_solver
 
 SMALL = SystemConfig(N=6)
 
@@ -73,7 +73,7 @@ def test_same_seed_same_history():
 def test_month_loop_uses_one_blas_thread_and_any_outer_limit_gives_the_same_run():
     from threadpoolctl import threadpool_info, threadpool_limits
 
-    from mpcrl_lite.learner import BLAS_THREADS
+    from mpcrl_lite.learning.learner import BLAS_THREADS
 
     seen: list[int] = []
 
@@ -180,8 +180,8 @@ def test_experiment_rejects_bad_input():
 
 # -- critic features --------------------------------------------------------------------------
 def test_value_baseline_features():
-    from mpcrl_lite.experiment import value_baseline_features
-    from mpcrl_lite.lstd import value_features
+    from mpcrl_lite.learning.experiment import value_baseline_features
+    from mpcrl_lite.learning.lstd import value_features
 
     soc = np.random.default_rng(0).uniform(size=(25, 4, 3))
     paper = value_baseline_features(soc, "paper")
@@ -203,8 +203,8 @@ def test_value_baseline_features():
 
 
 def test_learning_step_uses_the_configured_features():
-    from mpcrl_lite.dpg import policy_gradient
-    from mpcrl_lite.lstd import compatible_features, lstd_q, value_features
+    from mpcrl_lite.learning.dpg import policy_gradient
+    from mpcrl_lite.learning.lstd import compatible_features, lstd_q, value_features
 
     exp = small_experiment(value_features="paper")
     rec = run_month(exp.theta, exp.solver, exp.prices, exp.system, np.random.default_rng(3),
@@ -388,8 +388,8 @@ def test_forecast_option_changes_only_the_forecast():
     """``MPCConfig(forecast='until_midnight')``: the MPC's windows are zero after midnight,
     everything else (the true cost, the random draws, the hours whose windows end before
     midnight) is the paper's."""
-    from mpcrl_lite.day_end import DayEndPrices
-    from mpcrl_lite.model import agent_costs
+    from mpcrl_lite.system.forecast import DayEndPrices
+    from mpcrl_lite.system.battery import agent_costs
 
     learning = LearningConfig(days_per_month=3, months=1, seed=7, eval_every=0)
     paper = Experiment(system=SMALL, learning=learning)
@@ -421,7 +421,7 @@ def test_forecast_option_changes_only_the_forecast():
 
 
 def test_forecast_round_trips_through_history_and_checkpoint(tmp_path):
-    from mpcrl_lite.day_end import until_midnight
+    from mpcrl_lite.system.forecast import until_midnight
 
     learning = LearningConfig(days_per_month=3, months=2, seed=7, eval_every=0)
     late = MPCConfig(forecast="until_midnight")
@@ -447,7 +447,7 @@ def test_forecast_round_trips_through_history_and_checkpoint(tmp_path):
 def test_a_run_from_before_the_forecast_option_resumes_with_the_paper_forecast(tmp_path):
     """Checkpoints and manifests written before ``MPCConfig.forecast`` (and the price
     fingerprint) existed resume unchanged."""
-    from mpcrl_lite import rundir
+    from mpcrl_lite.learning import rundir
 
     small_experiment(months=2).run(months=1, out=tmp_path, progress=False)
     state = json.loads((tmp_path / "checkpoint.json").read_text())

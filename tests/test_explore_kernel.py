@@ -1,8 +1,8 @@
-"""The compiled exploration (mpcrl_lite._explore_kernel) against a plain numpy statement of the
+"""The compiled exploration (mpcrl_lite.sim.exploration_kernel) against a plain numpy statement of the
 same arithmetic: equal to the last bit for a few batteries, feasible and odd for many.
 
 The numpy functions below are the reference: vectorised over days, written as the
-mathematics of :func:`mpcrl_lite.exploration.bounded_exploration` reads (the radial step,
+mathematics of :func:`mpcrl_lite.sim.exploration.bounded_exploration` reads (the radial step,
 the slide along the grid faces, both around the projection of pi).
 """
 
@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from mpcrl_lite import SystemConfig
-from mpcrl_lite._explore_kernel import project_rows
-from mpcrl_lite.exploration import bounded_exploration
-from mpcrl_lite.model import project_action
+from mpcrl_lite.sim.exploration_kernel import project_rows
+from mpcrl_lite.sim.exploration import bounded_exploration
+from mpcrl_lite.system.battery import project_action
 
 
 def reference(pi: np.ndarray, e: np.ndarray, system: SystemConfig, bounds: str) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Tests of the compiled back-end (mpcrl_lite.kernel_solver, mpcrl_lite._kernel).
+"""Tests of the compiled back-end (mpcrl_lite.mpc.backends.kernel, mpcrl_lite.mpc.backends.kernel_core).
 
 The kernel runs the batch solver's iteration problem by problem, so it must give the batch
 solver's solutions (first action to 1e-9), iteration counts, statuses and sensitivities (1e-8
@@ -20,11 +20,11 @@ import numpy as np
 import pytest
 from conftest import convex_theta
 
-from mpcrl_lite import _kernel
-from mpcrl_lite.batch_solver import BatchSolver
+from mpcrl_lite.mpc.formulation.backends import kernel_core as _kernel
+from mpcrl_lite.mpc.backends.batch import BatchSolver
 from mpcrl_lite.config import LearningConfig, MPCConfig, SystemConfig
-from mpcrl_lite.experiment import Experiment
-from mpcrl_lite.kernel_solver import (
+from mpcrl_lite.learning.experiment import Experiment
+from mpcrl_lite.mpc.backends.kernel import (
     STATUS_BREAKDOWN,
     STATUS_CONVERGED,
     STATUS_MAX_ITER,
@@ -32,9 +32,9 @@ from mpcrl_lite.kernel_solver import (
     cache_dir,
     warm_up,
 )
-from mpcrl_lite.mpc import MPC
-from mpcrl_lite.sensitivity import PolicySensitivity
-from mpcrl_lite.solvers import BatchSolution, IpoptSolver
+from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.mpc.sensitivity import PolicySensitivity
+from mpcrl_lite.mpc.backends.registry import BatchSolution, IpoptSolver
 from mpcrl_lite.theta import CONSTANT_PARTS, Theta
 
 SEED = 20240703
@@ -390,7 +390,7 @@ def test_warm_up_is_cheap_once_compiled_and_the_cache_is_where_it_says():
 
 def test_compile_notice_is_one_line(caplog):
     notice = _kernel._CompileNotice()
-    with caplog.at_level(logging.WARNING, logger="mpcrl_lite.kernel_solver"):
+    with caplog.at_level(logging.WARNING, logger="mpcrl_lite.mpc.backends.kernel"):
         notice.on_start(None)
         notice.on_start(None)
     assert len(caplog.records) == 1 and "compiling" in caplog.records[0].getMessage()

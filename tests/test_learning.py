@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from mpcrl_lite import LearningConfig, MPCConfig, SystemConfig, Theta
-from mpcrl_lite.experiment import Experiment
+from mpcrl_lite.learning.experiment import Experiment
 
 SYSTEM = SystemConfig()  # the paper's Table I
 MONTHS, DAYS = 12, 10

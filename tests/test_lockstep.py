@@ -9,12 +9,13 @@ import json
 import numpy as np
 import pytest
 
-from mpcrl_lite import LearningConfig, SystemConfig, lockstep
-from mpcrl_lite.closed_loop import MPCPolicy, RunBlocks, run_month, simulate
-from mpcrl_lite.experiment import Experiment
-from mpcrl_lite.lockstep import group_key, run_lockstep, split_record
-from mpcrl_lite.model import sample_noise
-from mpcrl_lite.prices import Prices
+from mpcrl_lite import LearningConfig, SystemConfig
+from mpcrl_lite.studies import lockstep
+from mpcrl_lite.sim.closed_loop import MPCPolicy, RunBlocks, run_month, simulate
+from mpcrl_lite.learning.experiment import Experiment
+from mpcrl_lite.studies.lockstep import group_key, run_lockstep, split_record
+from mpcrl_lite.system.battery import sample_noise
+from mpcrl_lite.system.prices import Prices
 from mpcrl_lite.theta import Theta
 
 TIMINGS = ("wall_time_s",)
@@ -200,8 +201,8 @@ SWEEP_GRID = {
 
 
 def test_sweep_in_lockstep_is_the_sweep_run_by_run(tmp_path, monkeypatch):
-    from mpcrl_lite.history import History
-    from mpcrl_lite.sweep import GridError, run_sweep
+    from mpcrl_lite.learning.history import History
+    from mpcrl_lite.studies.sweep.api import GridError, run_sweep
 
     stacked: list[int] = []
 
@@ -237,7 +238,7 @@ def test_sweep_in_lockstep_is_the_sweep_run_by_run(tmp_path, monkeypatch):
 
 
 def test_cli_lockstep_flags(tmp_path, monkeypatch, capsys):
-    from mpcrl_lite import cli
+    from mpcrl_lite.cli.main import main as cli
 
     parser = cli.build_parser()
     args = parser.parse_args(["sweep", "--grid", "g.yaml", "--out", "o", "--lockstep", "3"])
@@ -254,14 +255,14 @@ def test_cli_lockstep_flags(tmp_path, monkeypatch, capsys):
         seen.update(kwargs)
         raise ValueError("stop here")
 
-    monkeypatch.setattr("mpcrl_lite.study.run_study", fake_study)
+    monkeypatch.setattr("mpcrl_lite.studies.study.run_study", fake_study)
     assert cli.main(["study", "--seeds", "2", "--months", "1", "--out", str(tmp_path),
                      "--lockstep", "2", "--quiet"]) == 2
     assert seen["lockstep"] == 2
 
 
 def test_parameters_take_one_theta_per_problem():
-    from mpcrl_lite.mpc import MPC
+    from mpcrl_lite.mpc.formulation import MPC
 
     system = SystemConfig(N=6)
     mpc = MPC(system)

@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 from mpcrl_lite.config import VALUE_FEATURES
-from mpcrl_lite.lstd import (
+from mpcrl_lite.learning.lstd import (
     FEATURE_SETS,
     LSTDResult,
     compatible_features,

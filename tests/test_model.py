@@ -1,4 +1,4 @@
-"""Tests of the true battery system (mpcrl_lite.model)."""
+"""Tests of the true battery system (mpcrl_lite.system.battery)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from hypothesis.extra import numpy as hnp
 from scipy.optimize import minimize
 
 from mpcrl_lite.config import ConfigWarning, SystemConfig
-from mpcrl_lite.model import (
+from mpcrl_lite.system.battery import (
     StepResult,
     agent_costs,
     discounted_return,

@@ -1,5 +1,5 @@
-"""Tests of the MPC formulation (mpcrl_lite.mpc), the reference IPOPT back-end
-(mpcrl_lite.ipopt_solver): layout, QP data, the barrier solution's optimality conditions,
+"""Tests of the MPC formulation (mpcrl_lite.mpc.formulation), the reference IPOPT back-end
+(mpcrl_lite.mpc.backends.ipopt): layout, QP data, the barrier solution's optimality conditions,
 economic behaviour, warm starts, failures (never raised, logged once per batch) and batches."""
 
 from __future__ import annotations
@@ -14,9 +14,9 @@ from conftest import random_theta, window
 from scipy.optimize import linprog
 
 from mpcrl_lite.config import MPCConfig, SystemConfig
-from mpcrl_lite.ipopt_solver import IpoptSolver
-from mpcrl_lite.mpc import GRID_INEQUALITIES, INEQUALITIES, MPC, Plan, QPData, shift
-from mpcrl_lite.solution import BatchSolution, MPCSolution
+from mpcrl_lite.mpc.backends.ipopt import IpoptSolver
+from mpcrl_lite.mpc.formulation import GRID_INEQUALITIES, INEQUALITIES, MPC, Plan, QPData, shift
+from mpcrl_lite.mpc.solution import BatchSolution, MPCSolution
 from mpcrl_lite.theta import PARTS, Theta
 
 SUCCESS = ("Solve_Succeeded", "Solved_To_Acceptable_Level")
@@ -597,7 +597,7 @@ def test_a_batch_with_failures_logs_one_warning(mpc, system, month_prices, caplo
             socs, buy, 0.5 * buy, Theta.nominal(system))
     assert failed.failures == 3
     (record,) = caplog.records
-    assert record.levelno == logging.WARNING and record.name == "mpcrl_lite.ipopt_solver"
+    assert record.levelno == logging.WARNING and record.name == "mpcrl_lite.mpc.backends.ipopt"
     message = record.getMessage()
     assert "ipopt back-end: 3 of 3 MPC problems failed" in message
     assert f"{failed.status[0]}: 3" in message and "idle" in message

@@ -21,7 +21,7 @@ from mpcrl_lite.config import (
     MPCConfig,
     SystemConfig,
 )
-from mpcrl_lite.report import check_parameters, execute_notebook, notebook_parameters
+from mpcrl_lite.publish.report import check_parameters, execute_notebook, notebook_parameters
 
 STEMS = nbref.stems()
 

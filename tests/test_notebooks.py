@@ -23,7 +23,7 @@ import nbref
 import papermill
 import pytest
 
-from mpcrl_lite.report import check_parameters, execute_notebook, notebook_parameters, read_summary
+from mpcrl_lite.publish.report import check_parameters, execute_notebook, notebook_parameters, read_summary
 
 STEMS = nbref.stems()
 TOOLS = nbref.ROOT / "tools"
@@ -79,7 +79,7 @@ def test_notebook_layout(stem):
     text = "\n".join(c.source for c in nb.cells if c.cell_type == "markdown")
     for heading in ("## Exercises", "## Summary", "Interactive", "Check"):
         assert heading in text, f"{stem}: no '{heading}' section"
-    assert any("mpcrl_lite.widgets" in c.source for c in code), f"{stem}: no widget"
+    assert any("mpcrl_lite.classroom.widgets" in c.source for c in code), f"{stem}: no widget"
 
 
 @pytest.mark.parametrize("stem", STEMS)

@@ -20,8 +20,8 @@ import nbformat
 import nbref
 import pytest
 
-from mpcrl_lite import resources
-from mpcrl_lite.launch import INSTALL_TAG, install_requirement
+from mpcrl_lite._util import resources
+from mpcrl_lite.publish.launch import INSTALL_TAG, install_requirement
 
 ROOT = nbref.ROOT
 STEMS = nbref.stems()
@@ -98,7 +98,8 @@ def test_unpacked_wheel_finds_its_data_from_any_directory(wheel, tmp_path):
     elsewhere.mkdir()
     code = """
 import json, mpcrl_lite
-from mpcrl_lite import prices, report
+from mpcrl_lite.system import prices
+from mpcrl_lite.publish import report
 p = prices.Prices.default()
 print(json.dumps({
     "package": mpcrl_lite.__file__, "data": str(prices.DATA_DIR),
@@ -132,8 +133,8 @@ def test_a_checkout_reads_the_top_level_folders():
     # This test session imports the package from the checkout (or an editable install of it):
     # no copy inside the package, so the repository's folders are the ones read.
     import mpcrl_lite
-    from mpcrl_lite.prices import DATA_DIR
-    from mpcrl_lite.report import NOTEBOOK_DIR
+    from mpcrl_lite.system.prices import DATA_DIR
+    from mpcrl_lite.publish.report import NOTEBOOK_DIR
 
     checkout = Path(mpcrl_lite.__file__).resolve().parent.parent
     assert not (checkout / "mpcrl_lite" / "data").exists()
@@ -209,7 +210,7 @@ def test_wheel_in_a_fresh_venv_outside_the_checkout_runs_notebook_01(wheel, tmp_
 import json, sys
 import mpcrl_lite
 from jupyter_client.kernelspec import KernelSpecManager
-from mpcrl_lite.report import execute_notebook, profile_parameters
+from mpcrl_lite.publish.report import execute_notebook, profile_parameters
 nb = execute_notebook({str(nbref.notebook_path(STEMS[0]))!r}, "out.ipynb",
                       profile_parameters("ci")[{STEMS[0]!r}], cwd=".")
 print(json.dumps({{"package": mpcrl_lite.__file__,

@@ -1,4 +1,4 @@
-"""Tests of the figures (mpcrl_lite.plots): structure, plotted data, reference lines, files."""
+"""Tests of the figures (mpcrl_lite.figures.plots): structure, plotted data, reference lines, files."""
 
 from __future__ import annotations
 
@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 from matplotlib.figure import Figure
 
-from mpcrl_lite import plots
+from mpcrl_lite.figures import plots
 from mpcrl_lite.config import LearningConfig, SystemConfig
-from mpcrl_lite.experiment import Experiment
-from mpcrl_lite.history import History
-from mpcrl_lite.mpc import Plan
-from mpcrl_lite.plots import (
+from mpcrl_lite.learning.experiment import Experiment
+from mpcrl_lite.learning.history import History
+from mpcrl_lite.mpc.formulation import Plan
+from mpcrl_lite.figures.plots import (
     FIRST_COLOR,
     LAST_COLOR,
     PAPER_FIGURES,
@@ -33,7 +33,7 @@ from mpcrl_lite.plots import (
     plot_day,
     save_paper_figures,
 )
-from mpcrl_lite.prices import Prices
+from mpcrl_lite.system.prices import Prices
 
 DAYS, MONTHS = 3, 2
 

@@ -1,4 +1,4 @@
-"""Tests of mpcrl_lite.prices: the shipped month, the Nord Pool reader, and price windows."""
+"""Tests of mpcrl_lite.system.prices: the shipped month, the Nord Pool reader, and price windows."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 from mpcrl_lite.config import PRICE_UNIT, SystemConfig
-from mpcrl_lite.prices import (
+from mpcrl_lite.system.prices import (
     DATA_DIR,
     Prices,
     daily_matrix,

@@ -1,5 +1,5 @@
-"""The summary a notebook shows (mpcrl_lite.report.show_summary): JSON with rounded floats,
-made of JSON types by mpcrl_lite.json_values."""
+"""The summary a notebook shows (mpcrl_lite.publish.report.show_summary): JSON with rounded floats,
+made of JSON types by mpcrl_lite._util.jsonio."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import IPython.display
 import numpy as np
 import pytest
 
-from mpcrl_lite.json_values import plain_json
-from mpcrl_lite.report import SUMMARY_DIGITS, SUMMARY_MIME, show_summary
+from mpcrl_lite._util.jsonio import plain_json
+from mpcrl_lite.publish.report import SUMMARY_DIGITS, SUMMARY_MIME, show_summary
 
 
 def test_show_summary_rounds_floats_to_significant_digits(monkeypatch):

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mpcrl_lite import rundir
-from mpcrl_lite.rundir import RunDirError, RunDirMissing, RunWriteError
+from mpcrl_lite.learning import rundir
+from mpcrl_lite.learning.rundir import RunDirError, RunDirMissing, RunWriteError
 
 FILES = {"history.json": b'{"a": 1}', "history.npz": b"\x00binary\xff", "checkpoint.json": b"{}"}
 
@@ -279,8 +279,8 @@ def test_a_figure_that_fails_half_way_leaves_the_old_one(tmp_path, monkeypatch):
     matplotlib.use("Agg")
     from matplotlib.figure import Figure
 
-    from mpcrl_lite.history import History
-    from mpcrl_lite.paper_figures import PAPER_FIGURES, save_paper_figures
+    from mpcrl_lite.learning.history import History
+    from mpcrl_lite.figures.paper import PAPER_FIGURES, save_paper_figures
 
     history = History.load(Path(__file__).resolve().parent / "fixtures" / "run_v0_centralized")
     save_paper_figures(history, tmp_path)
@@ -311,7 +311,7 @@ def test_a_figure_that_fails_half_way_leaves_the_old_one(tmp_path, monkeypatch):
 def test_a_report_notebook_that_fails_is_not_left_as_the_result(tmp_path, monkeypatch):
     """run_report writes each executed notebook aside and renames it when papermill is done;
     a failing notebook leaves ``<name>.failed.ipynb`` and no ``<name>.ipynb``."""
-    from mpcrl_lite import report
+    from mpcrl_lite.publish import report
 
     def failing(path, output, parameters=None, cwd=None, timeout=3600):
         Path(output).write_text('{"cells": [')  # papermill saves after every cell

@@ -1,4 +1,4 @@
-"""Tests of the KKT policy sensitivity (mpcrl_lite.sensitivity).
+"""Tests of the KKT policy sensitivity (mpcrl_lite.mpc.sensitivity).
 
 The main check compares d pi / d theta with finite differences of the *solved* policy (IPOPT
 + Newton polish) in the three regimes the policy passes through: grid limit active at the
@@ -27,9 +27,9 @@ import pytest
 from conftest import random_theta, window
 
 from mpcrl_lite.config import MPCConfig, SystemConfig
-from mpcrl_lite.mpc import MPC
-from mpcrl_lite.sensitivity import PolicySensitivity, Sensitivity, policy_sensitivity
-from mpcrl_lite.solvers import BatchSolution, IpoptSolver
+from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.mpc.sensitivity import PolicySensitivity, Sensitivity, policy_sensitivity
+from mpcrl_lite.mpc.backends.registry import BatchSolution, IpoptSolver
 from mpcrl_lite.theta import CONSTANT_PARTS, PARTS, Theta
 
 RTOL = 1e-5  # relative error allowed between finite differences and the KKT sensitivity

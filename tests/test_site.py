@@ -21,9 +21,9 @@ import nbref
 import pytest
 from matplotlib.figure import Figure
 
-from mpcrl_lite import site as site_module
-from mpcrl_lite.alt_text import _with_alt, describe_figure
-from mpcrl_lite.html_export import (
+from mpcrl_lite.publish import site as site_module
+from mpcrl_lite.publish.alt_text import _with_alt, describe_figure
+from mpcrl_lite.publish.html_export import (
     WIDGET_STATE_MIME,
     WIDGET_VIEW_MIME,
     remote_resources,
@@ -31,13 +31,13 @@ from mpcrl_lite.html_export import (
     to_html,
     unlink_remote_images,
 )
-from mpcrl_lite.launch import (
+from mpcrl_lite.publish.launch import (
     apply_launch_cells,
     binder_url,
     colab_url,
     launch_badges,
 )
-from mpcrl_lite.references import DPG, PAPER
+from mpcrl_lite._util.references import DPG, PAPER
 
 matplotlib.use("Agg")
 

@@ -1,5 +1,5 @@
-"""Tests of the solver layer around the back-ends: the solution types (mpcrl_lite.solution),
-the back-end registry and :func:`make_solver` (mpcrl_lite.solvers), the old import paths of
+"""Tests of the solver layer around the back-ends: the solution types (mpcrl_lite.mpc.solution),
+the back-end registry and :func:`make_solver` (mpcrl_lite.mpc.backends.registry), the old import paths of
 moved names, and the import structure (solution types below the back-ends, back-ends never
 importing each other, nothing imported inside functions)."""
 
@@ -12,12 +12,15 @@ import numpy as np
 import pytest
 from conftest import assert_imports_within
 
-import mpcrl_lite.solvers as solvers_module
-from mpcrl_lite import batch_solver, ipopt_solver, sensitivity, solution
+import mpcrl_lite.mpc.backends.registry as solvers_module
+from mpcrl_lite.mpc.formulation.backends import batch as batch_solver
+from mpcrl_lite.mpc.formulation.backends import ipopt as ipopt_solver
+from mpcrl_lite.mpc.formulation import sensitivity
+from mpcrl_lite.mpc.formulation import solution
 from mpcrl_lite.config import BACKENDS, MPCConfig
-from mpcrl_lite.kernel_solver import KernelSolver
-from mpcrl_lite.mpc import shift
-from mpcrl_lite.solvers import FALLBACK, BatchSolution, IpoptSolver, make_solver
+from mpcrl_lite.mpc.backends.kernel import KernelSolver
+from mpcrl_lite.mpc.formulation import shift
+from mpcrl_lite.mpc.backends.registry import FALLBACK, BatchSolution, IpoptSolver, make_solver
 from mpcrl_lite.theta import Theta
 
 
@@ -52,7 +55,7 @@ def test_make_solver_builds_the_named_backend(mpc, name):
 def test_make_solver_auto_chooses_by_convexity(mpc, system, caplog):
     theta0 = Theta.nominal(system)
     concave = theta0.replace(phi1=np.full(system.n, -1.0))
-    with caplog.at_level(logging.INFO, logger="mpcrl_lite.solvers"):
+    with caplog.at_level(logging.INFO, logger="mpcrl_lite.mpc.backends.registry"):
         assert isinstance(make_solver(mpc, MPCConfig(backend="auto"), theta0), KernelSolver)
         assert isinstance(make_solver(mpc, MPCConfig(backend="auto"), concave), IpoptSolver)
         assert make_solver(mpc, MPCConfig(backend="auto")).name == "kernel"  # no theta

@@ -9,13 +9,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from mpcrl_lite import study
-from mpcrl_lite.causal import causal_optimum
-from mpcrl_lite.cli import STUDY_TARGETS, main
+from mpcrl_lite.studies import study
+from mpcrl_lite.bounds.causal.dp import causal_optimum
+from mpcrl_lite.cli.main import STUDY_TARGETS, main
 from mpcrl_lite.config import SystemConfig
-from mpcrl_lite.history import History
-from mpcrl_lite.prices import Prices
-from mpcrl_lite.study import (
+from mpcrl_lite.learning.history import History
+from mpcrl_lite.system.prices import Prices
+from mpcrl_lite.studies.study import (
     LATE_COLLAPSE,
     SEED_COLUMNS,
     TARGETS,
@@ -179,7 +179,7 @@ def test_causal_target_chooses_the_method_the_system_allows():
 def test_the_paper_system_reads_its_j_star_from_the_stored_table():
     """The default system's month is in data/causal_j_star.csv: no DP is solved, and the
     figure is the table's (itself checked against a fresh solve in test_causal_table)."""
-    from mpcrl_lite.causal_table import TABLE_CSV, stored_bound
+    from mpcrl_lite.bounds.causal.table import TABLE_CSV, stored_bound
 
     system = SystemConfig()
     prices = Prices.month(system, 30)
@@ -241,8 +241,8 @@ def test_study_command_passes_forecast_and_target(tmp_path, capsys):
 def test_a_sweep_run_written_before_the_forecast_option_is_still_its_own(tmp_path):
     """config.json of a run from before MPCConfig.forecast reads as the paper's forecast; a
     run of the other forecast is refused in one line."""
-    from mpcrl_lite.sweep_grid import load_grid
-    from mpcrl_lite.sweep_store import check_run_dirs, run_dir
+    from mpcrl_lite.studies.sweep.grid import load_grid
+    from mpcrl_lite.studies.sweep.store import check_run_dirs, run_dir
 
     sweep = load_grid({"grid": {"learning.seed": [1]}})
     directory = run_dir(tmp_path, sweep.runs[0])

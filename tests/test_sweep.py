@@ -27,12 +27,16 @@ from conftest import assert_imports_within
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-import mpcrl_lite.sweep as sweep_module
-from mpcrl_lite import sweep_grid, sweep_run, sweep_schedule, sweep_store, sweep_table
-from mpcrl_lite.cli import main
-from mpcrl_lite.history import History
-from mpcrl_lite.rundir import RECOVER
-from mpcrl_lite.sweep import (
+import mpcrl_lite.studies.sweep.api as sweep_module
+from mpcrl_lite.studies.sweep import grid as sweep_grid
+from mpcrl_lite.studies.sweep import run as sweep_run
+from mpcrl_lite.studies.sweep import schedule as sweep_schedule
+from mpcrl_lite.studies.sweep import store as sweep_store
+from mpcrl_lite.studies.sweep import table as sweep_table
+from mpcrl_lite.cli.main import main
+from mpcrl_lite.learning.history import History
+from mpcrl_lite.learning.rundir import RECOVER
+from mpcrl_lite.studies.sweep.api import (
     FAIL_ENV,
     NOTEBOOK_PARAMETERS,
     DamagedFileError,

@@ -1,4 +1,4 @@
-"""The explorers of mpcrl_lite.widgets, driven from code (no kernel needed).
+"""The explorers of mpcrl_lite.classroom.widgets, driven from code (no kernel needed).
 
 Setting a control's value runs the same callback as releasing the slider in a notebook, so each
 test changes controls and checks the recomputed result against the invariants of the system:
@@ -22,18 +22,18 @@ import ipywidgets as widgets
 import numpy as np
 import pytest
 
-from mpcrl_lite import explore
-from mpcrl_lite import widgets as w
-from mpcrl_lite.closed_loop import rollout, run_month
+from mpcrl_lite.classroom import explorers as explore
+from mpcrl_lite.classroom import widgets as w
+from mpcrl_lite.sim.closed_loop import rollout, run_month
 from mpcrl_lite.config import MPCConfig, SystemConfig
-from mpcrl_lite.controls import StepSlider, accessible_name, float_slider
-from mpcrl_lite.lstd import lstd_v, value_baseline_features
-from mpcrl_lite.model import grid_power, split_action
-from mpcrl_lite.mpc import MPC
-from mpcrl_lite.prices import Prices
-from mpcrl_lite.solvers import make_solver
+from mpcrl_lite.classroom.controls import StepSlider, accessible_name, float_slider
+from mpcrl_lite.learning.lstd import lstd_v, value_baseline_features
+from mpcrl_lite.system.battery import grid_power, split_action
+from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.system.prices import Prices
+from mpcrl_lite.mpc.backends.registry import make_solver
 from mpcrl_lite.theta import Theta
-from mpcrl_lite.widgets import (
+from mpcrl_lite.classroom.widgets import (
     DayPrices,
     cached_solver,
     day_explorer,
@@ -442,9 +442,9 @@ def test_old_names_stay_importable_from_widgets():
 
 def test_data_and_figures_do_not_depend_on_the_widgets():
     """explore and plots sit below widgets in the data flow: no ipywidgets to import them."""
-    code = ("import sys; import mpcrl_lite.explore, mpcrl_lite.plots, mpcrl_lite.cli; "
-            "bad = [m for m in ('ipywidgets', 'anywidget', 'mpcrl_lite.widgets', "
-            "'mpcrl_lite.controls') if m in sys.modules]; print(bad); sys.exit(bool(bad))")
+    code = ("import sys; import mpcrl_lite.classroom.explorers, mpcrl_lite.figures.plots, mpcrl_lite.cli.main; "
+            "bad = [m for m in ('ipywidgets', 'anywidget', 'mpcrl_lite.classroom.widgets', "
+            "'mpcrl_lite.classroom.controls') if m in sys.modules]; print(bad); sys.exit(bool(bad))")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False,
                           env={**os.environ, "MPLBACKEND": "Agg"}, timeout=120)
     assert done.returncode == 0, done.stdout + done.stderr

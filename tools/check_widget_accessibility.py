@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Render the explorers of ``mpcrl_lite.widgets`` in JupyterLab and check them as a browser does.
+"""Render the explorers of ``mpcrl_lite.classroom.widgets`` in JupyterLab and check them as a browser does.
 
 Starts a JupyterLab server on 127.0.0.1 (random free port, random token) in a temporary
 directory, opens a notebook that displays every explorer in headless Chromium, runs it, and
@@ -50,10 +50,10 @@ CELLS = [
     "widgets.tau_explorer(points=11)",
     (
         "import numpy as np\n"
-        "from mpcrl_lite.closed_loop import run_month\n"
+        "from mpcrl_lite.sim.closed_loop import run_month\n"
         "from mpcrl_lite.config import SystemConfig\n"
-        "from mpcrl_lite.explore import cached_solver\n"
-        "from mpcrl_lite.prices import Prices\n"
+        "from mpcrl_lite.classroom.explorers import cached_solver\n"
+        "from mpcrl_lite.system.prices import Prices\n"
         "from mpcrl_lite.theta import Theta\n"
         "system = SystemConfig()\n"
         "record = run_month(Theta.nominal(system), cached_solver(system), Prices.month(system, 3),\n"

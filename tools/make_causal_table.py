@@ -1,10 +1,10 @@
-"""Solve the causal DP (``mpcrl_lite.causal.causal_optimum``) for the systems the notebooks use
+"""Solve the causal DP (``mpcrl_lite.bounds.causal.dp.causal_optimum``) for the systems the notebooks use
 and store J* of every day in ``data/causal_j_star.csv``, its provenance in the file's header
 lines (``# key: JSON value``).
 
 J* depends only on the system and the day's prices (not on any learned theta, seed or noise
 draw), and the paper's month takes about a minute of CPU per system; the notebooks read the
-stored values through :func:`mpcrl_lite.causal_table.stored_bound` instead of solving the same
+stored values through :func:`mpcrl_lite.bounds.causal.table.stored_bound` instead of solving the same
 DP on every run. ``tests/test_causal_table.py`` solves some days again and compares.
 
     PYTHONPATH=$PWD python tools/make_causal_table.py            # the notebooks' systems
@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 
 from mpcrl_lite import __version__
-from mpcrl_lite.causal import causal_optimum
-from mpcrl_lite.causal_table import TABLE_CSV
+from mpcrl_lite.bounds.causal.dp import causal_optimum
+from mpcrl_lite.bounds.causal.table import TABLE_CSV
 from mpcrl_lite.config import SystemConfig
-from mpcrl_lite.prices import DATA_DIR, Prices
+from mpcrl_lite.system.prices import DATA_DIR, Prices
 
 #: (P_bar, noise variance) of notebook 07's default grid; (1.5, 0.5) is the paper's system.
 SYSTEMS = [(p, v) for p in (1.0, 1.5, 2.0) for v in (0.2, 0.5)]
@@ -57,7 +57,7 @@ def main() -> None:
         "what": "J* of every day (V_0(soc0) of the coupled causal DP, NOK/day) for the systems "
                 "SystemConfig(P_bar=..., noise_var=...) with all other fields at their defaults, "
                 "on the days of Prices.default(system)",
-        "function": "mpcrl_lite.causal.causal_optimum(system, Prices.default(system), "
+        "function": "mpcrl_lite.bounds.causal.dp.causal_optimum(system, Prices.default(system), "
                     f"grid={args.grid}, action_step={args.action_step}, keep_values=False)",
         "tool": "tools/make_causal_table.py",
         "commit": commit,

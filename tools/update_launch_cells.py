@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Bring the first cells of the notebooks up to date with ``mpcrl_lite.launch``: the Colab and
+"""Bring the first cells of the notebooks up to date with ``mpcrl_lite.publish.launch``: the Colab and
 Binder launch line under the title, the paper's citation at the end of the title cell, and the
 install cell (the first code cell, a no-op wherever the package is importable).
 
@@ -25,7 +25,7 @@ import nbformat
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from mpcrl_lite.launch import apply_launch_cells
+from mpcrl_lite.publish.launch import apply_launch_cells
 
 NOTEBOOK_DIR = ROOT / "notebooks"
 

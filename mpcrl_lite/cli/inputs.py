@@ -1,0 +1,214 @@
+"""What the command line checks before any work: prices from a Nord Pool export, the size of
+the work against the machine, and the output directory.
+
+Every check raises a ``ValueError`` whose message is one line naming the bad value and what
+was expected; :mod:`mpcrl_lite.cli.main` prints it and exits with status 2.
+
+Resource limits
+---------------
+Before a command allocates anything, :func:`check_budget` estimates its peak memory and its
+run time from the problem size and refuses
+
+* memory above what the machine has available (``psutil.virtual_memory().available`` when
+  psutil is installed, else ``os.sysconf`` of the available physical pages), and
+* an estimated run time above :data:`TIME_LIMIT_S` seconds (4 hours; the environment
+  variable ``MPCRL_LITE_TIME_LIMIT_S`` sets another limit, e.g. for a long cluster run).
+
+The estimates are deliberately low (measured on a laptop core and rounded down for time, up
+only where memory grows with the data), so a refusal means the work surely does not fit;
+work near the limits is left to run.
+"""
+
+from __future__ import annotations
+
+import calendar
+import os
+import re
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+from ..config import SystemConfig
+from ..system.prices import Prices, load_nordpool_csv, nordpool_areas
+from ..learning.rundir import RunDirError, check_output_dir, inspect
+
+try:  # optional: a better figure of the available memory
+    import psutil
+except ImportError:  # pragma: no cover (psutil is present in the project's environments)
+    psutil = None
+
+__all__ = [
+    "TIME_LIMIT_ENV",
+    "TIME_LIMIT_S",
+    "Budget",
+    "available_memory",
+    "check_budget",
+    "estimate",
+    "month_prices",
+    "prepare_out",
+    "refuse_finished",
+]
+
+#: Default limit of the estimated run time of one command, in seconds.
+TIME_LIMIT_S = 4 * 3600.0
+TIME_LIMIT_ENV = "MPCRL_LITE_TIME_LIMIT_S"
+
+# Measured (simulate, N = 12, tau default): about 23 KiB of arrays per battery-day, 125 KiB of
+# set-up per battery, 3 ms per battery-day of closed loop, and a set-up that grows with n**2
+# (about 2e-5 s * n**2: 170 s at n = 3000). The time constants are rounded down.
+_BYTES_PER_AGENT_DAY = 32 * 1024
+_BYTES_PER_AGENT = 128 * 1024
+_SECONDS_PER_AGENT_DAY = 1e-3
+_SETUP_SECONDS_PER_AGENT2 = 1e-5
+
+_MONTH = re.compile(r"^(\d{4})-(\d{2})$")
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+# -- prices -------------------------------------------------------------------------------
+def month_prices(path: str | os.PathLike, area: str, month: str, system: SystemConfig,
+                 days: int | None = None) -> Prices:
+    """The prices of one calendar ``month`` (``'YYYY-MM'``) of ``area`` in a Nord Pool
+    export, as the buying price matrix for ``system`` (its ``sell_ratio``, scaled by its
+    ``price_scale`` like :meth:`Prices.default`).
+
+    Parameters
+    ----------
+    path, area
+        The export and the area column (see :func:`~mpcrl_lite.system.prices.load_nordpool_csv`).
+    month
+        ``'YYYY-MM'``; every hour of every day of the month must have a price.
+    system
+        Supplies ``sell_ratio`` and ``price_scale``.
+    days
+        The first ``days`` days of the month only (default all of them).
+
+    Returns
+    -------
+    Prices
+        Shape ``(days, 24)``; clock-change days mapped onto 24 hours as
+        :func:`~mpcrl_lite.system.prices.daily_matrix` describes.
+
+    Raises
+    ------
+    ValueError
+        One line naming the file, area, month or hour that is wrong.
+    """
+    found = _MONTH.match(str(month))
+    if not found or not 1 <= int(found.group(2)) <= 12:
+        raise ValueError(f"--month {month!r}: expected a calendar month as YYYY-MM, e.g. 2020-11")
+    year, number = int(found.group(1)), int(found.group(2))
+    length = calendar.monthrange(year, number)[1]
+    if days is not None and days > length:
+        raise ValueError(f"--days {days}: {month} has {length} days; expected at most {length}")
+    if not Path(path).is_file():
+        raise ValueError(f"--prices {path}: no such file; expected a Nord Pool price export (CSV)")
+    try:
+        areas = nordpool_areas(path)
+    except (OSError, ValueError, TypeError) as err:
+        raise ValueError(_one_line(f"--prices {path}: {err}")) from None
+    if area not in areas:
+        raise ValueError(f"--area {area!r} is not in {path}; expected one of {areas}")
+    try:
+        series = load_nordpool_csv(path, area)
+        prices = Prices.from_series(series, f"{month}-01", length, sell_ratio=system.sell_ratio)
+    except (OSError, ValueError, TypeError) as err:
+        raise ValueError(_one_line(f"--prices {path} --area {area} --month {month}: {err}")) \
+            from None
+    prices = prices.scaled(system.price_scale) if system.price_scale != 1.0 else prices
+    return prices.take(days) if days is not None and days < length else prices
+
+
+# -- resources ----------------------------------------------------------------------------
+def available_memory() -> int | None:
+    """Bytes of memory available to a new allocation now, or None where it is not known."""
+    if psutil is not None:
+        return int(psutil.virtual_memory().available)
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):  # pragma: no cover (not POSIX)
+        return None
+
+
+@dataclass(frozen=True)
+class Budget:
+    """Estimated peak memory (bytes) and run time (seconds) of a command."""
+
+    memory: float
+    seconds: float
+
+
+def estimate(n: int, days: int, runs: int = 1, sensitivities: bool = False,
+             horizon: int = SystemConfig().N) -> Budget:
+    """Lower estimates of the peak memory and run time of ``runs`` closed-loop months of
+    ``days`` days with ``n`` batteries (``sensitivities``: a learning month, twice the cost)."""
+    scale = max(1.0, (horizon / 12) ** 2)
+    factor = 2.0 if sensitivities else 1.0
+    memory = factor * scale * float(n) * float(days) * _BYTES_PER_AGENT_DAY \
+        + float(n) * _BYTES_PER_AGENT
+    seconds = factor * float(runs) * float(n) * float(days) * _SECONDS_PER_AGENT_DAY \
+        + _SETUP_SECONDS_PER_AGENT2 * float(n) ** 2
+    return Budget(memory, seconds)
+
+
+def _time_limit() -> float:
+    text = os.environ.get(TIME_LIMIT_ENV)
+    if not text:
+        return TIME_LIMIT_S
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"{TIME_LIMIT_ENV}={text!r}: expected a number of seconds") from None
+    if not value > 0:
+        raise ValueError(f"{TIME_LIMIT_ENV}={text!r}: expected a positive number of seconds")
+    return value
+
+
+def check_budget(what: str, n: int, days: int, runs: int = 1, sensitivities: bool = False,
+                 horizon: int = SystemConfig().N) -> Budget:
+    """:func:`estimate`, refused (``ValueError``, one line) above the available memory or the
+    time limit. ``what`` names the values in the message, e.g. ``'--days 1000000000 --n 3'``."""
+    budget = estimate(n, days, runs, sensitivities, horizon)
+    memory = available_memory()
+    if memory is not None and budget.memory > memory:
+        raise ValueError(
+            f"{what}: needs about {budget.memory / 2**30:.3g} GiB of memory; expected at most "
+            f"the {memory / 2**30:.3g} GiB available (use fewer days or batteries)")
+    limit = _time_limit()
+    if budget.seconds > limit:
+        raise ValueError(
+            f"{what}: would run for about {budget.seconds / 3600:.3g} hours or more; expected "
+            f"at most the time limit of {limit / 3600:.3g} hours (set {TIME_LIMIT_ENV} to "
+            "raise it)")
+    return budget
+
+
+# -- output directory ---------------------------------------------------------------------
+def refuse_finished(path: str | os.PathLike, outputs: Iterable[str], force: bool = False,
+                    flag: str = "--out") -> None:
+    """A ``RunDirError`` (one line) when the directory ``path`` holds one of ``outputs`` and
+    not ``force``; nothing is created."""
+    directory = Path(os.fspath(path))
+    found = inspect(directory, others=outputs).others if directory.is_dir() else []
+    if found and not force:
+        raise RunDirError(
+            f"{flag} {os.fspath(path)} already holds results ({', '.join(found)}); pass --force "
+            "to replace them or choose another --out")
+
+
+def prepare_out(path: str | os.PathLike, outputs: Iterable[str], force: bool = False,
+                flag: str = "--out") -> Path:
+    """The output directory, created and checked writable (:func:`~mpcrl_lite.learning.rundir.
+    check_output_dir`), refused when it already holds one of ``outputs`` unless ``force``
+    (:func:`refuse_finished`).
+
+    Raises
+    ------
+    ValueError
+        (:class:`~mpcrl_lite.learning.rundir.RunDirError`) one line with the remedy.
+    """
+    refuse_finished(path, outputs, force, flag)
+    return check_output_dir(path, flag)

@@ -1,0 +1,242 @@
+r"""The local MPCs' barrier problems, vectorized over a batch of days and batteries.
+
+Battery ``i``'s local MPC is the paper's MPC (eq. 9) with ``n = 1``
+(:func:`local_system`), whose grid row is made inert because the real, shared grid limit is
+priced by the coordination (:mod:`mpcrl_lite.decentralized.coordination`). For fixed :math:`\theta^i` and
+grid prices it is a QP with the barrier of its inequality rows,
+
+.. math::
+   \min_x\; \tfrac12 x^\top H x + q^\top x - \tau\sum_k\log(d_k - C_k x)
+   \quad\text{s.t.}\quad A x = e,
+
+with KKT conditions ``Hx + q + A' lam + C' mu = 0``, ``Ax = e``, ``mu_k (C_k x - d_k) = -tau``.
+A grid price enters only the linear cost: the prices ``nu = (lambda^b, lambda^s)`` (``2N``)
+add ``E' nu`` to ``q``, where ``E x = (b_0..b_{N-1}, s_0..s_{N-1})`` picks the grid-relevant
+part of ``x``.
+
+:class:`LocalQP` evaluates the data of many such problems at once (one per day and battery)
+and takes their primal-dual Newton systems apart into a step at fixed prices and the response
+to a price step -- the pieces the coordinator assembles into the centralized Newton step.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import casadi as ca
+import numpy as np
+
+from ..config import ConfigWarning, SystemConfig
+from ..mpc.formulation import MPC
+
+__all__ = ["LocalQP", "local_system"]
+
+
+def local_system(system: SystemConfig, local_grid_factor: float = 1e4) -> SystemConfig:
+    """The local MPC's system: ``system`` with ``n = 1`` and an inert grid row
+    (``P_bar = local_grid_factor * max(U_bar, P_bar)``; the true limit is priced)."""
+    if not isinstance(system, SystemConfig):
+        raise ValueError(f"system={system!r}: expected a SystemConfig")  # noqa: TRY004
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConfigWarning)
+        return system.replace(n=1, P_bar=local_grid_factor * max(system.U_bar, system.P_bar))
+
+
+def _scatter(out: ca.DM, shape: tuple[int, int], flat: np.ndarray) -> np.ndarray:
+    """The dense array of a CasADi output with the structural nonzeros at the flat
+    (row-major) positions ``flat``."""
+    dense = np.zeros(shape)
+    dense.ravel()[flat] = np.fromiter(out.nonzeros(), float, len(flat))
+    return dense
+
+
+class LocalQP:
+    """The local MPC's barrier problems, many at once (one per day and battery).
+
+    Data ``f = 0.5 x'Hx + q'x``, ``Ax = e``, ``Cx <= d`` from the MPC's own
+    :meth:`~mpcrl_lite.mpc.formulation.MPC.qp_function`. ``H`` is diagonal and ``C`` block diagonal by
+    stage (5 variables and 10 rows per stage for ``n = 1``), so a Newton system is solved with
+    5x5 block inverses and an ``N x N`` Schur complement on the dynamics multipliers.
+
+    Arrays have a leading batch axis ``B`` (problems); ``nx = 5N`` variables, ``N`` dynamics
+    rows, ``10`` inequality rows per stage.
+
+    Parameters
+    ----------
+    mpc : MPC
+        The local MPC (``n = 1``), e.g. ``MPC(local_system(system))``.
+    """
+
+    nb, nh = 5, 10
+
+    def __init__(self, mpc: MPC) -> None:
+        if mpc.n != 1:
+            raise ValueError(f"the local MPC has n={mpc.n}; expected n=1")
+        self.mpc = mpc
+        N = mpc.N
+        p = ca.MX.sym("p", mpc.np)
+        rows, cols = mpc.qp_function.sparsity_out("H").get_triplet()
+        if list(rows) != list(cols):  # the structure the Newton systems rely on
+            raise RuntimeError("the MPC's Hessian is not diagonal")
+        H, q, _, A, e, _, _ = mpc.qp_function(p)
+        self._data = ca.Function("local_qp", [p], [ca.diag(H), q, A, e])
+        #: rows and columns of the dynamics matrix's structural nonzeros
+        self.a_pattern = tuple(np.array(v, dtype=np.int64)
+                               for v in self._data.sparsity_out(2).get_triplet())
+        ref = mpc.qp_data(np.full(mpc.np, 0.5))  # C and d do not depend on p
+        self.Cb = np.stack([ref.C[j * self.nh : (j + 1) * self.nh, j * self.nb : (j + 1) * self.nb]
+                            for j in range(N)])
+        rebuilt = np.zeros_like(ref.C)
+        for j in range(N):
+            rebuilt[j * self.nh : (j + 1) * self.nh, j * self.nb : (j + 1) * self.nb] = self.Cb[j]
+        if not np.array_equal(rebuilt, ref.C):
+            raise RuntimeError("the MPC's inequality rows are not block diagonal by stage")
+        self._CbT = np.ascontiguousarray(np.swapaxes(self.Cb, 1, 2))
+        self.db = ref.d.reshape(N, self.nh)
+        self._maps: dict[int, tuple[ca.Function, list]] = {}
+        sysc = mpc.system
+        self.U, self.soc_low, self.soc_high = sysc.U_bar, sysc.soc_low, sysc.soc_high
+        self.ib, self.is_ = mpc.index("b")[:, 0], mpc.index("s")[:, 0]
+        self.isoc = mpc.index("soc")[:, 0]
+        self.ihi, self.ilo = mpc.index("sigma_hi")[:, 0], mpc.index("sigma_lo")[:, 0]
+
+    def data(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``Hd (B, nx), q (B, nx), A (B, N, nx), e (B, N)`` for parameters ``P (B, np)``."""
+        B = P.shape[0]
+        if B not in self._maps:
+            fn = self._data.map(B)
+            patterns = []
+            for k in range(fn.n_out()):
+                rows, cols = fn.sparsity_out(k).get_triplet()
+                shape = fn.size_out(k)
+                patterns.append((shape, np.ravel_multi_index((rows, cols), shape)))
+            self._maps[B] = (fn, patterns)
+        fn, patterns = self._maps[B]
+        # the structural nonzeros scattered into dense arrays: ~10x faster than converting
+        # the dense matrices (A alone has N x B nx entries), the same numbers
+        Hd, q, A, e = (_scatter(out, *pattern) for out, pattern in zip(fn(P.T), patterns))
+        m = self.mpc
+        return (np.array(Hd).T, np.array(q).T,
+                np.array(A).reshape(m.neq, B, m.nx).transpose(1, 0, 2), np.array(e).T)
+
+    def h(self, x: np.ndarray) -> np.ndarray:
+        """``h = Cx - d`` by stage, shape ``(B, N, 10)``."""
+        return (self.Cb @ x.reshape(x.shape[0], -1, self.nb, 1))[..., 0] - self.db
+
+    def Ct(self, v: np.ndarray) -> np.ndarray:
+        """``C' v`` for ``v (B, N, 10)``, shape ``(B, nx)``."""
+        return (self._CbT @ v[..., None]).reshape(v.shape[0], -1)
+
+    def E(self, x: np.ndarray) -> np.ndarray:
+        """The grid-relevant part ``(b_0..b_{N-1}, s_0..s_{N-1})`` of ``x (..., nx)``."""
+        return np.concatenate([x[..., self.ib], x[..., self.is_]], axis=-1)
+
+    def Et(self, v: np.ndarray) -> np.ndarray:
+        """``E' v`` for ``v (B, 2N)``, shape ``(B, nx)``."""
+        N = self.mpc.N
+        out = np.zeros((v.shape[0], self.mpc.nx))
+        out[:, self.ib], out[:, self.is_] = v[:, :N], v[:, N:]
+        return out
+
+    def feasible(self, A: np.ndarray, e: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """A point near ``x`` satisfying the dynamics and strictly inside every local bound:
+        inputs kept where strictly inside their bounds, soc recomputed from the model, slacks
+        raised only where needed (to at least 1e-3 above the soc band's bound, so that no
+        barrier term starts at a vanishing distance from its bound)."""
+        x = x.copy()
+        margin = 1e-3 * self.U
+        for i in (self.ib, self.is_):
+            v = x[:, i]
+            x[:, i] = np.where((v > 0) & (v < self.U), v, np.clip(v, margin, self.U - margin))
+        rest = np.ones(x.shape[1], bool)
+        rest[self.isoc] = False
+        rhs = e - np.einsum("bri,bi->br", A[:, :, rest], x[:, rest])
+        soc = np.linalg.solve(A[:, :, self.isoc], rhs[..., None])[..., 0]
+        x[:, self.isoc] = soc
+        for i, need in ((self.ihi, np.maximum(soc - self.soc_high, 0.0)),
+                        (self.ilo, np.maximum(self.soc_low - soc, 0.0))):
+            x[:, i] = np.where(x[:, i] >= need + 1e-3, x[:, i], need + 1e-3)
+        return x
+
+    def residual(
+        self,
+        Hd: np.ndarray,
+        q: np.ndarray,
+        A: np.ndarray,
+        e: np.ndarray,
+        x: np.ndarray,
+        lam: np.ndarray,
+        mu: np.ndarray,
+        tau: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Barrier KKT residual ``r_x (B, nx), r_g (B, N), r_c (B, N, 10)`` and ``h``
+        (``(B, N, 10)``) at ``x (B, nx)``, ``lam (B, N)``, ``mu (B, N, 10)`` of the problems
+        with data ``Hd, q (B, nx)``, ``A (B, N, nx)``, ``e (B, N)`` and ``tau (B,)``."""
+        h = self.h(x)
+        rx = Hd * x + q + (np.swapaxes(A, 1, 2) @ lam[..., None])[..., 0] + self.Ct(mu)
+        rg = (A @ x[..., None])[..., 0] - e
+        rc = mu * h + tau[:, None, None]
+        return rx, rg, rc, h
+
+    def newton(
+        self,
+        Hd: np.ndarray,
+        q: np.ndarray,
+        A: np.ndarray,
+        e: np.ndarray,
+        x: np.ndarray,
+        mu: np.ndarray,
+        h: np.ndarray,
+        tau: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The local Newton system, split by its dependence on a price step ``dlambda``.
+
+        The primal-dual step with ``mu`` eliminated solves ``W dx + A' lam_new = -grad_phi
+        - E' dlambda``, ``A dx = -r_g`` with ``W = H + C' diag(mu/-h) C`` and
+        ``grad_phi = Hx + q + C' (tau/-h)``; its solution is ``dx = dx0 + X dlambda``,
+        ``lam_new = lam0 + L dlambda``.
+
+        Returns
+        -------
+        dx0 (B, nx), lam0 (B, N)
+            The step at fixed prices.
+        L (B, N, 2N), M (B, 2N, 2N)
+            ``L`` as above and ``M = E X``, the response of ``(b, s)`` to the prices
+            (symmetric negative semidefinite).
+        Winv (B, N, 5, 5)
+            The block inverses of ``W``, for :meth:`price_step`.
+        """
+        B, N, nb = x.shape[0], self.mpc.N, self.nb
+        W = self._CbT @ ((mu / -h)[..., None] * self.Cb)  # (B, N, nb, nb)
+        W[:, :, np.arange(nb), np.arange(nb)] += Hd.reshape(B, N, nb)
+        Winv = np.linalg.inv(W)
+        At = np.swapaxes(A, 1, 2)
+        Ab = A.reshape(B, N, N, nb).transpose(0, 2, 1, 3)  # (B, block j, row r, k)
+        AW = (Ab @ Winv).transpose(0, 2, 1, 3).reshape(B, N, -1)  # A W^{-1}, (B, N, nx)
+        S = AW @ At
+        rg = (A @ x[..., None])[..., 0] - e
+        r1 = -(Hd * x + q + self.Ct(tau[:, None, None] / -h))
+        lam0 = np.linalg.solve(S, ((AW @ r1[..., None])[..., 0] + rg)[..., None])[..., 0]
+        dx0 = self._winv(Winv, r1 - (At @ lam0[..., None])[..., 0])
+        # A W^{-1} E: the b_j and s_j columns of A W^{-1}; E W^{-1} E: 2x2 blocks of W^{-1}
+        AWE = np.concatenate([AW[:, :, self.ib], AW[:, :, self.is_]], axis=2)  # (B, N, 2N)
+        L = -np.linalg.solve(S, AWE)
+        EWE = np.zeros((B, 2, N, 2, N))
+        j = np.arange(N)
+        for a in (0, 1):
+            for b in (0, 1):
+                EWE[:, a, j, b, j] = Winv[:, :, a, b]
+        M = -(EWE.reshape(B, 2 * N, 2 * N) + np.swapaxes(AWE, 1, 2) @ L)
+        return dx0, lam0, L, M, Winv
+
+    def _winv(self, Winv: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """``W^{-1} v`` for ``v (B, nx)``."""
+        B, N, nb = v.shape[0], self.mpc.N, self.nb
+        return (Winv @ v.reshape(B, N, nb, 1)).reshape(B, -1)
+
+    def price_step(
+        self, A: np.ndarray, L: np.ndarray, Winv: np.ndarray, dnu: np.ndarray
+    ) -> np.ndarray:
+        """``X dlambda = -W^{-1} (E' dlambda + A' L dlambda)`` for ``dnu (B, 2N)``."""
+        rhs = self.Et(dnu) + (np.swapaxes(A, 1, 2) @ (L @ dnu[..., None]))[..., 0]
+        return -self._winv(Winv, rhs)

@@ -1,0 +1,236 @@
+r"""The learning experiment: months of 30 days in closed loop, one DPG update per month.
+
+Every month (paper, Section IV):
+
+1. all days of the month start at ``soc0`` and advance together, hour by hour: at hour
+   ``k`` one call solves the MPC of every day (:mod:`mpcrl_lite.mpc.backends.registry`), the policy
+   sensitivities are computed at the solutions (:mod:`mpcrl_lite.mpc.sensitivity`), Gaussian
+   exploration is added to the MPC action and kept within the input bounds and the grid
+   limit with a zero mean (:func:`mpcrl_lite.sim.exploration.bounded_exploration`,
+   ``LearningConfig.exploration_bounds``), and the true system takes a step
+   (:func:`mpcrl_lite.system.battery.step`) -- the one closed loop,
+   :func:`mpcrl_lite.sim.closed_loop.run_month`;
+2. LSTD fits the compatible action-value function on the month's transitions
+   (:func:`mpcrl_lite.learning.lstd.lstd_q`); each day is an episode, so the last hour of a day does
+   not bootstrap (the next day restarts at ``soc0``). The value baseline uses
+   :func:`value_baseline_features` (``LearningConfig.value_features``);
+3. the policy gradient ``mean(grad pi grad pi^T w)`` moves theta
+   (:class:`mpcrl_lite.learning.dpg.DPGUpdater`);
+4. every ``LearningConfig.eval_every`` months the parameters of the month are evaluated:
+   the month's days once more on each of ``LearningConfig.eval_draws`` fixed noise draws
+   (derived from ``eval_seed``, all draws in one batched closed loop), without exploration
+   and without sensitivities (:meth:`Experiment.evaluate`). The mean of the draws' J is
+   recorded as ``History.J_eval``, with its 95 % confidence interval over the draws
+   (``J_eval_ci_low``, ``J_eval_ci_high``): the month's own J moves by +-200 from month to
+   month with its new noise and exploration, J_eval only with the parameters.
+
+Random draws come from one ``numpy.random.Generator`` seeded with ``LearningConfig.seed``,
+in a fixed order (per hour: exploration, then noise), so a seed fixes a run; the evaluation
+draws from its own generators, created anew from ``eval_seed`` each time, so it never
+changes the learning run (J and theta of the learning months). After every month the run can be committed to a run directory (History, theta, the updater's state and
+the generator's state, all as JSON/npz, :mod:`mpcrl_lite.learning.rundir`) and resumed with identical
+results; the month loop, the checkpoints and the learning step are shared with the
+decentralized learner (:mod:`mpcrl_lite.learning.learner`).
+
+Hours whose MPC failed use the fallback action (idle) and, like hours whose KKT system was
+unusable, are left out of LSTD and of the gradient; :attr:`History.skipped_steps` counts
+them.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+
+from ..sim.closed_loop import evaluate_mpc, run_month
+from ..config import LearningConfig, MPCConfig, SystemConfig
+from .dpg import DPGUpdater
+from ..sim.exploration import exploration_center
+from .history import History
+from .learner import Learner, lstd_policy_gradient, parse_theta, resolve_setup, run_months
+from .lstd import value_baseline_features
+from ..mpc.formulation import MPC
+from ..system.prices import Prices
+from ..sim.record import MonthRecord
+from .rundir import CHECKPOINT, RunDirError, plain
+from ..mpc.backends.registry import make_solver
+from ..theta import Theta
+
+# run_month (mpcrl_lite.sim.closed_loop), value_baseline_features (mpcrl_lite.learning.lstd), run_months
+# and resolve_setup (mpcrl_lite.learning.learner) stay importable from here.
+__all__ = ["CHECKPOINT", "Callback", "Experiment", "resolve_setup", "run_month", "run_months",
+           "value_baseline_features"]
+
+log = logging.getLogger(__name__)
+
+#: ``callback(month_index, history, experiment)``, called after each month's update.
+Callback = Callable[[int, History, "Experiment"], None]
+
+
+class Experiment(Learner):
+    """The paper's learning run: months x days, LSTD critic, DPG update at each month's end.
+
+    With the default configurations (:mod:`mpcrl_lite.config`) every month's parameters are
+    also evaluated on ``LearningConfig.eval_draws`` fixed noise draws (:meth:`evaluate`,
+    ``History.J_eval`` and its confidence interval), which shows the learning trend without
+    the month-to-month noise of ``History.J``.
+
+    Parameters
+    ----------
+    system, mpc_config, learning
+        Configurations (defaults: the paper's).
+    prices
+        The month's prices (default: the embedded NO3 profile, first
+        ``learning.days_per_month`` days); the MPC sees them through
+        ``mpc_config.forecast`` (:func:`mpcrl_lite.system.forecast.forecast_prices`), kept as
+        :attr:`prices`.
+    theta0
+        Initial parameters (default :meth:`Theta.nominal`).
+    callbacks
+        Called after every month as ``callback(month, history, experiment)``.
+    """
+
+    KIND = "centralized"
+    FORMAT = "mpcrl_lite.Checkpoint/1"
+    DESC = "learning"
+
+    def __init__(
+        self,
+        system: SystemConfig | None = None,
+        mpc_config: MPCConfig | None = None,
+        learning: LearningConfig | None = None,
+        prices: Prices | None = None,
+        theta0: Theta | None = None,
+        callbacks: Sequence[Callback] = (),
+    ) -> None:
+        self.system, self.mpc_config, self.learning, self.prices, self.theta = resolve_setup(
+            system, mpc_config, learning, prices, theta0
+        )
+        self.callbacks = list(callbacks)
+        self.mpc = MPC(self.system)
+        self.solver = make_solver(self.mpc, self.mpc_config, self.theta)
+        self.updater = DPGUpdater.from_configs(self.learning, self.system)
+        self.rng = np.random.default_rng(self.learning.seed)
+        self.history = History(self.system, self.mpc_config, self.learning, backend=self.solver.name)
+
+    # -- one learning step ----------------------------------------------------------------
+    def learning_step(self, record: MonthRecord) -> tuple[np.ndarray, int, dict[str, Any]]:
+        """LSTD + policy gradient from a month (:func:`mpcrl_lite.learning.learner.lstd_policy_gradient`
+        on all batteries and the stage cost); returns ``(grad, skipped, info)``."""
+        use = record.sens_ok & record.solver_ok
+        skipped = int(use.size - np.count_nonzero(use))
+        # the critic's compatible features are a minus the exploration's centre (zero mean)
+        center = exploration_center(record.policy, self.system, self.learning.exploration_margin)
+        grad, info = lstd_policy_gradient(
+            record.soc, record.a, center, record.grad_pi, record.stage_cost, use,
+            self.learning, self.system.gamma,
+        )
+        if use.any():
+            self.updater.observe(record.grad_pi[use])  # the metric of the natural gradient
+        return grad, skipped, info
+
+    # -- evaluation -----------------------------------------------------------------------
+    def evaluate(self, theta: Theta | None = None) -> MonthRecord:
+        """``theta`` (default: the current parameters) on the fixed evaluation draws.
+
+        The month's days are run once more on each of ``LearningConfig.eval_draws`` noise
+        draws (:func:`mpcrl_lite.sim.closed_loop.evaluate_mpc` with ``eval_seed``: the same draws
+        every time), without exploration and without sensitivities, all draws in one batched
+        closed loop. The learning generator is not touched.
+
+        Returns
+        -------
+        MonthRecord
+            Of ``eval_draws * days_per_month`` days, draw by draw
+            (:func:`mpcrl_lite.sim.closed_loop.draw_J` gives each draw's J).
+        """
+        theta = self.theta if theta is None else theta
+        self._check_solver(theta)
+        return evaluate_mpc(theta, self.solver, self.prices, self.system,
+                            self.learning.eval_seed, draws=self.learning.eval_draws)
+
+    def evaluation_due(self, month: int) -> bool:
+        """True when month ``month`` (counted from 0) is evaluated: every
+        ``eval_every`` months and the last month of ``LearningConfig.months``."""
+        every = self.learning.eval_every
+        return every > 0 and (month % every == 0 or month == self.learning.months - 1)
+
+    def _check_solver(self, theta: Theta) -> None:
+        if self.mpc_config.backend == "auto" and not theta.is_convex() and self.solver.name != "ipopt":
+            log.info("theta is no longer convex: switching the MPC back-end to IPOPT")
+            self.solver = make_solver(self.mpc, self.mpc_config.replace(backend="ipopt"))
+            self.history.backend = self.solver.name
+
+    def month_options(self) -> dict[str, Any]:
+        """The keyword arguments of :func:`~mpcrl_lite.sim.closed_loop.run_month` besides theta,
+        solver, prices, system and rng (runs with equal options can share a loop,
+        :mod:`mpcrl_lite.studies.lockstep`)."""
+        return {"exploration_std": self.learning.exploration_std, "sensitivities": True,
+                "exploration_bounds": self.learning.exploration_bounds,
+                "exploration_margin": self.learning.exploration_margin}
+
+    def begin_month(self) -> Theta:
+        """The theta of the coming month, with the back-end it needs."""
+        self._check_solver(self.theta)
+        return self.theta
+
+    def run_one_month(self) -> MonthRecord:
+        """Simulate one month with the current theta and update it (and evaluate the
+        month's theta when :meth:`evaluation_due`)."""
+        t0 = time.perf_counter()
+        theta_used = self.begin_month()
+        record = run_month(theta_used, self.solver, self.prices, self.system, self.rng,
+                           **self.month_options())
+        return self.end_month(record, theta_used, time.perf_counter() - t0)
+
+    def end_month(self, record: MonthRecord, theta_used: Theta, sim_time: float,
+                  evaluation: MonthRecord | None = None) -> MonthRecord:
+        """Learn from the month ``record`` simulated at ``theta_used`` (in ``sim_time``
+        seconds), evaluate ``theta_used`` when due (or take its ``evaluation``) and record
+        the month."""
+        t0 = time.perf_counter() - sim_time
+        month = self.history.months
+        grad, skipped, info = self.learning_step(record)
+        self.theta = self.updater.step(theta_used, grad)
+        info.update(self.updater.last_info)
+        info = plain(info)  # as it reads back from history.json (no NaN: null)
+        record.grad_pi = None  # large; not kept in the history
+        wall_time = time.perf_counter() - t0
+        if self.evaluation_due(month):
+            t1 = time.perf_counter()
+            if evaluation is None:
+                evaluation = self.evaluate(theta_used)
+            self.history.append_evaluation(month, evaluation, draws=self.learning.eval_draws)
+            info["eval_time_s"] = time.perf_counter() - t1
+        self.history.append(record, theta_used, grad, skipped, wall_time, info)
+        self.history.theta_final = self.theta.to_vector().tolist()
+        return record
+
+    # -- checkpoints ----------------------------------------------------------------------
+    def learner_state(self) -> dict[str, Any]:
+        """theta and the optimizer's state (part of ``checkpoint.json``)."""
+        return {"theta": self.theta.to_vector().tolist(), "updater": self.updater.state_dict()}
+
+    def restore_learner_state(self, state: dict[str, Any], where: str) -> Callable[[], None]:
+        """Check theta and the optimizer state of a checkpoint; return their application."""
+        theta = parse_theta(state["theta"], self.system.n, where)
+        updater = DPGUpdater.from_configs(self.learning, self.system)
+        try:
+            updater.load_state_dict(state["updater"])
+        except (TypeError, ValueError, KeyError, AttributeError) as err:
+            raise RunDirError(f"{where}: bad 'updater' ({err}); start over with --force") from None
+
+        def apply() -> None:
+            self.theta = theta
+            self.updater.load_state_dict(updater.state_dict())
+            if self.history.backend == "ipopt" and self.mpc_config.backend == "auto":
+                # the run had switched to IPOPT (a non-convex theta): it stays there
+                self.solver = make_solver(self.mpc, self.mpc_config.replace(backend="ipopt"))
+            self._check_solver(self.theta)
+            self.history.backend = self.solver.name
+
+        return apply

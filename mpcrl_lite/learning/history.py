@@ -1,0 +1,457 @@
+"""Results of a learning run as data: per-month figures and two months of trajectories.
+
+A :class:`History` is saved as two plain files, never as pickle:
+
+* ``history.json`` -- the configurations, theta's entry names, and every per-month scalar
+  series (human-readable), including the evaluation series (``J_eval`` and friends: the
+  parameters of a month evaluated on ``LearningConfig.eval_draws`` fixed noise draws without
+  exploration, see :meth:`mpcrl_lite.learning.experiment.Experiment.evaluate`);
+* ``history.npz`` -- the arrays (theta per month, J per agent, and the full trajectories of
+  the first and last month), loaded with ``allow_pickle=False``.
+
+A number that is not finite (e.g. ``eval_bound_share`` of a month whose every MPC solve
+failed) is written as ``null`` -- JSON has no NaN -- and read back as NaN. Series added
+later (:data:`History.LATER_SERIES`, e.g. the confidence interval of ``J_eval`` and
+``hours_above_P_bar``) are optional: files without them read back with NaN entries.
+:meth:`History.load` checks that the files agree with each other (every series one entry per
+month, the arrays of the first and last month present) and refuses them otherwise.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import zipfile
+from collections import Counter
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+from . import rundir
+from ..config import LearningConfig, MPCConfig, SystemConfig
+from ..sim.record import MONTH_ARRAYS, RECORD_ARRAYS, MonthRecord, Record
+from .rundir import RECOVER, RunDirError
+from ..theta import PARTS, Theta
+
+# MonthRecord and MONTH_ARRAYS live in mpcrl_lite.sim.record; they stay importable from here.
+__all__ = ["MONTH_ARRAYS", "History", "MonthRecord", "mean_ci"]
+
+
+def mean_ci(values: Any, level: float = 0.95) -> tuple[float, float, float]:
+    r"""Mean of ``values`` and its Student-t confidence interval.
+
+    ``mean -+ t_{(1+level)/2, K-1} * sd / sqrt(K)`` for ``K`` values (``sd`` with ``K - 1``
+    degrees of freedom); with fewer than 2 values the interval is ``(nan, nan)``.
+
+    Returns
+    -------
+    mean, low, high : float
+    """
+    if not (isinstance(level, float) and 0.0 < level < 1.0):
+        raise ValueError(f"level={level!r}: expected a float in (0, 1)")
+    x = np.asarray(values, dtype=float).reshape(-1)
+    if x.size == 0:
+        raise ValueError("values: expected at least one value")
+    mean = float(x.mean())
+    if x.size < 2:
+        return mean, math.nan, math.nan
+    half = float(stats.t.ppf(0.5 + level / 2, x.size - 1) * x.std(ddof=1) / math.sqrt(x.size))
+    return mean, mean - half, mean + half
+
+
+@dataclass(eq=False)
+class History:
+    """Per-month results of a learning run.
+
+    Lists grow by one entry per month; ``theta`` holds the parameters *used* in each month
+    and ``theta_final`` those after the last update.
+
+    The evaluation series (:data:`EVAL_SERIES` and :data:`EVAL_CI_SERIES`) grow by one entry
+    per evaluated month: ``eval_month[j]`` is the month whose parameters were evaluated on
+    the ``K = LearningConfig.eval_draws`` fixed noise draws (no exploration; each draw a month
+    of ``days_per_month`` days), ``J_eval[j]`` the mean over the draws of each draw's J,
+    ``J_eval_ci_low[j]``, ``J_eval_ci_high[j]`` its 95 % Student-t confidence interval over
+    the K draws (:func:`mean_ci`; NaN for K = 1 and in files written before it existed),
+    ``J_eval_per_agent[j]`` the per-agent J^i, ``eval_hours_soc_below_0_1[j]`` the
+    agent-hours with soc < 0.1 per draw (mean over the draws), ``eval_max_P_mpc[j]`` the
+    largest planned grid power and ``eval_bound_share[j]`` the share of actions within 0.05 of
+    a constraint (:meth:`MonthRecord.bound_share`). Unlike ``J``, these are not disturbed by
+    the month's own noise and exploration, so they show the learning trend.
+
+    The grid limit: ``max_P_mpc[m]`` is the largest grid power the MPC *planned* in month
+    ``m`` -- the paper's claim ``P <= P_bar`` is about these planned powers, which respect it
+    by construction. The low-level controller may push the *applied* power above ``P_bar``
+    (its corrections follow the noise, not the MPC): ``max_P_applied[m]`` is the largest
+    applied grid power and ``hours_above_P_bar[m]`` the number of (hour, day) pairs whose
+    applied power exceeds ``P_bar`` (:meth:`Record.hours_above_P_bar`).
+    """
+
+    system: SystemConfig
+    mpc: MPCConfig
+    learning: LearningConfig
+    J: list[float] = field(default_factory=list)
+    J_per_agent: list[list[float]] = field(default_factory=list)
+    grad_norm: list[float] = field(default_factory=list)
+    theta: list[list[float]] = field(default_factory=list)
+    theta_final: list[float] = field(default_factory=list)
+    hours_soc_below_0_1: list[int] = field(default_factory=list)
+    hours_soc_above_0_9: list[int] = field(default_factory=list)
+    max_P_mpc: list[float] = field(default_factory=list)
+    max_P_applied: list[float] = field(default_factory=list)
+    solver_failures: list[int] = field(default_factory=list)
+    skipped_steps: list[int] = field(default_factory=list)
+    low_level_interventions: list[int] = field(default_factory=list)
+    wall_time_s: list[float] = field(default_factory=list)
+    update_info: list[dict[str, Any]] = field(default_factory=list)
+    eval_month: list[int] = field(default_factory=list)
+    J_eval: list[float] = field(default_factory=list)
+    J_eval_per_agent: list[list[float]] = field(default_factory=list)
+    eval_hours_soc_below_0_1: list[int] = field(default_factory=list)
+    eval_max_P_mpc: list[float] = field(default_factory=list)
+    eval_bound_share: list[float] = field(default_factory=list)
+    J_eval_ci_low: list[float] = field(default_factory=list)
+    J_eval_ci_high: list[float] = field(default_factory=list)
+    hours_above_P_bar: list[float] = field(default_factory=list)
+    first_month: Record | None = None
+    last_month: Record | None = None
+    backend: str = ""
+
+    SERIES = (
+        "J", "J_per_agent", "grad_norm", "theta", "hours_soc_below_0_1",
+        "hours_soc_above_0_9", "max_P_mpc", "max_P_applied", "solver_failures",
+        "skipped_steps", "low_level_interventions", "wall_time_s", "update_info",
+    )
+    #: Series of the evaluation on fixed noise (absent from files of older versions).
+    EVAL_SERIES = (
+        "eval_month", "J_eval", "J_eval_per_agent", "eval_hours_soc_below_0_1",
+        "eval_max_P_mpc", "eval_bound_share",
+    )
+
+    #: The confidence interval of ``J_eval`` over the evaluation draws (one per evaluation).
+    EVAL_CI_SERIES = ("J_eval_ci_low", "J_eval_ci_high")
+    #: Per-month series added after files existed (optional when reading).
+    MONTH_LATER_SERIES = ("hours_above_P_bar",)
+    #: Series a file may lack (older versions): read back as NaN entries.
+    LATER_SERIES = EVAL_CI_SERIES + MONTH_LATER_SERIES
+
+    #: Series holding numbers (possibly nested in lists): ``null`` in the file is NaN here.
+    NUMBER_SERIES = (
+        "J", "J_per_agent", "grad_norm", "theta", "max_P_mpc", "max_P_applied", "wall_time_s",
+        "J_eval", "J_eval_per_agent", "eval_max_P_mpc", "eval_bound_share",
+        "J_eval_ci_low", "J_eval_ci_high", "hours_above_P_bar",
+    )
+    FORMAT = "mpcrl_lite.History/1"
+
+    @property
+    def months(self) -> int:
+        """Number of months recorded."""
+        return len(self.J)
+
+    def failed_solve_share(self) -> float:
+        """Share of the learning months' MPC solves (hours x days) that failed (0 without
+        months)."""
+        solves = self.months * self.system.hours_per_day * self.learning.days_per_month
+        return float(sum(self.solver_failures)) / solves if solves else 0.0
+
+    def append(
+        self, record: Record, theta: Theta, grad: np.ndarray, skipped: int,
+        wall_time: float, info: dict[str, Any],
+    ) -> None:
+        """Record one month (``theta`` is the parameter vector used during the month)."""
+        s = record.summary()
+        self.J.append(s["J"])
+        self.J_per_agent.append(s["J_per_agent"])
+        self.grad_norm.append(_norm(grad))
+        self.theta.append(theta.to_vector().tolist())
+        self.hours_soc_below_0_1.append(s["hours_soc_below_0_1"])
+        self.hours_soc_above_0_9.append(s["hours_soc_above_0_9"])
+        self.max_P_mpc.append(s["max_P_mpc"])
+        self.max_P_applied.append(s["max_P_applied"])
+        self.hours_above_P_bar.append(s["hours_above_P_bar"])
+        self.solver_failures.append(s["solver_failures"])
+        self.skipped_steps.append(int(skipped))
+        self.low_level_interventions.append(s["low_level_interventions"])
+        self.wall_time_s.append(float(wall_time))
+        self.update_info.append(info)
+        if self.first_month is None:
+            self.first_month = record
+        self.last_month = record
+
+    def append_evaluation(self, month: int, record: Record, draws: int = 1) -> None:
+        """Record the evaluation of month ``month``'s parameters: ``record`` holds ``draws``
+        months on the fixed evaluation draws, stacked as ``draws * days`` days
+        (:func:`mpcrl_lite.sim.closed_loop.evaluate_mpc`), without exploration."""
+        if isinstance(month, bool) or not isinstance(month, (int, np.integer)) or month < 0:
+            raise ValueError(f"month={month!r}: expected an integer >= 0")
+        if isinstance(draws, bool) or not isinstance(draws, (int, np.integer)) or draws < 1 \
+                or record.days % draws:
+            raise ValueError(f"draws={draws!r}: expected an integer >= 1 dividing the "
+                             f"record's {record.days} days")
+        s = record.summary()
+        per_draw = record.J_per_day().reshape(draws, -1).mean(axis=1)
+        mean, low, high = mean_ci(per_draw)
+        self.eval_month.append(int(month))
+        self.J_eval.append(mean)
+        self.J_eval_ci_low.append(low)
+        self.J_eval_ci_high.append(high)
+        self.J_eval_per_agent.append(s["J_per_agent"])
+        below = s["hours_soc_below_0_1"]
+        self.eval_hours_soc_below_0_1.append(below if draws == 1 else below / draws)
+        self.eval_max_P_mpc.append(s["max_P_mpc"])
+        self.eval_bound_share.append(record.bound_share())
+
+    # -- views ----------------------------------------------------------------------------
+    def theta_array(self) -> np.ndarray:
+        """theta per month, shape (months, n_theta)."""
+        return np.asarray(self.theta, dtype=float).reshape(len(self.theta), -1)
+
+    def theta_part(self, part: str) -> np.ndarray:
+        """One part of theta per month, shape (months + 1, n), the final value last."""
+        n = self.system.n
+        values = np.vstack([self.theta_array(), np.asarray(self.theta_final)[None, :]])
+        return values[:, Theta.index(n, part)]
+
+    def final_theta(self) -> Theta:
+        """theta after the last update."""
+        return Theta.from_vector(np.asarray(self.theta_final), self.system.n)
+
+    def summary(self) -> dict[str, Any]:
+        """The JSON summary written next to a run (see the ``learn`` command)."""
+        n = self.system.n
+        return {
+            "months": self.months,
+            "J": self.J,
+            "J_per_agent": self.J_per_agent,
+            "grad_norm": self.grad_norm,
+            "theta_final": self.final_theta().to_dict() if self.theta_final else {},
+            "theta_names": Theta.names(n),
+            "hours_soc_below_0_1": self.hours_soc_below_0_1,
+            "hours_soc_above_0_9": self.hours_soc_above_0_9,
+            "max_P_mpc": self.max_P_mpc,
+            "max_P_applied": self.max_P_applied,
+            "P_bar": self.system.P_bar,
+            "hours_above_P_bar": self.hours_above_P_bar,
+            "solver_failures": self.solver_failures,
+            "skipped_steps": self.skipped_steps,
+            "wall_time_s": self.wall_time_s,
+            "backend": self.backend,
+            **{k: getattr(self, k) for k in self.EVAL_SERIES + self.EVAL_CI_SERIES},
+        }
+
+    # -- storage --------------------------------------------------------------------------
+    def configs(self) -> dict[str, dict[str, Any]]:
+        """The configurations as plain dicts (``system``, ``mpc``, ``learning``)."""
+        return {"system": self.system.to_dict(), "mpc": self.mpc.to_dict(),
+                "learning": self.learning.to_dict()}
+
+    def to_files(self) -> dict[str, bytes]:
+        """The contents of ``history.json`` and ``history.npz``."""
+        meta = {
+            "format": self.FORMAT,
+            **self.configs(),
+            "theta_final": self.theta_final,
+            "backend": self.backend,
+            **{k: getattr(self, k)
+               for k in self.SERIES + self.EVAL_SERIES + self.LATER_SERIES},
+        }
+        arrays: dict[str, np.ndarray] = {}
+        if self.first_month is not None:
+            arrays.update(self.first_month.arrays("first"))
+        if self.last_month is not None:
+            arrays.update(self.last_month.arrays("last"))
+        buffer = io.BytesIO()
+        np.savez_compressed(buffer, **arrays)
+        return {rundir.HISTORY_JSON: rundir.dumps(meta), rundir.HISTORY_NPZ: buffer.getvalue()}
+
+    def save(self, directory: str | Path) -> Path:
+        """Write ``history.json`` and ``history.npz`` into ``directory`` as one commit
+        (:func:`mpcrl_lite.learning.rundir.commit`, kind ``"history"``); returns the directory.
+
+        A directory holding a learner's run is refused: the History would replace the one
+        its checkpoint belongs to.
+        """
+        directory = Path(directory)
+        found = rundir.inspect(directory)
+        if rundir.CHECKPOINT in found.run_files:
+            raise RunDirError(
+                f"{directory} holds a learning run (checkpoint.json); saving a History there "
+                "would detach the checkpoint: choose another directory"
+            )
+        learning = {k: v for k, v in self.learning.to_dict().items() if k != "months"}
+        rundir.commit(
+            directory, self.to_files(), kind="history", months_done=self.months,
+            configs_hash=rundir.config_sha256({**self.configs(), "learning": learning}),
+        )
+        return directory
+
+    @classmethod
+    def load(cls, directory: str | Path) -> History:
+        """Read a History written by :meth:`save` or by a learning run, verified.
+
+        Raises
+        ------
+        FileNotFoundError
+            No ``history.json`` (and no manifest) in ``directory``.
+        ValueError
+            (:class:`~mpcrl_lite.learning.rundir.RunDirError`) a file that does not verify, or files
+            that disagree; the message names the file and the problem.
+        """
+        run = rundir.read(directory, [rundir.HISTORY_JSON, rundir.HISTORY_NPZ],
+                          optional=[rundir.HISTORY_NPZ])
+        history = cls.from_files(run.files, Path(directory))
+        if run.months_done is not None and run.months_done != history.months:
+            raise RunDirError(
+                f"{Path(directory) / rundir.MANIFEST} records {run.months_done} months but "
+                f"history.json {history.months}; {RECOVER}"
+            )
+        return history
+
+    @classmethod
+    def from_files(cls, files: Mapping[str, bytes], directory: Path | str = ".") -> History:
+        """Inverse of :meth:`to_files`, checked: a :class:`~mpcrl_lite.learning.rundir.RunDirError`
+        names the first problem found (``directory`` only names the files in messages)."""
+        path = Path(directory) / rundir.HISTORY_JSON
+        try:
+            meta = json.loads(files[rundir.HISTORY_JSON])
+        except ValueError as err:
+            raise RunDirError(f"{path} is not valid JSON ({err}); {RECOVER}") from None
+        if not isinstance(meta, dict):
+            raise RunDirError(
+                f"{path} holds a {type(meta).__name__}, expected an object; {RECOVER}")
+        if meta.get("format") != cls.FORMAT:
+            raise RunDirError(f"{path}: format {meta.get('format')!r}, expected {cls.FORMAT!r}")
+        missing = [k for k in ("system", "mpc", "learning", "theta_final", *cls.SERIES)
+                   if k not in meta]
+        if missing:
+            raise RunDirError(f"{path} lacks {', '.join(map(repr, missing))}; {RECOVER}")
+        try:
+            system = SystemConfig.from_dict(meta["system"])
+            mpc = MPCConfig.from_dict(meta["mpc"])
+            learning = LearningConfig.from_dict(meta["learning"])
+        except (TypeError, ValueError, AttributeError) as err:
+            raise RunDirError(f"{path}: bad configuration ({err}); {RECOVER}") from None
+        series = {k: meta[k] for k in cls.SERIES}
+        series.update({k: meta.get(k, []) for k in cls.EVAL_SERIES})
+        for key in cls.LATER_SERIES:
+            like = "J" if key in cls.MONTH_LATER_SERIES else "J_eval"
+            default = [None] * len(series[like]) if isinstance(series[like], list) else []
+            series[key] = meta.get(key, default)
+        _check_series(path, series, system.n)
+        theta_final = meta["theta_final"]
+        n_theta = len(PARTS) * system.n
+        if not _numbers(theta_final, (n_theta,) if series["J"] else None):
+            raise RunDirError(
+                f"{path}: theta_final has {_length(theta_final)} entries, expected {n_theta}; "
+                f"{RECOVER}")
+        for key in cls.NUMBER_SERIES:
+            series[key] = _nan_for_null(series[key])
+        hist = cls(system=system, mpc=mpc, learning=learning,
+                   theta_final=_nan_for_null(theta_final), backend=str(meta.get("backend", "")),
+                   **series)
+        hist._load_months(files.get(rundir.HISTORY_NPZ), Path(directory) / rundir.HISTORY_NPZ)
+        return hist
+
+    def _load_months(self, data: bytes | None, path: Path) -> None:
+        if data is None:
+            if self.months:
+                raise RunDirError(
+                    f"{path} is missing but history.json records {self.months} months (the "
+                    f"first and last month's trajectories are lost); {RECOVER}")
+            return
+        try:
+            with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+                arrays = {k: npz[k] for k in npz.files}
+        except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
+            raise RunDirError(f"{path} cannot be read ({err}); {RECOVER}") from None
+        H, D, n = self.system.hours_per_day, self.learning.days_per_month, self.system.n
+        for prefix in ("first", "last"):
+            names = [f"{prefix}_{k}" for k in RECORD_ARRAYS]
+            present = [k for k in names if k in arrays]
+            if not present:
+                if self.months:
+                    raise RunDirError(
+                        f"{path} lacks the {prefix} month's arrays but history.json records "
+                        f"{self.months} months; {RECOVER}")
+                continue
+            if len(present) < len(names) or arrays[f"{prefix}_soc"].shape != (H + 1, D, n):
+                raise RunDirError(
+                    f"{path}: the {prefix} month's arrays are incomplete or not of shape "
+                    f"({H + 1}, {D}, {n}); {RECOVER}")
+            record = MonthRecord.from_arrays(arrays, prefix, self.system)
+            setattr(self, f"{prefix}_month", record)
+
+
+def _norm(grad: np.ndarray) -> float:
+    """Euclidean norm that does not overflow for entries beyond ~1e154 (the plain one
+    squares them); equal to :func:`numpy.linalg.norm` wherever that one is finite."""
+    grad = np.asarray(grad, dtype=float)
+    with np.errstate(over="ignore"):
+        value = float(np.linalg.norm(grad))
+    if math.isinf(value) and np.all(np.isfinite(grad)):
+        top = float(np.max(np.abs(grad)))
+        value = top * float(np.linalg.norm(grad / top))
+    return value
+
+
+def _length(value: Any) -> Any:
+    return len(value) if isinstance(value, list) else type(value).__name__
+
+
+def _numbers(value: Any, shape: tuple[int, ...] | None) -> bool:
+    """``value`` is a (nested) list of numbers or nulls of ``shape`` (any length if None)."""
+    if shape is None:
+        return isinstance(value, list)
+    if not isinstance(value, list) or len(value) != shape[0]:
+        return False
+    if len(shape) == 1:
+        return all(v is None or (isinstance(v, (int, float)) and not isinstance(v, bool))
+                   for v in value)
+    return all(_numbers(v, shape[1:]) for v in value)
+
+
+def _check_series(path: Path, series: dict[str, Any], n: int) -> None:
+    """Every series one entry per month (and per evaluation), entries of the right size."""
+    def usual_length(keys: tuple[str, ...]) -> int:
+        """The length most series share (a damaged one stands out against it)."""
+        lengths = Counter(len(series[k]) for k in keys if isinstance(series[k], list))
+        return lengths.most_common(1)[0][0] if lengths else -1
+
+    months = usual_length(History.SERIES)
+    evals = usual_length(History.EVAL_SERIES)
+    eval_keys = History.EVAL_SERIES + History.EVAL_CI_SERIES
+    n_theta = len(PARTS) * n
+    shapes = {"J_per_agent": (n,), "theta": (n_theta,), "J_eval_per_agent": (n,)}
+    for key, value in series.items():
+        count = evals if key in eval_keys else months
+        if not isinstance(value, list) or count < 0 or len(value) != count:
+            raise RunDirError(
+                f"{path}: series {key!r} has {_length(value)} entries, expected {count} "
+                f"like the other series; {RECOVER}")
+        if key in shapes:
+            good = all(_numbers(v, shapes[key]) for v in value)
+        elif key == "update_info":
+            good = all(isinstance(v, dict) for v in value)
+        else:
+            good = _numbers(value, (count,))
+        if not good:
+            shape = f"lists of {shapes[key][0]} numbers" if key in shapes else (
+                "objects" if key == "update_info" else "numbers")
+            raise RunDirError(
+                f"{path}: series {key!r} has entries that are not {shape}; {RECOVER}")
+    eval_month = series["eval_month"]
+    if any(isinstance(m, bool) or not isinstance(m, int) or not 0 <= m < months
+           for m in eval_month):
+        raise RunDirError(f"{path}: eval_month holds months outside 0..{months - 1}; {RECOVER}")
+
+
+def _nan_for_null(value: Any) -> Any:
+    if value is None:
+        return math.nan
+    if isinstance(value, list):
+        return [_nan_for_null(v) for v in value]
+    return value

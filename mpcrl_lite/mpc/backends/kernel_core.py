@@ -1,0 +1,1345 @@
+r"""Compiled (numba) kernels of :class:`~mpcrl_lite.mpc.backends.kernel.KernelSolver`.
+
+The same barrier interior point as :class:`~mpcrl_lite.mpc.backends.batch.BatchSolver` (same start,
+Mehrotra predictor-corrector then pure Newton steps at ``t = tau``, same stopping rule), run
+problem by problem in compiled loops: nothing here allocates inside the Newton iteration.
+The notation follows :mod:`mpcrl_lite.mpc.backends.batch`'s docstring: per problem ``n`` agents,
+``N`` stages; ``X`` (5, n, N) holds ``b, s, soc, sigma_hi, sigma_lo``; ``L`` (n, N) the
+dynamics multipliers; inequality arrays (``S``, ``mu``, ...) are flat, ``m = 8 n N + 2 N``
+entries: the per-agent groups (8, n, N) then the grid rows (2, N) (views :func:`_ag`,
+:func:`_gr`).
+
+Reduced Newton system
+---------------------
+After ``d mu`` is eliminated, a Newton step solves
+
+.. math:: \begin{bmatrix} W & A^\top \\ A & 0\end{bmatrix}
+          \begin{bmatrix} dx\\ d\lambda\end{bmatrix} = \begin{bmatrix} r_1 \\ r_2\end{bmatrix},
+          \qquad W = H + C^\top D C .
+
+The slack variables ``sigma_hi, sigma_lo`` are eliminated in closed form (``W_soc = 1/V``).
+Two factorisations of the rest are implemented; :func:`choose_method` picks the cheaper one.
+
+``STAGE`` (few agents): per stage ``j``, the ``b`` block of ``W`` is
+``diag(1/vb) + D_grid,b 1 1'`` (rank one over the agents), inverted exactly by
+Sherman-Morrison, ``W_b^{-1} = diag(vb) - kappa_b vb vb'`` with
+``kappa_b = D_grid,b / (1 + D_grid,b sum vb)`` (likewise ``s``); ``soc`` has a diagonal block.
+Eliminating ``b, s, soc`` leaves the symmetric positive definite block-tridiagonal system
+``T d lambda = rho`` with ``n x n`` blocks
+
+.. math:: T_{jj} = \mathrm{diag}(V_j + V_{j-1}) + \mathrm{diag}(\alpha)
+          (W_{b,j}^{-1} + W_{s,j}^{-1})\,\mathrm{diag}(\alpha),\qquad
+          T_{j,j+1} = -\mathrm{diag}(V_j),
+
+eliminated stage by stage, ``Sigma_j = T_jj - diag(V_{j-1}) Sigma_{j-1}^{-1}
+diag(V_{j-1})``, keeping ``Sigma_j^{-1}`` (an ``L D L'`` factorisation of the small block and
+its inverse): the solves are then matrix-vector products, ``O(N n^3)`` per step.
+
+``AGENT`` (many agents): as in the batch solver, per-agent tridiagonal systems in
+``d lambda_i`` (backward pivots, ``O(N)`` per solve) plus the ``2N x 2N`` Schur complement
+``M`` of the grid forces (Jacobi-scaled Cholesky): ``O(n N^2 + N^3)`` per step.
+
+Both restore the exact relation ``sum_i db_i = g_b / D_grid`` where a grid limit is hard
+(``D_grid sum vb > 1``; see the batch solver's docstring for why).
+
+Sensitivity
+-----------
+The adjoint ``(dR/dy)' Z = S_y'`` is the same reduced system with the ``n`` right-hand sides
+``(+1 at b_0, -1 at s_0)`` of each agent, solved with a factorisation at the solution; then
+``grad = -(dR/dtheta)' Z`` with ``dR/dtheta`` in closed form (the table in
+:mod:`mpcrl_lite.mpc.backends.batch`) and the conditioning proxy ``||K||_max ||Z||_max``. Column by
+column, every column gets at least one step of iterative refinement (as the batch solver's
+full adjoint: where a grid limit binds, an agent's own response and the grid's nearly cancel
+and small entries lose digits that the normwise backward error does not show). For many
+agents (:func:`_adjoint_structured`, ``AGENT`` only) all columns are formed at once,
+``O(n^2 N)``, without refinement, as the batch solver's structured adjoint.
+
+Numerics
+--------
+IEEE arithmetic (``error_model="numpy"``): a division by zero gives inf or NaN, which the
+checks turn into a failure status, never an exception mid-run. Non-finite directions are
+detected in :func:`_solve` (``0 * v`` is NaN exactly when ``v`` is not finite), the residual
+in :func:`_residual`.
+
+Every function is compiled with numba's on-disk cache; see :mod:`mpcrl_lite.mpc.backends.kernel`
+for where the cache lives and how to fill it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from ..._util import jit
+from ..._util.jit import CACHED, njit_cached
+
+log = logging.getLogger("mpcrl_lite.mpc.backends.kernel")
+
+
+# IEEE arithmetic (x / 0 is inf or NaN, detected by the checks) instead of Python's
+# ZeroDivisionError: no exception can escape mid-run, and divisions in loops vectorise
+_jit = njit_cached(error_model="numpy")
+_inline = njit_cached(error_model="numpy", inline="always")  # helpers of hot loops
+
+# status codes of a solve (strings in kernel_solver)
+CONVERGED, MAX_ITER, NON_FINITE, BREAKDOWN = 0, 1, 2, 3
+# codes of a sensitivity
+SENS_OK, SENS_SKIPPED, SENS_NOT_INTERIOR, SENS_SINGULAR = 0, 1, 2, 3
+# factorisations
+STAGE, AGENT = 0, 1
+
+# rows of the option vector ``opts``
+(O_TAU, O_TOL, O_MAX_ITER, O_U, O_P, O_HI, O_LO, O_OM_HI, O_OM_LO, O_U0, O_T0_COLD,
+ O_T0_WARM, O_WARM_MARGIN, O_WARM_WEIGHT, O_SLACK_MARGIN, O_SWITCH) = range(16)
+N_OPTS = 16
+# rows of the per-stage weights ``stagew`` (5, N)
+W_DISC, W_WSOC, W_TERM, W_QSHI, W_QSLO = range(5)
+# rows of the per-agent-stage factor array ``F`` (11, n, N); F_IPIV, F_RAT: agent method
+F_VB, F_VS, F_V, F_C4, F_C5, F_ISHI, F_ISLO, F_BB, F_BS, F_IPIV, F_RAT = range(11)
+N_F = 11
+# rows of the per-stage grid factor array ``FG`` (6, N): kappa, sum of vb or vs, D of the
+# grid rows
+G_KB, G_KS, G_SVB, G_SVS, G_DB, G_DS = range(6)
+N_G = 6
+
+_ETA = 0.995
+_TINY = 1e-300
+_REFINE_MAX = 4
+_BACKWARD_ERROR_GOOD = 1e-14
+
+
+# ----------------------------------------------------------------------------- helpers ----
+def choose_method(n: int, N: int) -> int:
+    """``STAGE`` when its block Cholesky (``~2 N n^3`` flops per step) is cheaper than the
+    agent method's Schur complement (``~4 n N^2 + 8 N^3 / 3``)."""
+    stage = 2.0 * N * n ** 3
+    agent = 4.0 * n * N * N + 8.0 * N ** 3 / 3.0
+    return STAGE if stage <= agent else AGENT
+
+
+@_inline
+def _ag(a, n, N):
+    """The per-agent groups (8, n, N) of a flat inequality array (a view)."""
+    return a[: 8 * n * N].reshape((8, n, N))
+
+
+@_inline
+def _gr(a, n, N):
+    """The grid rows (2, N) of a flat inequality array (a view)."""
+    return a[8 * n * N :].reshape((2, N))
+
+
+@_inline
+def _amax(a, v):
+    """``max(a, |v|)`` that keeps a NaN once one was seen."""
+    v = abs(v)
+    if v > a or math.isnan(v):
+        return v
+    return a
+
+
+@_jit
+def _problem_data(p, n, N, stagew, opts, soc0, alpha, delta, qb, qs, hsoc, qsoc, e):
+    """QP data of one parameter vector ``p`` (``MPC.parameters`` layout) in the internal
+    layout; returns ``(scale, c)``: the price scale ``1 + max |q_b, q_s|`` and the cost's
+    constant (the batch solver's ``_data``)."""
+    th = n + 2 * N
+    hi, lo = opts[O_HI], opts[O_LO]
+    sum_w = 0.0
+    for j in range(N):
+        sum_w += stagew[W_WSOC, j]
+    c = 0.0
+    scale = 0.0
+    sum_phi3 = 0.0
+    sum_t3 = 0.0
+    for i in range(n):
+        soc0[i] = p[i]
+        alpha[i] = p[th + i]
+        delta[i] = p[th + n + i]
+        tb, ts = p[th + 2 * n + i], p[th + 3 * n + i]
+        phi1, phi2, phi3 = p[th + 4 * n + i], p[th + 5 * n + i], p[th + 6 * n + i]
+        t1, t2, t3 = p[th + 7 * n + i], p[th + 8 * n + i], p[th + 9 * n + i]
+        sum_phi3 += phi3
+        sum_t3 += t3
+        s0 = soc0[i]
+        c += phi1 * s0 ** 2 + phi2 * s0 + phi3
+        c += opts[O_OM_HI] * max(s0 - hi, 0.0) + opts[O_OM_LO] * max(lo - s0, 0.0)
+        for j in range(N):
+            disc = stagew[W_DISC, j]
+            qb[i, j] = disc * (p[n + j] + tb)
+            qs[i, j] = -disc * (p[n + N + j] + ts)
+            scale = max(scale, abs(qb[i, j]), abs(qs[i, j]))
+            wsoc, term = stagew[W_WSOC, j], stagew[W_TERM, j]
+            hsoc[i, j] = 2.0 * (phi1 * wsoc + t1 * term)
+            qsoc[i, j] = phi2 * wsoc + t2 * term
+            e[i, j] = delta[i]
+        e[i, 0] += s0
+    c += sum_w * sum_phi3 + sum_t3
+    return 1.0 + scale, c
+
+
+@_jit
+def _slacks(X, U, P, hi, lo, S):
+    """``S = d - C x`` (flat)."""
+    n, N = X.shape[1], X.shape[2]
+    SA, SG = _ag(S, n, N), _gr(S, n, N)
+    for i in range(n):
+        for j in range(N):
+            b, s, soc, shi, slo = X[0, i, j], X[1, i, j], X[2, i, j], X[3, i, j], X[4, i, j]
+            SA[0, i, j] = b
+            SA[1, i, j] = U - b
+            SA[2, i, j] = s
+            SA[3, i, j] = U - s
+            SA[4, i, j] = (shi - soc) + hi
+            SA[5, i, j] = (soc + slo) - lo
+            SA[6, i, j] = shi
+            SA[7, i, j] = slo
+    for j in range(N):
+        tb = 0.0
+        ts = 0.0
+        for i in range(n):
+            tb += X[0, i, j]
+            ts += X[1, i, j]
+        SG[0, j] = P - tb
+        SG[1, j] = P - ts
+
+
+@_jit
+def _residual(X, L, Mu, S, alpha, qb, qs, hsoc, qsoc, stagew, e, opts, scale, base, rp):
+    """The slacks ``S = d - C x`` (flat), ``base = H x + q + A' lam`` (5, n, N) and
+    ``rp = A x - e`` (n, N) in place; returns the scaled KKT residual
+    ``max(max(|r_d|, |mu S - tau|) / scale, |r_p|)`` of the batch solver (inf if anything
+    is not finite) and ``sum(mu S)``. (Flat indices: group ``g``, agent ``i``, stage ``j``
+    at ``g n N + i N + j``, grid row ``v`` at ``8 n N + v N + j``.)"""
+    n, N = L.shape
+    nN = n * N
+    go = 8 * nN
+    U, P, hi, lo, tau = opts[O_U], opts[O_P], opts[O_HI], opts[O_LO], opts[O_TAU]
+    ed = 0.0
+    ep = 0.0
+    ec = 0.0
+    comp = 0.0
+    check = 0.0  # 0 * v is NaN exactly when v is not finite
+    for j in range(N):
+        tb = 0.0
+        ts = 0.0
+        for i in range(n):
+            tb += X[0, i, j]
+            ts += X[1, i, j]
+        S[go + j] = P - tb
+        S[go + N + j] = P - ts
+        for k in (go + j, go + N + j):
+            c = Mu[k] * S[k]
+            comp += c
+            ec = max(ec, abs(c - tau))
+    for i in range(n):
+        a = alpha[i]
+        for j in range(N):
+            k = i * N + j
+            b, sl, soc, shi, slo = X[0, i, j], X[1, i, j], X[2, i, j], X[3, i, j], X[4, i, j]
+            S[k] = b
+            S[nN + k] = U - b
+            S[2 * nN + k] = sl
+            S[3 * nN + k] = U - sl
+            S[4 * nN + k] = (shi - soc) + hi
+            S[5 * nN + k] = (soc + slo) - lo
+            S[6 * nN + k] = shi
+            S[7 * nN + k] = slo
+            for g in range(8):
+                c = Mu[g * nN + k] * S[g * nN + k]
+                comp += c
+                ec = max(ec, abs(c - tau))
+            aL = a * L[i, j]
+            b0 = qb[i, j] - aL
+            b1 = qs[i, j] + aL
+            b2 = hsoc[i, j] * soc + qsoc[i, j] + L[i, j]
+            if j < N - 1:
+                b2 -= L[i, j + 1]
+            base[0, i, j] = b0
+            base[1, i, j] = b1
+            base[2, i, j] = b2
+            base[3, i, j] = stagew[W_QSHI, j]
+            base[4, i, j] = stagew[W_QSLO, j]
+            m4, m5 = Mu[4 * nN + k], Mu[5 * nN + k]
+            d0 = b0 + (Mu[go + j] - (Mu[k] - Mu[nN + k]))
+            d1 = b1 + (Mu[go + N + j] - (Mu[2 * nN + k] - Mu[3 * nN + k]))
+            d2 = b2 + (m4 - m5)
+            d3 = stagew[W_QSHI, j] - (m4 + Mu[6 * nN + k])
+            d4 = stagew[W_QSLO, j] - (m5 + Mu[7 * nN + k])
+            ed = max(ed, abs(d0), abs(d1), abs(d2), abs(d3), abs(d4))
+            r = soc - a * (b - sl)
+            if j > 0:
+                r -= X[2, i, j - 1]
+            r -= e[i, j]
+            rp[i, j] = r
+            ep = max(ep, abs(r))
+            check += 0.0 * (d0 + d1 + d2 + d3 + d4 + r)
+    err = max(max(ed, ec) / scale, ep)
+    if check != 0.0 or not math.isfinite(err) or math.isnan(comp):
+        return np.inf, comp
+    return err, comp
+
+
+# ------------------------------------------------------------------------ factorisation ----
+@_jit
+def _cholesky(A, m):
+    """In-place lower Cholesky factor of the leading ``m x m`` block of ``A`` (only the lower
+    triangle is read), with the *reciprocals* of the pivots on the diagonal; False if ``A``
+    is not positive definite (or not finite)."""
+    for k in range(m):
+        d = A[k, k]
+        for l in range(k):
+            d -= A[k, l] * A[k, l]
+        if not d > 0.0 or not math.isfinite(d):
+            return False
+        inv = 1.0 / math.sqrt(d)
+        A[k, k] = inv
+        for i in range(k + 1, m):
+            v = A[i, k]
+            for l in range(k):
+                v -= A[i, l] * A[k, l]
+            A[i, k] = v * inv
+    return True
+
+
+@_inline
+def _cholesky_solve(Lc, x, m):
+    """``x <- (Lc Lc')^{-1} x`` in place (``Lc`` from :func:`_cholesky`)."""
+    for i in range(m):
+        v = x[i]
+        for l in range(i):
+            v -= Lc[i, l] * x[l]
+        x[i] = v * Lc[i, i]
+    for i in range(m - 1, -1, -1):
+        v = x[i]
+        for l in range(i + 1, m):
+            v -= Lc[l, i] * x[l]
+        x[i] = v * Lc[i, i]
+
+
+@_jit
+def _factor(S, Mu, IS, D, alpha, hsoc, method, F, FG, SI, AW, TI, MC, MS, tmp):
+    """Factorise the reduced KKT matrix at ``S, mu`` (``IS = 1 / S``, ``D = mu / S`` are
+    filled too); False on breakdown."""
+    n, N = alpha.shape[0], FG.shape[1]
+    nN = n * N
+    go = 8 * nN
+    for k in range(S.size):
+        inv = 1.0 / S[k]
+        IS[k] = inv
+        D[k] = Mu[k] * inv
+    for i in range(n):
+        a = alpha[i]
+        for j in range(N):
+            k = i * N + j
+            d4, d5, d6, d7 = D[4 * nN + k], D[5 * nN + k], D[6 * nN + k], D[7 * nN + k]
+            # two reciprocals from one division (products of two D stay far inside the
+            # floating-point range)
+            whi, wlo = d4 + d6, d5 + d7
+            wb, ws = D[k] + D[nN + k], D[2 * nN + k] + D[3 * nN + k]
+            inv = 1.0 / (whi * wlo)
+            ishi, islo = wlo * inv, whi * inv
+            inv = 1.0 / (wb * ws)
+            vb, vs = ws * inv, wb * inv
+            c4 = d4 * ishi
+            c5 = d5 * islo
+            F[F_ISHI, i, j] = ishi
+            F[F_ISLO, i, j] = islo
+            F[F_C4, i, j] = c4
+            F[F_C5, i, j] = c5
+            F[F_V, i, j] = 1.0 / (hsoc[i, j] + c4 * d6 + c5 * d7)
+            F[F_VB, i, j] = vb
+            F[F_VS, i, j] = vs
+            F[F_BB, i, j] = a * vb
+            F[F_BS, i, j] = a * vs
+    for j in range(N):
+        svb = 0.0
+        svs = 0.0
+        for i in range(n):
+            svb += F[F_VB, i, j]
+            svs += F[F_VS, i, j]
+        db, ds = D[go + j], D[go + N + j]
+        FG[G_SVB, j] = svb
+        FG[G_SVS, j] = svs
+        FG[G_DB, j] = db
+        FG[G_DS, j] = ds
+        FG[G_KB, j] = db / (1.0 + db * svb)
+        FG[G_KS, j] = ds / (1.0 + ds * svs)
+    if method == STAGE:
+        return _factor_stage(alpha, F, FG, SI, AW, tmp)
+    return _factor_agent(alpha, F, FG, TI, MC, MS)
+
+
+@_jit
+def _factor_stage(alpha, F, FG, SI, A, dv):
+    """Block elimination of the block-tridiagonal ``T`` (see the module docstring):
+    ``SI[j] = Sigma_j^{-1}`` (symmetric, both triangles) from ``Sigma_j = T_jj - diag(V_{j-1})
+    Sigma_{j-1}^{-1} diag(V_{j-1})``, each by an ``L D L'`` factorisation (``A``, ``dv``
+    scratch); False if a ``Sigma_j`` is not positive definite."""
+    n, N = alpha.shape[0], F.shape[2]
+    for j in range(N):
+        kb, ks = FG[G_KB, j], FG[G_KS, j]
+        for i in range(n):
+            bbi, bsi = F[F_BB, i, j], F[F_BS, i, j]
+            for k in range(i + 1):
+                A[i, k] = -(kb * bbi * F[F_BB, k, j] + ks * bsi * F[F_BS, k, j])
+            A[i, i] += F[F_V, i, j] + alpha[i] * (bbi + bsi)
+        if j > 0:
+            for i in range(n):
+                vi = F[F_V, i, j - 1]
+                A[i, i] += vi
+                for k in range(i + 1):
+                    A[i, k] -= vi * SI[j - 1, i, k] * F[F_V, k, j - 1]
+        # L D L': unit lower L below the diagonal of A, D in dv
+        for k in range(n):
+            dk = A[k, k]
+            for l in range(k):
+                dk -= A[k, l] * A[k, l] * dv[l]
+            if not dk > 0.0 or not math.isfinite(dk):
+                return False
+            dv[k] = dk
+            inv = 1.0 / dk
+            for i in range(k + 1, n):
+                v = A[i, k]
+                for l in range(k):
+                    v -= A[i, l] * A[k, l] * dv[l]
+                A[i, k] = v * inv
+            dv[n + k] = inv
+        # L^{-1} (unit lower, its diagonal stored) in place of L, then
+        # Sigma^{-1} = L^{-T} D^{-1} L^{-1}
+        for c in range(n):
+            A[c, c] = 1.0
+            for i in range(c + 1, n):
+                v = -A[i, c]
+                for l in range(c + 1, i):
+                    v -= A[i, l] * A[l, c]
+                A[i, c] = v
+        for i in range(n):
+            for k in range(i + 1):
+                v = 0.0
+                for l in range(i, n):
+                    v += A[l, i] * dv[n + l] * A[l, k]
+                SI[j, i, k] = v
+                SI[j, k, i] = v
+    return True
+
+
+@_jit
+def _factor_agent(alpha, F, FG, TI, MC, MS):
+    """Per-agent tridiagonal factors (reciprocal backward pivots ``F_IPIV``, ratios
+    ``F_RAT``) and the Jacobi-scaled Cholesky factor ``MC`` of the grid Schur complement
+    (scaling ``MS``); the scaled ``M`` itself is kept in ``TI`` (lower triangle)."""
+    n, N = alpha.shape[0], F.shape[2]
+    m = 2 * N
+    for a in range(m):
+        for b in range(a + 1):
+            MC[a, b] = 0.0
+    for i in range(n):
+        ai = alpha[i]
+        # T_i = tridiag(-V_{j-1}, V_j + V_{j-1} + alpha (beta_b + beta_s), -V_j) = U G U'
+        # with the backward pivots g_j = a_j - V_j^2 / g_{j+1}
+        F[F_RAT, i, N - 1] = 0.0
+        ig_next = 0.0
+        for j in range(N - 1, -1, -1):
+            Vj = F[F_V, i, j]
+            g = Vj + ai * (F[F_BB, i, j] + F[F_BS, i, j])
+            if j > 0:
+                g += F[F_V, i, j - 1]
+            if j < N - 1:
+                r = Vj * ig_next
+                F[F_RAT, i, j] = r
+                g -= Vj * r
+            if not g > 0.0 or not math.isfinite(g):
+                return False
+            ig_next = 1.0 / g
+            F[F_IPIV, i, j] = ig_next
+        # T_i^{-1} is semiseparable: (T^{-1})_jk = s_j prod_{l=j}^{k-1} r_l for j <= k with
+        # s_j = r_{j-1}^2 s_{j-1} + 1 / g_j (positive terms only)
+        s = 0.0
+        for j in range(N):
+            if j > 0:
+                r = F[F_RAT, i, j - 1]
+                s *= r * r
+            s += F[F_IPIV, i, j]
+            val = s
+            for k in range(j, N):
+                TI[j, k] = val
+                val *= F[F_RAT, i, k]
+                if val < 1e-290:  # the rest underflows: exact zeros, no denormals
+                    val = 0.0
+        # M -= B_i' T_i^{-1} B_i, B_i = [diag(beta_b), -diag(beta_s)] (lower triangle)
+        for j in range(N):
+            bbj, bsj = F[F_BB, i, j], F[F_BS, i, j]
+            for k in range(j, N):
+                t = TI[j, k]
+                if t == 0.0:
+                    break
+                bbk, bsk = F[F_BB, i, k], F[F_BS, i, k]
+                MC[k, j] -= bbj * bbk * t
+                MC[N + k, N + j] -= bsj * bsk * t
+                MC[N + k, j] += bbj * bsk * t
+                if k > j:
+                    MC[N + j, k] += bbk * bsj * t
+    for j in range(N):
+        MC[j, j] += 1.0 / FG[G_DB, j] + FG[G_SVB, j]
+        MC[N + j, N + j] += 1.0 / FG[G_DS, j] + FG[G_SVS, j]
+    for a in range(m):
+        d = MC[a, a]
+        if not d > 0.0 or not math.isfinite(d):
+            return False
+        MS[a] = 1.0 / math.sqrt(d)
+    for a in range(m):
+        for b in range(a + 1):
+            MC[a, b] *= MS[a] * MS[b]
+            TI[a, b] = MC[a, b]
+    return _cholesky(MC, m)
+
+
+# ------------------------------------------------------------------------------- solves ----
+@_inline
+def _tri_solve(F, i, x):
+    """``x[:N] <- T_i^{-1} x[:N]`` with the backward pivots of agent ``i`` (``T = U G U'``)."""
+    N = F.shape[2]
+    for j in range(N - 2, -1, -1):
+        x[j] += F[F_RAT, i, j] * x[j + 1]
+    for j in range(N):
+        x[j] *= F[F_IPIV, i, j]
+    for j in range(1, N):
+        x[j] += F[F_RAT, i, j - 1] * x[j - 1]
+
+
+@_jit
+def _solve(r1, r2, dx, dl, alpha, F, FG, method, SI, AW, MC, MS, rsp, w, wg, only):
+    """Solve the reduced system for ``(r1 (5, n, N), r2 (n, N))`` into ``dx, dl``.
+
+    ``only >= 0`` says that ``r1, r2`` vanish outside agent ``only`` (adjoint columns; the
+    agent method then skips the other agents' local solves). Returns False when the result
+    is not finite.
+    """
+    n, N = alpha.shape[0], r2.shape[1]
+    for i in range(n):
+        for j in range(N):
+            rsp[i, j] = r1[2, i, j] + F[F_C4, i, j] * r1[3, i, j] - F[F_C5, i, j] * r1[4, i, j]
+    if method == STAGE:
+        _solve_stage(r1, r2, dx, dl, alpha, F, FG, SI, rsp, w)
+    else:
+        _solve_agent(r1, r2, dx, dl, alpha, F, FG, MC, MS, rsp, w, wg, only)
+    check = 0.0
+    for i in range(n):
+        for j in range(N):
+            dsoc = rsp[i, j] - dl[i, j]
+            if j < N - 1:
+                dsoc += dl[i, j + 1]
+            dsoc *= F[F_V, i, j]
+            dx[2, i, j] = dsoc
+            dx[3, i, j] = F[F_ISHI, i, j] * r1[3, i, j] + F[F_C4, i, j] * dsoc
+            dx[4, i, j] = F[F_ISLO, i, j] * r1[4, i, j] - F[F_C5, i, j] * dsoc
+            # 0 * v is NaN exactly when v is not finite
+            check += 0.0 * (dsoc + dx[0, i, j] + dx[1, i, j] + dl[i, j])
+    return check == 0.0
+
+
+@_jit
+def _solve_stage(r1, r2, dx, dl, alpha, F, FG, SI, rsp, w):
+    """Block-tridiagonal solve (``STAGE``), then ``db, ds``."""
+    n, N = alpha.shape[0], r2.shape[1]
+    # forward: w_j = Sigma_j^{-1} (rho_j + V_{j-1} w_{j-1}), kept in dl[:, j]
+    for j in range(N):
+        kb, ks = FG[G_KB, j], FG[G_KS, j]
+        tb = 0.0
+        ts = 0.0
+        for i in range(n):
+            tb += F[F_VB, i, j] * r1[0, i, j]
+            ts += F[F_VS, i, j] * r1[1, i, j]
+        for i in range(n):
+            vb, vs = F[F_VB, i, j], F[F_VS, i, j]
+            wb = vb * (r1[0, i, j] - kb * tb)  # W_b^{-1} r_b (Sherman-Morrison)
+            ws = vs * (r1[1, i, j] - ks * ts)
+            rho = F[F_V, i, j] * rsp[i, j] - r2[i, j] - alpha[i] * (wb - ws)
+            if j > 0:
+                rho += F[F_V, i, j - 1] * (dl[i, j - 1] - rsp[i, j - 1])
+            w[i] = rho
+        for i in range(n):
+            v = 0.0
+            for k in range(n):
+                v += SI[j, i, k] * w[k]
+            dl[i, j] = v
+    # backward: dl_j = w_j + Sigma_j^{-1} V_j dl_{j+1}
+    for j in range(N - 2, -1, -1):
+        for k in range(n):
+            w[k] = F[F_V, k, j] * dl[k, j + 1]
+        for i in range(n):
+            v = dl[i, j]
+            for k in range(n):
+                v += SI[j, i, k] * w[k]
+            dl[i, j] = v
+    # db = W_b^{-1} (r_b + alpha dl), ds = W_s^{-1} (r_s - alpha dl)
+    for j in range(N):
+        _grid_block(r1, dl, alpha, F, dx, 0, F_VB, 1.0, FG[G_KB, j], FG[G_SVB, j], FG[G_DB, j],
+                    j)
+        _grid_block(r1, dl, alpha, F, dx, 1, F_VS, -1.0, FG[G_KS, j], FG[G_SVS, j],
+                    FG[G_DS, j], j)
+
+
+@_inline
+def _grid_block(r1, dl, alpha, F, dx, v, fv, sgn, kap, sv, dg, j):
+    """``d = W^{-1} (r + sgn alpha dl)`` of the ``b`` (``v = 0``) or ``s`` block of stage
+    ``j`` by Sherman-Morrison, ``W^{-1} = diag(vb) - kappa vb vb'``."""
+    n = alpha.shape[0]
+    t = 0.0
+    for i in range(n):
+        t += F[fv, i, j] * (r1[v, i, j] + sgn * alpha[i] * dl[i, j])
+    tot = 0.0
+    for i in range(n):
+        d = F[fv, i, j] * (r1[v, i, j] + sgn * alpha[i] * dl[i, j] - kap * t)
+        dx[v, i, j] = d
+        tot += d
+    # the exact flow is sum_i d_i = t / (1 + D_grid sum v): restore it where the limit is
+    # hard (its rounding error times D_grid would spoil the step)
+    if dg * sv > 1.0:
+        delta = (t / (1.0 + dg * sv) - tot) / sv
+        for i in range(n):
+            dx[v, i, j] += F[fv, i, j] * delta
+
+
+@_jit
+def _solve_agent(r1, r2, dx, dl, alpha, F, FG, MC, MS, rsp, w, wg, only):
+    """Per-agent local solves, grid forces from ``M``, every agent's response (``AGENT``)."""
+    n, N = alpha.shape[0], r2.shape[1]
+    for a in range(2 * N):
+        wg[a] = 0.0
+    for i in range(n):
+        if only >= 0 and i != only:
+            for j in range(N):
+                dl[i, j] = 0.0
+            continue
+        for j in range(N):
+            rho = F[F_V, i, j] * rsp[i, j] - r2[i, j] - F[F_BB, i, j] * r1[0, i, j] \
+                + F[F_BS, i, j] * r1[1, i, j]
+            if j > 0:
+                rho -= F[F_V, i, j - 1] * rsp[i, j - 1]
+            w[j] = rho
+        _tri_solve(F, i, w)
+        for j in range(N):
+            dl[i, j] = w[j]
+            wg[j] += F[F_VB, i, j] * (r1[0, i, j] + alpha[i] * w[j])
+            wg[N + j] += F[F_VS, i, j] * (r1[1, i, j] - alpha[i] * w[j])
+    m = 2 * N
+    for a in range(m):
+        wg[a] *= MS[a]
+    _cholesky_solve(MC, wg, m)
+    for a in range(m):
+        wg[a] *= MS[a]
+    for i in range(n):
+        ai = alpha[i]
+        for j in range(N):
+            w[j] = F[F_BB, i, j] * wg[j] - F[F_BS, i, j] * wg[N + j]
+        _tri_solve(F, i, w)
+        for j in range(N):
+            d = dl[i, j] + w[j]
+            dl[i, j] = d
+            dx[0, i, j] = F[F_VB, i, j] * (r1[0, i, j] + ai * d - wg[j])
+            dx[1, i, j] = F[F_VS, i, j] * (r1[1, i, j] - ai * d - wg[N + j])
+    # the exact flow is sum_i db_i = g_b / D_grid: restore it where the limit is hard
+    for v in range(2):
+        fv = F_VB if v == 0 else F_VS
+        for j in range(N):
+            sv = 0.0
+            tot = 0.0
+            for i in range(n):
+                sv += F[fv, i, j]
+                tot += dx[v, i, j]
+            dg = FG[G_DB + v, j]
+            if dg * sv > 1.0:
+                delta = wg[v * N + j] / dg - tot
+                for i in range(n):
+                    dx[v, i, j] += F[fv, i, j] / sv * delta
+
+
+# ----------------------------------------------------------------------- Newton steps ----
+@_inline
+def _to_boundary(x, dx, tmp):
+    """``min_k x_k / max(-dx_k, tiny)``: the largest step keeping ``x > 0`` (the batch
+    solver's formula). Without branches (the signs of real directions would be mispredicted
+    half the time): the quotients in one vectorised loop, their minimum in four independent
+    chains."""
+    m = x.size
+    for k in range(m):
+        tmp[k] = x[k] / max(-dx[k], _TINY)
+    a0 = np.inf
+    a1 = np.inf
+    a2 = np.inf
+    a3 = np.inf
+    k = 0
+    while k + 4 <= m:
+        a0 = min(a0, tmp[k])
+        a1 = min(a1, tmp[k + 1])
+        a2 = min(a2, tmp[k + 2])
+        a3 = min(a3, tmp[k + 3])
+        k += 4
+    while k < m:
+        a0 = min(a0, tmp[k])
+        k += 1
+    return min(min(a0, a1), min(a2, a3))
+
+
+@_jit
+def _direction(t, has_corr, Cr, S, IS, Mu, D, base, rp, alpha, F, FG, method, SI, AW, MC, MS,
+               r1, r2, dX, dL, dS, dMu, rsp, w, wg, tmp):
+    """Newton direction for the barrier target ``t`` (with Mehrotra's corrector ``Cr`` when
+    ``has_corr``); fills ``dX, dL, dS, dMu`` and returns ``(ok, ap, ad)``: False when not
+    finite, and the largest primal and dual steps keeping ``S`` and ``mu`` positive
+    (``min S / -dS``, ``min mu / -dmu``; huge if nothing decreases)."""
+    n, N = alpha.shape[0], FG.shape[1]
+    nN = n * N
+    go = 8 * nN
+    # U = (t - corr) / S, kept in dMu until dMu = U - mu - D dS overwrites it
+    if has_corr:
+        for k in range(IS.size):
+            dMu[k] = (t - Cr[k]) * IS[k]
+    else:
+        for k in range(IS.size):
+            dMu[k] = t * IS[k]
+    # r1 = -(base + C' U), r2 = -rp
+    for i in range(n):
+        for j in range(N):
+            k = i * N + j
+            u4, u5 = dMu[4 * nN + k], dMu[5 * nN + k]
+            r1[0, i, j] = -(base[0, i, j] + (dMu[go + j] - (dMu[k] - dMu[nN + k])))
+            r1[1, i, j] = -(base[1, i, j] + (dMu[go + N + j] - (dMu[2 * nN + k]
+                                                               - dMu[3 * nN + k])))
+            r1[2, i, j] = -(base[2, i, j] + (u4 - u5))
+            r1[3, i, j] = -(base[3, i, j] - (u4 + dMu[6 * nN + k]))
+            r1[4, i, j] = -(base[4, i, j] - (u5 + dMu[7 * nN + k]))
+            r2[i, j] = -rp[i, j]
+    ok = _solve(r1, r2, dX, dL, alpha, F, FG, method, SI, AW, MC, MS, rsp, w, wg, -1)
+    # dS = -C dX, dMu = U - mu - D dS
+    for i in range(n):
+        for j in range(N):
+            k = i * N + j
+            db, ds, dsoc, dshi, dslo = dX[0, i, j], dX[1, i, j], dX[2, i, j], dX[3, i, j], \
+                dX[4, i, j]
+            dS[k] = db
+            dS[nN + k] = -db
+            dS[2 * nN + k] = ds
+            dS[3 * nN + k] = -ds
+            dS[4 * nN + k] = dshi - dsoc
+            dS[5 * nN + k] = dsoc + dslo
+            dS[6 * nN + k] = dshi
+            dS[7 * nN + k] = dslo
+    for j in range(N):
+        tb = 0.0
+        ts = 0.0
+        for i in range(n):
+            tb += dX[0, i, j]
+            ts += dX[1, i, j]
+        dS[go + j] = -tb
+        dS[go + N + j] = -ts
+    for k in range(dMu.size):
+        dMu[k] = dMu[k] - Mu[k] - D[k] * dS[k]
+    return ok, _to_boundary(S, dS, tmp), _to_boundary(Mu, dMu, tmp)
+
+
+@_jit
+def _initial_point(soc0, alpha, delta, hsoc, qsoc, x0, warm, opts, scale, X, L, Mu, S):
+    """Strictly interior start on the central path of ``t0`` (the batch solver's rule)."""
+    n, N = L.shape
+    U, P, hi, lo = opts[O_U], opts[O_P], opts[O_HI], opts[O_LO]
+    cap_u = min(U, P / n)
+    u0 = opts[O_U0] * cap_u
+    if not warm:
+        for v in range(2):
+            for i in range(n):
+                for j in range(N):
+                    X[v, i, j] = u0
+        t0 = opts[O_T0_COLD] * scale
+    else:
+        margin = opts[O_WARM_MARGIN] * cap_u
+        wgt = opts[O_WARM_WEIGHT]
+        for v in range(2):
+            for i in range(n):
+                for j in range(N):
+                    val = x0[j * 5 * n + v * n + i]
+                    if not math.isfinite(val):
+                        val = margin
+                    val = min(max(val, margin), U - margin)
+                    X[v, i, j] = wgt * val + (1.0 - wgt) * u0
+        cap = P - n * margin
+        for v in range(2):
+            for j in range(N):
+                tot = 0.0
+                for i in range(n):
+                    tot += X[v, i, j]
+                if tot > cap:
+                    f = cap / tot
+                    for i in range(n):
+                        X[v, i, j] *= f
+        t0 = opts[O_T0_WARM] * scale
+    sm = opts[O_SLACK_MARGIN]
+    for i in range(n):
+        soc = soc0[i]
+        for j in range(N):
+            soc += alpha[i] * (X[0, i, j] - X[1, i, j]) + delta[i]
+            X[2, i, j] = soc
+            X[3, i, j] = max(soc - hi, 0.0) + sm
+            X[4, i, j] = max(lo - soc, 0.0) + sm
+    _slacks(X, U, P, hi, lo, S)
+    for k in range(S.size):
+        Mu[k] = t0 / S[k]
+    # lam solves the soc rows of the dual residual exactly (backward from lam_N = 0)
+    MuA = _ag(Mu, n, N)
+    for i in range(n):
+        acc = 0.0
+        for j in range(N - 1, -1, -1):
+            acc += hsoc[i, j] * X[2, i, j] + qsoc[i, j] + MuA[4, i, j] - MuA[5, i, j]
+            L[i, j] = -acc
+
+
+@_jit
+def _work(n, N, method):
+    """Work arrays of one problem, reused for every problem of a batch: the primal-dual
+    iterate and its direction, the factorisation, right-hand sides and scratch."""
+    m = 8 * n * N + 2 * N
+    nb = n if method == STAGE else 1
+    Nb = N if method == STAGE else 1
+    m2 = 2 * N if method == AGENT else 1
+    X, dX, base, r1 = (np.empty((5, n, N)), np.empty((5, n, N)), np.empty((5, n, N)),
+                       np.empty((5, n, N)))
+    L, dL, rp, r2, rsp = (np.empty((n, N)), np.empty((n, N)), np.empty((n, N)),
+                          np.empty((n, N)), np.empty((n, N)))
+    Mu, S, IS, D, dS, dMu, Cr, R = (np.empty(m), np.empty(m), np.empty(m), np.empty(m),
+                                    np.empty(m), np.empty(m), np.empty(m), np.empty(m))
+    F, FG = np.empty((N_F, n, N)), np.empty((N_G, N))
+    SI, AW = np.empty((Nb, nb, nb)), np.empty((nb, nb))
+    TI, MC, MS = np.empty((m2, m2)), np.empty((m2, m2)), np.empty(m2)
+    w, wg = np.empty(max(2 * n, N)), np.empty(2 * N)
+    return (X, dX, base, r1, L, dL, rp, r2, rsp, Mu, S, IS, D, dS, dMu, Cr, R, F, FG, SI, AW,
+            TI, MC, MS, w, wg)
+
+
+@_jit
+def _data_arrays(n, N):
+    """Per-problem QP data: soc0, alpha, delta (n,) and qb, qs, hsoc, qsoc, e (n, N)."""
+    return (np.empty(n), np.empty(n), np.empty(n), np.empty((n, N)), np.empty((n, N)),
+            np.empty((n, N)), np.empty((n, N)), np.empty((n, N)))
+
+
+@_jit
+def solve_batch(P, x0, warm, opts, stagew, n, N, method, x_out, lam_out, mu_out, cost_out,
+                iters_out, status_out, action_out):
+    """Solve every problem ``P[d]`` (``MPC.parameters`` layout); results in mpc's orderings.
+
+    ``x0`` (days, nx) is read only when ``warm``. Status codes: ``CONVERGED``, ``MAX_ITER``,
+    ``NON_FINITE``, ``BREAKDOWN``; ``action_out`` is ``b_0 - s_0`` where converged, else 0.
+    """
+    days = P.shape[0]
+    (X, dX, base, r1, L, dL, rp, r2, rsp, Mu, S, IS, D, dS, dMu, Cr, R, F, FG, SI, AW, TI, MC,
+     MS, w, wg) = _work(n, N, method)
+    soc0, alpha, delta, qb, qs, hsoc, qsoc, e = _data_arrays(n, N)
+    tau, tol = opts[O_TAU], opts[O_TOL]
+    floor = tol * 1e-5
+    max_iter = int(opts[O_MAX_ITER])
+    switch = opts[O_SWITCH]
+    m = S.size
+    Xf, dXf, Lf, dLf = X.reshape(X.size), dX.reshape(dX.size), L.reshape(L.size), \
+        dL.reshape(dL.size)
+    for d in range(days):
+        scale, cconst = _problem_data(P[d], n, N, stagew, opts, soc0, alpha, delta, qb, qs,
+                                      hsoc, qsoc, e)
+        _initial_point(soc0, alpha, delta, hsoc, qsoc, x0[d] if warm else x0[0], warm, opts,
+                       scale, X, L, Mu, S)
+        iters = 0
+        status = MAX_ITER
+        final = False
+        failed = False
+        err_prev = np.inf
+        while True:
+            err, comp = _residual(X, L, Mu, S, alpha, qb, qs, hsoc, qsoc, stagew, e, opts,
+                                  scale, base, rp)
+            # at the rounding floor, or one Newton step after reaching tol (quadratic
+            # convergence), or no more progress
+            done = err <= floor or (err <= tol and (err_prev <= tol or err > 0.1 * err_prev))
+            bad = not math.isfinite(err)
+            if done or bad or failed or iters >= max_iter:
+                if done:
+                    status = CONVERGED
+                elif bad:
+                    status = NON_FINITE
+                elif failed:
+                    status = BREAKDOWN
+                break
+            err_prev = err
+            ok = _factor(S, Mu, IS, D, alpha, hsoc, method, F, FG, SI, AW, TI, MC, MS, w)
+            t = tau
+            has_corr = False
+            if not final:
+                # Mehrotra's predictor: the affine direction (target 0) and its step
+                mu_avg = comp / m
+                ok_a, ap, ad = _direction(0.0, False, Cr, S, IS, Mu, D, base, rp, alpha, F,
+                                          FG, method, SI, AW, MC, MS, r1, r2, dX, dL, dS, dMu,
+                                          rsp, w, wg, R)
+                ok = ok and ok_a
+                ap, ad = min(1.0, ap), min(1.0, ad)
+                aff = 0.0
+                for k in range(m):
+                    aff += (Mu[k] + ad * dMu[k]) * (S[k] + ap * dS[k])
+                    Cr[k] = dS[k] * dMu[k]
+                ratio = (aff / m) / mu_avg
+                if not math.isfinite(ratio):  # where the batch solver's NaN breaks down
+                    ok = False
+                    ratio = 1.0
+                target = min(max(ratio, 0.0), 1.0) ** 3 * mu_avg
+                t = max(target, tau)
+                has_corr = True
+                final = target <= switch * tau
+            ok_n, ap, ad = _direction(t, has_corr, Cr, S, IS, Mu, D, base, rp, alpha, F, FG,
+                                      method, SI, AW, MC, MS, r1, r2, dX, dL, dS, dMu, rsp, w,
+                                      wg, R)
+            ok = ok and ok_n
+            ap, ad = min(1.0, _ETA * ap), min(1.0, _ETA * ad)
+            if not (ok and math.isfinite(ap) and math.isfinite(ad)):
+                failed = True
+                continue
+            for k in range(Xf.size):
+                Xf[k] += ap * dXf[k]
+            for k in range(Lf.size):
+                Lf[k] += ad * dLf[k]
+            for k in range(m):
+                Mu[k] += ad * dMu[k]
+            iters += 1
+        # results in mpc's orderings
+        MuA, MuG = _ag(Mu, n, N), _gr(Mu, n, N)
+        cost = cconst
+        for i in range(n):
+            for j in range(N):
+                cost += (qb[i, j] * X[0, i, j] + qs[i, j] * X[1, i, j]
+                         + (0.5 * hsoc[i, j] * X[2, i, j] + qsoc[i, j]) * X[2, i, j]
+                         + stagew[W_QSHI, j] * X[3, i, j] + stagew[W_QSLO, j] * X[4, i, j])
+                for k in range(5):
+                    x_out[d, j * 5 * n + k * n + i] = X[k, i, j]
+                lam_out[d, j * n + i] = L[i, j]
+                blk = j * (8 * n + 2)
+                for g in range(4):
+                    mu_out[d, blk + g * n + i] = MuA[g, i, j]
+                    mu_out[d, blk + 4 * n + 2 + g * n + i] = MuA[4 + g, i, j]
+        for j in range(N):
+            blk = j * (8 * n + 2)
+            mu_out[d, blk + 4 * n] = MuG[0, j]
+            mu_out[d, blk + 4 * n + 1] = MuG[1, j]
+        cost_out[d] = cost
+        iters_out[d] = iters
+        status_out[d] = status
+        for i in range(n):
+            action_out[d, i] = X[0, i, 0] - X[1, i, 0] if status == CONVERGED else 0.0
+
+
+# ------------------------------------------------------------------------- sensitivity ----
+@_jit
+def _backward_error(zx, zl, r1, D, alpha, hsoc, rx, rl, magnitudes):
+    """Residual ``(rx, rl) = K z - (r1, 0)`` of an adjoint column (``K`` the reduced KKT
+    matrix) and, with ``magnitudes``, its normwise backward error
+    ``max |K z - r| / (max |K| |z| + 1)`` (inf if not finite, or without ``magnitudes``)."""
+    n, N = zl.shape
+    nN = n * N
+    go = 8 * nN
+    res = 0.0
+    mag = 0.0
+    check = 0.0
+    for j in range(N):
+        tb = 0.0
+        ts = 0.0
+        ab = 0.0
+        at = 0.0
+        for i in range(n):
+            tb += zx[0, i, j]
+            ts += zx[1, i, j]
+            ab += abs(zx[0, i, j])
+            at += abs(zx[1, i, j])
+        dgb, dgs = D[go + j], D[go + N + j]
+        for i in range(n):
+            k = i * N + j
+            a = alpha[i]
+            b, s, soc, shi, slo = zx[0, i, j], zx[1, i, j], zx[2, i, j], zx[3, i, j], \
+                zx[4, i, j]
+            lam = zl[i, j]
+            nxt = zl[i, j + 1] if j < N - 1 else 0.0
+            prev = zx[2, i, j - 1] if j > 0 else 0.0
+            wb, ws = D[k] + D[nN + k], D[2 * nN + k] + D[3 * nN + k]
+            d4, d5, d6, d7 = D[4 * nN + k], D[5 * nN + k], D[6 * nN + k], D[7 * nN + k]
+            u4 = d4 * (soc - shi)  # D_4 C_4 z
+            u5 = d5 * (soc + slo)  # -D_5 C_5 z
+            x0 = wb * b + dgb * tb - a * lam - r1[0, i, j]
+            x1 = ws * s + dgs * ts + a * lam - r1[1, i, j]
+            x2 = hsoc[i, j] * soc + u4 + u5 + lam - nxt - r1[2, i, j]
+            x3 = d6 * shi - u4 - r1[3, i, j]
+            x4 = d7 * slo + u5 - r1[4, i, j]
+            xl = soc - a * b + a * s - prev
+            rx[0, i, j] = x0
+            rx[1, i, j] = x1
+            rx[2, i, j] = x2
+            rx[3, i, j] = x3
+            rx[4, i, j] = x4
+            rl[i, j] = xl
+            res = max(res, abs(x0), abs(x1), abs(x2), abs(x3), abs(x4), abs(xl))
+            check += 0.0 * (x0 + x1 + x2 + x3 + x4 + xl)
+            if magnitudes:
+                aa, asoc = abs(a), abs(soc)
+                m4 = d4 * (asoc + abs(shi))
+                m5 = d5 * (asoc + abs(slo))
+                mag = max(mag, wb * abs(b) + dgb * ab + aa * abs(lam),
+                          ws * abs(s) + dgs * at + aa * abs(lam),
+                          abs(hsoc[i, j]) * asoc + m4 + m5 + abs(lam) + abs(nxt),
+                          d6 * abs(shi) + m4, d7 * abs(slo) + m5,
+                          asoc + aa * (abs(b) + abs(s)) + abs(prev))
+    if not magnitudes or check != 0.0:
+        return np.inf
+    back = res / (mag + 1.0)
+    return np.inf if math.isnan(back) else back
+
+
+@_jit
+def _unpack_solution(x, lam, mu, n, N, X, L, Mu):
+    """``x, lam, mu`` in mpc's orderings -> ``X`` (5, n, N), ``L`` (n, N), flat ``Mu``."""
+    MuA, MuG = _ag(Mu, n, N), _gr(Mu, n, N)
+    for i in range(n):
+        for j in range(N):
+            for k in range(5):
+                X[k, i, j] = x[j * 5 * n + k * n + i]
+            L[i, j] = lam[j * n + i]
+            blk = j * (8 * n + 2)
+            for g in range(4):
+                MuA[g, i, j] = mu[blk + g * n + i]
+                MuA[4 + g, i, j] = mu[blk + 4 * n + 2 + g * n + i]
+    for j in range(N):
+        blk = j * (8 * n + 2)
+        MuG[0, j] = mu[blk + 4 * n]
+        MuG[1, j] = mu[blk + 4 * n + 1]
+
+
+@_jit
+def _grad_column(X, L, zx, zl, stagew, grad, o):
+    """``grad[:, o] = -(dR/dtheta)' Z`` for the adjoint column ``Z = (zx, zl)`` of agent
+    ``o`` (the batch solver's table; phi3 and T3 rows stay 0)."""
+    n, N = L.shape
+    for i in range(n):
+        g0 = 0.0
+        g1 = 0.0
+        g2 = 0.0
+        g3 = 0.0
+        g4 = 0.0
+        g5 = 0.0
+        g7 = 0.0
+        g8 = 0.0
+        for j in range(N):
+            zb, zs, zsoc, zlj = zx[0, i, j], zx[1, i, j], zx[2, i, j], zl[i, j]
+            soc = X[2, i, j]
+            g0 += L[i, j] * (zb - zs) + (X[0, i, j] - X[1, i, j]) * zlj
+            g1 += zlj
+            g2 -= stagew[W_DISC, j] * zb
+            g3 += stagew[W_DISC, j] * zs
+            g4 -= 2.0 * stagew[W_WSOC, j] * soc * zsoc
+            g5 -= stagew[W_WSOC, j] * zsoc
+            g7 -= 2.0 * stagew[W_TERM, j] * soc * zsoc
+            g8 -= stagew[W_TERM, j] * zsoc
+        grad[0 * n + i, o] = g0
+        grad[1 * n + i, o] = g1
+        grad[2 * n + i, o] = g2
+        grad[3 * n + i, o] = g3
+        grad[4 * n + i, o] = g4
+        grad[5 * n + i, o] = g5
+        grad[7 * n + i, o] = g7
+        grad[8 * n + i, o] = g8
+
+
+@_jit
+def _zmax(zx, zl, IS, zmax):
+    """``max(zmax, |Z|)`` over the primal, dual and multiplier rows of an adjoint column,
+    with ``Z_mu = C Z_x / S`` (``IS = 1 / S``; the conditioning proxy's ``||Z||_max``; NaN
+    if not finite)."""
+    n, N = zl.shape
+    nN = n * N
+    go = 8 * nN
+    check = 0.0
+    for j in range(N):
+        tb = 0.0
+        ts = 0.0
+        for i in range(n):
+            k = i * N + j
+            zb, zs, zsoc, zshi, zslo = zx[0, i, j], zx[1, i, j], zx[2, i, j], zx[3, i, j], \
+                zx[4, i, j]
+            tb += zb
+            ts += zs
+            zmax = max(zmax, abs(zb) * max(1.0, IS[k], IS[nN + k]),
+                       abs(zs) * max(1.0, IS[2 * nN + k], IS[3 * nN + k]), abs(zsoc),
+                       abs(zshi) * max(1.0, IS[6 * nN + k]),
+                       abs(zslo) * max(1.0, IS[7 * nN + k]), abs(zl[i, j]),
+                       abs(zsoc - zshi) * IS[4 * nN + k], abs(zsoc + zslo) * IS[5 * nN + k])
+            check += 0.0 * (zb + zs + zsoc + zshi + zslo + zl[i, j])
+        zmax = max(zmax, abs(tb) * IS[go + j], abs(ts) * IS[go + N + j])
+    return zmax if check == 0.0 else np.nan
+
+
+@_jit
+def _adjoint_structured(X, L, Mu, IS, D, alpha, stagew, F, MC, MS, MM, G, Y, Q, RL, acc, w):
+    """All ``n`` adjoint columns at once for many agents (``AGENT`` factorisation, no
+    refinement, as the batch solver's structured adjoint).
+
+    Column ``o`` is agent ``o``'s own local solution plus every agent's response to the grid
+    forces ``g^(o) = M^{-1} q^(o)``; the responses of agent ``i`` to all columns are one
+    tridiagonal solve with ``n`` right-hand sides, and ``grad`` and ``||Z||_max`` are
+    accumulated row by row over the columns (contiguous loops). The adjoint right-hand sides
+    vanish on ``sigma_hi, sigma_lo``, so ``Z_shi = c4 Z_soc``, ``Z_slo = -c5 Z_soc`` and every
+    multiplier row is a multiple of ``Z_b``, ``Z_s`` or ``Z_soc`` (or ``g / mu`` on the grid
+    rows). Writes ``grad`` into ``G`` (10 n, n); returns ``(||Z||_max, normwise backward
+    error of the 2N solves, finite)``. Scratch: ``Y`` (n, N), ``Q`` (2N, n), ``RL``
+    (N + 1, n), ``acc`` (n), ``w`` (2N).
+    """
+    n, N = L.shape
+    m2 = 2 * N
+    IA, DA = _ag(IS, n, N), _ag(D, n, N)
+    off = 8 * n * N
+    # own local parts: K_o y = e_o (+1 at b_0, -1 at s_0) without grid forces; their flows
+    # q^(o) = (db_o, ds_o)
+    for o in range(n):
+        for j in range(N):
+            Y[o, j] = 0.0
+        Y[o, 0] = -(F[F_BB, o, 0] + F[F_BS, o, 0])
+        _tri_solve(F, o, Y[o])
+        for j in range(N):
+            a = alpha[o] * Y[o, j]
+            Q[j, o] = F[F_VB, o, j] * a
+            Q[N + j, o] = -F[F_VS, o, j] * a
+        Q[0, o] += F[F_VB, o, 0]
+        Q[N, o] -= F[F_VS, o, 0]
+    # grid forces g^(o) = M^{-1} q^(o) (Jacobi-scaled M), with the normwise backward error
+    mmax = 0.0
+    for a in range(m2):
+        for b in range(a + 1):
+            mmax = max(mmax, abs(MM[a, b]))
+    back = 0.0
+    for o in range(n):
+        qmax = 0.0
+        for a in range(m2):
+            w[a] = Q[a, o] * MS[a]
+            qmax = max(qmax, abs(w[a]))
+        _cholesky_solve(MC, w, m2)
+        res = 0.0
+        gmax = 0.0
+        for a in range(m2):
+            v = -Q[a, o] * MS[a]
+            for b in range(a + 1):
+                v += MM[a, b] * w[b]
+            for b in range(a + 1, m2):
+                v += MM[b, a] * w[b]
+            res = _amax(res, v)
+            gmax = max(gmax, abs(w[a]))
+        back = max(back, res / max(mmax * gmax + qmax, 1e-300))
+        for a in range(m2):
+            Q[a, o] = w[a] * MS[a]
+    # grid multiplier rows: Z_mu = g / mu
+    zmax = 0.0
+    for a in range(m2):
+        inv = 1.0 / Mu[off + a]
+        for o in range(n):
+            zmax = _amax(zmax, Q[a, o] * inv)
+    for o in range(n):
+        acc[o] = 0.0
+        RL[N, o] = 0.0
+    for k in range(G.size):
+        G.flat[k] = 0.0
+    for i in range(n):
+        ai = alpha[i]
+        # responses of agent i to every column's grid forces: RL = T_i^{-1} B_i g
+        for j in range(N):
+            bb, bs = F[F_BB, i, j], F[F_BS, i, j]
+            for o in range(n):
+                RL[j, o] = bb * Q[j, o] - bs * Q[N + j, o]
+        for j in range(N - 2, -1, -1):
+            r = F[F_RAT, i, j]
+            for o in range(n):
+                RL[j, o] += r * RL[j + 1, o]
+        for j in range(N):
+            ig = F[F_IPIV, i, j]
+            for o in range(n):
+                RL[j, o] *= ig
+        for j in range(1, N):
+            r = F[F_RAT, i, j - 1]
+            for o in range(n):
+                RL[j, o] += r * RL[j - 1, o]
+        # agent i's own part in its own column: lam += y, and the right-hand side e_i on
+        # b_0, s_0 folded into the grid forces (Z_b = vb (alpha Z_lam - g_b + [j = 0]))
+        for j in range(N):
+            RL[j, i] += Y[i, j]
+        Q[0, i] -= 1.0
+        Q[N, i] += 1.0
+        for j in range(N):
+            vb, vs, V = F[F_VB, i, j], F[F_VS, i, j], F[F_V, i, j]
+            c4, c5 = abs(F[F_C4, i, j]), abs(F[F_C5, i, j])
+            fb = max(1.0, IA[0, i, j], IA[1, i, j])
+            fs = max(1.0, IA[2, i, j], IA[3, i, j])
+            fsoc = max(1.0, c4, c5, DA[6, i, j] * F[F_ISHI, i, j] * IA[4, i, j],
+                       DA[7, i, j] * F[F_ISLO, i, j] * IA[5, i, j], c4 * IA[6, i, j],
+                       c5 * IA[7, i, j])
+            lij, dbs, soc = L[i, j], X[0, i, j] - X[1, i, j], X[2, i, j]
+            disc, ws, tm = stagew[W_DISC, j], stagew[W_WSOC, j], stagew[W_TERM, j]
+            k4, k7 = -2.0 * ws * soc, -2.0 * tm * soc
+            g0, g1, g2, g3 = G[i], G[n + i], G[2 * n + i], G[3 * n + i]
+            g4, g5, g7, g8 = G[4 * n + i], G[5 * n + i], G[7 * n + i], G[8 * n + i]
+            for o in range(n):
+                zl = RL[j, o]
+                zb = vb * (ai * zl - Q[j, o])
+                zs = vs * (-ai * zl - Q[N + j, o])
+                zsoc = V * (RL[j + 1, o] - zl)
+                g0[o] += lij * (zb - zs) + dbs * zl
+                g1[o] += zl
+                g2[o] -= disc * zb
+                g3[o] += disc * zs
+                g4[o] += k4 * zsoc
+                g5[o] -= ws * zsoc
+                g7[o] += k7 * zsoc
+                g8[o] -= tm * zsoc
+                acc[o] = max(acc[o], abs(zb) * fb, abs(zs) * fs, abs(zsoc) * fsoc, abs(zl))
+        Q[0, i] += 1.0
+        Q[N, i] -= 1.0
+    finite = 0.0
+    for o in range(n):
+        zmax = _amax(zmax, acc[o])
+    for k in range(G.size):
+        finite += 0.0 * G.flat[k]
+    return zmax, back, finite == 0.0
+
+
+@_jit
+def sensitivity_batch(P, x, lam, mu, solved, opts, stagew, n, N, method, structured, grad,
+                      cond, back, code):
+    """``d pi / d theta`` at the solutions ``(x, lam, mu)`` (mpc orderings).
+
+    Writes ``grad`` (days, 10 n, n), ``cond`` (``||K||_max ||Z||_max``), ``back`` (largest
+    normwise backward error of the adjoint columns) and ``code`` (``SENS_*``). Rows with
+    ``solved[d]`` False are skipped. Where the result is not usable ``grad`` is 0.
+    ``structured`` (with the ``AGENT`` factorisation only): all columns at once by
+    :func:`_adjoint_structured`; else column by column with iterative refinement.
+    """
+    days = P.shape[0]
+    (X, zx, rx, r1, L, zl, rl, r2, rsp, Mu, S, IS, D, _ds, _dmu, _cr, _r, F, FG, SI, AW, TI,
+     MC, MS, w, wg) = _work(n, N, method)
+    cx, cl = np.empty((5, n, N)), np.empty((n, N))
+    structured = structured and method == AGENT
+    ns = n if structured else 1
+    Y, Q, RL, acc = np.empty((ns, N)), np.empty((2 * N, ns)), np.empty((N + 1, ns)), np.empty(ns)
+    soc0, alpha, delta, qb, qs, hsoc, qsoc, e = _data_arrays(n, N)
+    U, Pb, hi, lo = opts[O_U], opts[O_P], opts[O_HI], opts[O_LO]
+    zxf, zlf, cxf, clf, rxf, rlf = (zx.reshape(zx.size), zl.reshape(zl.size),
+                                    cx.reshape(cx.size), cl.reshape(cl.size),
+                                    rx.reshape(rx.size), rl.reshape(rl.size))
+    for d in range(days):
+        G = grad[d]
+        G[:, :] = 0.0
+        cond[d] = np.inf
+        back[d] = np.inf
+        if not solved[d]:
+            code[d] = SENS_SKIPPED
+            continue
+        _problem_data(P[d], n, N, stagew, opts, soc0, alpha, delta, qb, qs, hsoc, qsoc, e)
+        _unpack_solution(x[d], lam[d], mu[d], n, N, X, L, Mu)
+        _slacks(X, U, Pb, hi, lo, S)
+        # ||K||_max of the KKT Jacobian (entries 1, alpha, H, mu, h)
+        kmax = 1.0
+        for i in range(n):
+            kmax = max(kmax, abs(alpha[i]))
+            for j in range(N):
+                kmax = max(kmax, abs(hsoc[i, j]))
+        interior = True
+        for k in range(S.size):
+            if not (S[k] > 0.0 and Mu[k] > 0.0):
+                interior = False
+            kmax = max(kmax, S[k], Mu[k])
+        if not interior:
+            code[d] = SENS_NOT_INTERIOR
+            continue
+        usable = _factor(S, Mu, IS, D, alpha, hsoc, method, F, FG, SI, AW, TI, MC, MS, w)
+        zmax = 0.0
+        bmax = 0.0
+        if structured and usable:
+            zmax, bmax, usable = _adjoint_structured(X, L, Mu, IS, D, alpha, stagew, F, MC, MS,
+                                                     TI, G, Y, Q, RL, acc, wg)
+        for o in range(0 if structured else n):
+            # column o of S_y': +1 at b_0, -1 at s_0 of agent o
+            r1[:] = 0.0
+            r2[:] = 0.0
+            r1[0, o, 0] = 1.0
+            r1[1, o, 0] = -1.0
+            usable &= _solve(r1, r2, zx, zl, alpha, F, FG, method, SI, AW, MC, MS, rsp, w, wg,
+                             o)
+            # iterative refinement: at least one step (where a grid limit binds, an agent's own
+            # response and the grid's nearly cancel and small entries lose digits that the
+            # normwise backward error does not see), more while that error is above the
+            # rounding level
+            bcol = np.inf
+            for step in range(_REFINE_MAX + 1):
+                bcol = _backward_error(zx, zl, r1, D, alpha, hsoc, rx, rl, step > 0)
+                if step == _REFINE_MAX or (step > 0 and bcol <= _BACKWARD_ERROR_GOOD):
+                    break
+                for k in range(rxf.size):
+                    rxf[k] = -rxf[k]
+                for k in range(rlf.size):
+                    rlf[k] = -rlf[k]
+                usable &= _solve(rx, rl, cx, cl, alpha, F, FG, method, SI, AW, MC, MS, rsp, w,
+                                 wg, -1)
+                for k in range(zxf.size):
+                    zxf[k] += cxf[k]
+                for k in range(zlf.size):
+                    zlf[k] += clf[k]
+            bmax = max(bmax, bcol)
+            _grad_column(X, L, zx, zl, stagew, G, o)
+            zmax = _zmax(zx, zl, IS, zmax)
+        c = kmax * zmax
+        cond[d] = c if math.isfinite(c) else np.inf
+        back[d] = bmax
+        finite = 0.0
+        for k in range(G.size):
+            finite += 0.0 * G.flat[k]
+        if usable and finite == 0.0 and math.isfinite(c):
+            code[d] = SENS_OK
+        else:
+            code[d] = SENS_SINGULAR
+            G[:, :] = 0.0
+
+
+# ------------------------------------------------------------------ compilation, cache ----
+def warm_up() -> None:
+    """Run every kernel (both factorisations, cold and warm start, the sensitivity) on a
+    tiny problem, which compiles them or loads them from numba's cache."""
+    n, N = 1, 2
+    opts = np.zeros(N_OPTS)
+    opts[[O_TAU, O_TOL, O_MAX_ITER, O_U, O_P, O_HI, O_LO]] = (0.1, 1e-10, 50, 1.0, 1.0, 0.9, 0.1)
+    opts[[O_U0, O_T0_COLD, O_T0_WARM, O_WARM_MARGIN, O_WARM_WEIGHT, O_SLACK_MARGIN,
+          O_SWITCH]] = (0.5, 0.1, 0.1, 1e-2, 0.3, 0.3, 1.0)
+    stagew = np.ones((5, N))
+    theta = np.array([0.1, 0.0, 0.0, 0.0, 1.0, -1.0, 0.0, 1.0, -1.0, 0.0])
+    P = np.concatenate([[0.5], [10.0, 20.0], [5.0, 10.0], theta])[None, :]
+    nx, neq, nin = 5 * n * N, n * N, (8 * n + 2) * N
+    for method in (STAGE, AGENT):
+        x, lam, mu = np.zeros((1, nx)), np.empty((1, neq)), np.empty((1, nin))
+        cost, action = np.empty(1), np.empty((1, n))
+        iters, status = np.empty(1, np.int64), np.empty(1, np.int64)
+        for warm in (False, True):
+            solve_batch(P, x.copy(), warm, opts, stagew, n, N, method, x, lam, mu, cost, iters,
+                        status, action)
+        grad, cond, back = np.empty((1, 10 * n, n)), np.empty(1), np.empty(1)
+        code = np.empty(1, np.int64)
+        for structured in (False, True):
+            sensitivity_batch(P, x, lam, mu, np.ones(1, np.bool_), opts, stagew, n, N, method,
+                              structured, grad, cond, back, code)
+
+
+def cache_dir() -> str:
+    """The folder numba caches these kernels in."""
+    return jit.cache_dir(solve_batch)
+
+
+def ensure_compiled() -> None:
+    """Load the kernels from the cache or compile them (logging one line if it compiles)."""
+    jit.ensure_compiled((solve_batch, sensitivity_batch), warm_up, "the MPC kernels (about a minute)")

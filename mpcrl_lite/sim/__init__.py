@@ -1,0 +1,11 @@
+"""The one closed loop: a policy acting on the true system, and the one record of it.
+
+- :mod:`~mpcrl_lite.sim.closed_loop`: :func:`~mpcrl_lite.sim.closed_loop.simulate` (with
+  hooks), the MPC-as-policy adapter, :func:`~mpcrl_lite.sim.closed_loop.run_month`,
+  :func:`~mpcrl_lite.sim.closed_loop.evaluate_mpc`;
+- :mod:`~mpcrl_lite.sim.record`: every array of a simulated period;
+- :mod:`~mpcrl_lite.sim.exploration` (compiled in
+  :mod:`~mpcrl_lite.sim.exploration_kernel`): what a learner commands around the policy.
+
+May import: :mod:`mpcrl_lite.mpc` and below.
+"""

@@ -1,0 +1,437 @@
+r"""A multi-seed study: the same learning run for many seeds, judged on the evaluation draws.
+
+One learning run shows one seed; whether the learning *works* is a statement over seeds.
+:func:`run_study` runs seeds ``seed_start .. seed_start + seeds - 1`` of the default
+experiment (or of ``base`` overrides) through the sweep machinery
+(:func:`mpcrl_lite.studies.sweep.api.run_sweep` with a grid over ``learning.seed``: serial or on Dask,
+every run resumable from its monthly checkpoint, a failed seed recorded in its row without
+stopping the others) and judges every run by its evaluation series ``History.J_eval`` (the
+mean of ``LearningConfig.eval_draws`` fixed noise draws, the same draws for every seed and
+every month: common random numbers).
+
+Convergence (the documented parameter ``threshold``, default 0.9): with ``J_nom`` the
+nominal MPC's J (the evaluation of month 0, whose theta is the nominal one; equal for all
+seeds) and a target ``J_target``, a seed *converges* when its final evaluation closes at
+least ``threshold`` of the gap,
+
+.. math::
+   \frac{J_{nom} - J_{eval,final}}{J_{nom} - J_{target}} \ge \text{threshold}.
+
+``J_target`` is the best causal policy's J*. When it is not given (``J_star``),
+:func:`run_study` computes it for the study's system and month (``target='causal'``, the
+default; :func:`causal_target`): the coupled dynamic program of :mod:`mpcrl_lite.bounds.causal.dp`
+where it is exact enough to run (``n <= 3``: seconds per day of prices), else the Lagrangian
+lower bound of :mod:`mpcrl_lite.bounds.causal.dual`; if neither can be solved for the system, or
+with ``target='best_seen'``, the target is the best ``J_eval`` any seed reached in any month
+(then at least one seed's curve touches the target, and the fraction measures how many seeds
+end near the best seen). ``study.json`` says which (``J_star_method``, ``J_star_note``).
+
+Every seed is also judged by
+
+* its **regret** ``J_eval_final - J_target`` (NOK/day: what a causal policy could still gain);
+* its **late collapse**: ``(J_eval_final - J_eval_best) / (J_nom - J_target)``, the share of
+  the gap lost between its best evaluation and its last one; a seed collapses late when
+  this exceeds :data:`LATE_COLLAPSE` (5 %).
+
+Written into ``out`` next to the sweep's files (``runs/``, ``results.csv``, ``sweep.json``):
+
+* ``study.csv`` -- one row per seed (:data:`SEED_COLUMNS`);
+* ``study_curves.csv`` -- tidy learning curves: one row per (seed, evaluated month) with
+  ``J_eval`` and its confidence interval over the draws;
+* ``study.json`` -- the summary (:func:`summarize`);
+* ``study_j_star.json`` -- the computed J* and what it was computed for (reused when the
+  study is run again on the same system and prices);
+* ``study_curves.png`` -- every seed's ``J_eval`` curve and their median over seeds.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
+
+from ..learning import rundir
+from ..bounds.causal.dual import lagrangian_bound
+from ..bounds.causal.table import causal_bound
+from ..config import SystemConfig
+from ..learning.history import History
+from ..learning.learner import prices_fingerprint
+from ..system.prices import Prices
+from .sweep.api import run_sweep
+from .sweep.grid import load_grid
+from .sweep.store import check_out_dir
+
+__all__ = ["LATE_COLLAPSE", "SEED_COLUMNS", "TARGETS", "THRESHOLD", "causal_target",
+           "gap_closed", "plot_curves", "run_study", "seed_row", "summarize"]
+
+#: Default share of the gap ``J_nom - J_target`` a seed must close to count as converged.
+THRESHOLD = 0.9
+#: Largest share of the gap ``J_nom - J_target`` a seed may lose between its best evaluation
+#: and its final one (more is a late collapse).
+LATE_COLLAPSE = 0.05
+#: What :func:`run_study` judges against when ``J_star`` is not given: ``'causal'`` (J*
+#: computed, :func:`causal_target`) or ``'best_seen'`` (the best J_eval of any seed).
+TARGETS = ("causal", "best_seen")
+#: File of the computed J* in a study's directory.
+J_STAR_FILE = "study_j_star.json"
+#: Columns of ``study.csv``, one row per seed.
+SEED_COLUMNS = (
+    "seed", "run_id", "status", "error", "months", "evaluations", "J_eval_nominal",
+    "J_eval_final", "J_eval_final_ci_low", "J_eval_final_ci_high", "J_eval_best",
+    "best_month", "late_regression", "gap_closed", "converged", "max_P_applied",
+    "hours_above_P_bar_last", "regret", "late_regression_share", "late_collapse",
+)
+
+
+def gap_closed(J_final: float, J_nominal: float, J_target: float) -> float:
+    """Share of the gap ``J_nominal - J_target`` closed by ``J_final`` (1 at the target, 0
+    at the nominal MPC, negative when worse than nominal; NaN when the gap is not
+    positive or a value is not finite)."""
+    gap = J_nominal - J_target
+    if not (math.isfinite(gap) and math.isfinite(J_final)) or gap <= 0:
+        return math.nan
+    return (J_nominal - J_final) / gap
+
+
+def seed_row(history: History) -> dict[str, Any]:
+    """The figures of one run that do not depend on the other seeds.
+
+    ``J_eval_nominal`` is the evaluation of month 0 (the nominal theta), ``J_eval_final``
+    the last evaluation (with its confidence interval over the draws), ``J_eval_best`` the
+    lowest evaluation and ``best_month`` its month (from 0), ``late_regression`` =
+    ``J_eval_final - J_eval_best`` >= 0 (how much the final parameters lost against the best
+    ones seen), ``max_P_applied`` the largest applied grid power over all months.
+    """
+    J = np.asarray(history.J_eval, dtype=float)
+    row: dict[str, Any] = {"months": history.months, "evaluations": int(J.size)}
+    if J.size and 0 in history.eval_month:
+        row["J_eval_nominal"] = float(J[history.eval_month.index(0)])
+    if J.size:
+        best = int(np.nanargmin(J)) if np.isfinite(J).any() else len(J) - 1
+        row.update(
+            J_eval_final=float(J[-1]),
+            J_eval_final_ci_low=float(history.J_eval_ci_low[-1]),
+            J_eval_final_ci_high=float(history.J_eval_ci_high[-1]),
+            J_eval_best=float(J[best]),
+            best_month=int(history.eval_month[best]),
+            late_regression=float(J[-1] - J[best]),
+        )
+    if history.months:
+        row["max_P_applied"] = float(np.nanmax(history.max_P_applied))
+        row["hours_above_P_bar_last"] = history.hours_above_P_bar[-1]
+    return row
+
+
+def summarize(
+    table: pd.DataFrame, J_star: float | None = None, threshold: float = THRESHOLD,
+    J_star_method: str = "given", J_star_note: str = "",
+) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """Judge the seeds of ``table`` (rows of :func:`seed_row` with ``seed`` and ``status``).
+
+    Returns the table with ``gap_closed``, ``converged``, ``regret``,
+    ``late_regression_share`` and ``late_collapse`` filled in, and the summary of
+    ``study.json``: ``seeds``, ``done``, ``failed_seeds``, ``definition`` (the convergence
+    rule in words), ``threshold``, ``J_nominal``, ``J_target``, ``target`` ('J_star' or
+    'best_J_eval_reached'), ``fraction_converged`` (of the finished seeds),
+    ``converged_seeds``, ``J_eval_final_median``, ``J_eval_final_iqr`` ([q25, q75]),
+    ``worst_seed`` ({seed, J_eval_final, regret}), ``late_regression`` ({seed: value}) and
+    ``largest_late_regression`` ({seed, value}); and, against the target, ``J_star`` (None
+    without one), ``J_star_method`` and ``J_star_note`` (how J* was obtained, as given),
+    ``regret`` ({seed: J_eval_final - J_target}), ``regret_median``, ``regret_iqr``
+    ([q25, q75]), ``late_collapse_limit`` (:data:`LATE_COLLAPSE`), ``late_regression_share``
+    ({seed: late_regression / (J_nominal - J_target)}), ``late_collapse_seeds`` (those above
+    the limit), ``late_collapse_count`` and ``no_late_collapse`` (True when that count is 0
+    and some seed finished). Statistics are over the finished seeds with an evaluation; NaN
+    (``null``) when there is none.
+    """
+    if isinstance(threshold, bool) or not (isinstance(threshold, (int, float))
+                                           and 0 < threshold <= 1):
+        raise ValueError(f"threshold={threshold!r}: expected a number in (0, 1]")
+    if J_star is not None and not (isinstance(J_star, (int, float)) and math.isfinite(J_star)):
+        raise ValueError(f"J_star={J_star!r}: expected a finite number or None")
+    table = table.copy()
+    for column in ("J_eval_nominal", "J_eval_final", "J_eval_best", "late_regression"):
+        if column not in table:
+            table[column] = np.nan
+    ok = (table["status"] == "done") & table["J_eval_final"].notna()
+    good = table[ok]
+    J_nominal = float(good["J_eval_nominal"].median()) if len(good) else math.nan
+    if J_star is not None:
+        J_target, target = float(J_star), "J_star"
+    else:
+        J_target = float(good["J_eval_best"].min()) if len(good) else math.nan
+        target = "best_J_eval_reached"
+    closed = [gap_closed(f, J_nominal, J_target) if use else math.nan
+              for f, use in zip(table["J_eval_final"], ok)]
+    table["gap_closed"] = closed
+    table["converged"] = [bool(use and c >= threshold) for c, use in zip(closed, ok)]
+    gap = J_nominal - J_target
+    table["regret"] = np.where(ok, table["J_eval_final"] - J_target, np.nan)
+    share = (table["late_regression"] / gap if math.isfinite(gap) and gap > 0
+             else pd.Series(math.nan, index=table.index))
+    table["late_regression_share"] = np.where(ok, share, np.nan)
+    table["late_collapse"] = [bool(use and v > LATE_COLLAPSE)
+                              for v, use in zip(table["late_regression_share"], ok)]
+    good = table[ok]
+    final = good["J_eval_final"].to_numpy(float)
+    regret = good["regret"].to_numpy(float)
+    worst = good.loc[good["J_eval_final"].idxmax()] if len(good) else None
+    regress = good.set_index("seed")["late_regression"]
+    largest = regress.idxmax() if len(regress) else None
+    collapsed = [int(s) for s in good.loc[good["late_collapse"], "seed"]]
+    summary = {
+        "seeds": [int(s) for s in table["seed"]],
+        "done": int(ok.sum()),
+        "failed_seeds": [int(s) for s in table.loc[table["status"] == "failed", "seed"]],
+        "definition": (
+            f"a seed converges when its final J_eval closes at least {threshold:g} of the "
+            "gap between the nominal MPC's J_eval (month 0) and J_target: "
+            "(J_nominal - J_eval_final) / (J_nominal - J_target) >= threshold; J_target is "
+            + (f"the best causal policy's J* ({J_star_method})" if J_star is not None
+               else "the best J_eval reached by any seed in any month")
+            + f". A seed collapses late when J_eval_final - J_eval_best exceeds "
+            f"{LATE_COLLAPSE:g} of that gap; its regret is J_eval_final - J_target"),
+        "threshold": float(threshold),
+        "J_nominal": J_nominal,
+        "J_target": J_target,
+        "target": target,
+        "fraction_converged": float(table["converged"][ok].mean()) if len(good) else math.nan,
+        "converged_seeds": [int(s) for s in table.loc[table["converged"], "seed"]],
+        "J_eval_final_median": float(np.median(final)) if final.size else math.nan,
+        "J_eval_final_iqr": ([float(np.percentile(final, 25)), float(np.percentile(final, 75))]
+                             if final.size else [math.nan, math.nan]),
+        "worst_seed": ({"seed": int(worst["seed"]), "J_eval_final": float(worst["J_eval_final"]),
+                        "regret": float(worst["regret"])}
+                       if worst is not None else None),
+        "late_regression": {str(int(s)): float(v) for s, v in regress.items()},
+        "largest_late_regression": ({"seed": int(largest), "value": float(regress[largest])}
+                                    if largest is not None else None),
+        "J_star": float(J_star) if J_star is not None else None,
+        "J_star_method": J_star_method if J_star is not None else None,
+        "J_star_note": J_star_note,
+        "regret": {str(int(s)): float(v) for s, v in zip(good["seed"], regret)},
+        "regret_median": float(np.median(regret)) if regret.size else math.nan,
+        "regret_iqr": ([float(np.percentile(regret, 25)), float(np.percentile(regret, 75))]
+                       if regret.size else [math.nan, math.nan]),
+        "late_collapse_limit": LATE_COLLAPSE,
+        # null where there is no gap to share (as study.json writes it)
+        "late_regression_share": {str(int(s)): float(v) if math.isfinite(v) else None
+                                  for s, v in zip(good["seed"], good["late_regression_share"])},
+        "late_collapse_seeds": collapsed,
+        "late_collapse_count": len(collapsed),
+        "no_late_collapse": bool(len(good)) and not collapsed,
+    }
+    return table, summary
+
+
+def causal_target(system: SystemConfig, prices: Prices) -> dict[str, Any]:
+    """J* of the best causal policy on ``prices``, by the best method that runs for ``system``.
+
+    The coupled dynamic program (:func:`mpcrl_lite.bounds.causal.dp.causal_optimum`, 41 soc nodes) for
+    up to three batteries, read from the stored table where it covers the system and the
+    month (:func:`mpcrl_lite.bounds.causal.table.causal_bound`); beyond, or if it refuses the system, the Lagrangian bound
+    (:func:`mpcrl_lite.bounds.causal.dual.lagrangian_bound`); if that is refused too, none.
+
+    Returns
+    -------
+    dict
+        ``J_star`` (NOK/day, None when none could be computed), ``method``
+        (``'causal_dp'``, ``'lagrangian_bound'`` or None), ``note`` (what the figure is, in
+        words), ``wall_time_s``.
+    """
+    problems = []
+    if system.n <= 3:
+        try:
+            # the stored J* (data/causal_j_star.csv) where it covers the system and month
+            bound = causal_bound(system, prices)
+        except ValueError as err:
+            problems.append(f"causal_optimum: {err}")
+        else:
+            return {"J_star": float(np.mean(bound.J_star_for(prices))), "method": "causal_dp",
+                    "wall_time_s": bound.wall_time_s, "source": bound.info.get("source"),
+                    "note": "J* is the coupled DP's optimum of the grid model at 41 soc nodes "
+                            "(mpcrl_lite.bounds.causal.dp): an estimate, pessimistic by about 2 NOK/day "
+                            "for the paper's system (-399.3 against -401.5 refined)"}
+    else:
+        problems.append(f"causal_optimum: n={system.n} is too large for the exact DP")
+    try:
+        dual = lagrangian_bound(system, prices)
+    except ValueError as err:
+        problems.append(f"lagrangian_bound: {err}")
+    else:
+        return {"J_star": dual.J_bound, "method": "lagrangian_bound",
+                "wall_time_s": dual.wall_time_s,
+                "note": f"{problems[0]}; J* is replaced by the Lagrangian lower bound "
+                        "(mpcrl_lite.bounds.causal.dual), below the true J*: the regret is overstated "
+                        "and the gap closed understated"}
+    return {"J_star": None, "method": None, "wall_time_s": 0.0,
+            "note": f"no causal J* for this system ({'; '.join(problems)}): the target is the "
+                    "best J_eval reached by any seed in any month"}
+
+
+def _study_target(out: Path, system: SystemConfig, prices: Prices) -> dict[str, Any]:
+    """:func:`causal_target`, read back from ``out/study_j_star.json`` when it was computed
+    for the same system and prices (a rerun of the study does not solve the DP again)."""
+    key = {"system": system.to_dict(), "prices": prices_fingerprint(prices)["sha256"]}
+    path = out / J_STAR_FILE
+    try:
+        saved = json.loads(path.read_text())
+        if saved.get("for") == rundir.plain(key):
+            return saved["target"]
+    except (OSError, ValueError, AttributeError, KeyError):
+        pass
+    target = causal_target(system, prices)
+    out.mkdir(parents=True, exist_ok=True)
+    rundir.write_atomic(path, rundir.dumps({"for": key, "target": target}))
+    return target
+
+
+def curves_table(histories: Mapping[int, History]) -> pd.DataFrame:
+    """Tidy learning curves: ``seed``, ``month`` (from 0), ``J_eval``, ``J_eval_ci_low``,
+    ``J_eval_ci_high``, one row per seed and evaluated month."""
+    rows = [
+        {"seed": seed, "month": m, "J_eval": J, "J_eval_ci_low": lo, "J_eval_ci_high": hi}
+        for seed, h in histories.items()
+        for m, J, lo, hi in zip(h.eval_month, h.J_eval, h.J_eval_ci_low, h.J_eval_ci_high)
+    ]
+    return pd.DataFrame(rows, columns=["seed", "month", "J_eval", "J_eval_ci_low",
+                                       "J_eval_ci_high"])
+
+
+def plot_curves(curves: pd.DataFrame, J_target: float | None = None,
+                ax: Any = None) -> Any:
+    """Every seed's ``J_eval`` against the month (thin) and their median over the seeds
+    (thick; at the months every seed evaluated). Line gids ``"seed=<s>"`` and ``"median"``;
+    ``J_target`` (if finite) as a dotted line of gid ``"J_target"``. Returns the figure."""
+    if ax is None:
+        fig, ax = plt.subplots(figsize=(7.0, 4.0))
+    else:
+        fig = ax.figure
+    for seed, group in curves.groupby("seed"):
+        ax.plot(group["month"] + 1, group["J_eval"], color="0.6", lw=0.8, gid=f"seed={seed}")
+    if len(curves):
+        seeds = curves["seed"].nunique()
+        wide = curves.pivot_table(index="month", columns="seed", values="J_eval")
+        median = wide[wide.notna().sum(axis=1) == seeds].median(axis=1)
+        ax.plot(median.index + 1, median.to_numpy(), color="black", lw=2.4, gid="median",
+                label=f"median of {seeds} seeds")
+    if J_target is not None and math.isfinite(J_target):
+        ax.axhline(J_target, color="tab:green", ls=":", lw=1.5, gid="J_target",
+                   label="J_target")
+    ax.set_xlabel("RL step (month)")
+    ax.set_ylabel("J_eval (mean over the evaluation draws)")
+    ax.set_title("Learning curves of all seeds", loc="left", fontsize=11)
+    ax.grid(True, color="0.9", lw=0.6)
+    if len(curves):
+        ax.legend(fontsize=8)
+    return fig
+
+
+def run_study(
+    seeds: int,
+    months: int,
+    out: str | os.PathLike,
+    seed_start: int = 0,
+    base: Mapping[str, Any] | None = None,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    J_star: float | None = None,
+    threshold: float = THRESHOLD,
+    progress: bool = True,
+    lockstep: int | None = None,
+    target: str = "causal",
+) -> dict[str, Any]:
+    """Run (or resume) the study and write its files into ``out``; returns the summary.
+
+    Parameters
+    ----------
+    seeds, months
+        Number of seeds (``>= 1``) and months per run (``>= 1``).
+    out
+        Output directory (the sweep's layout plus the study's files, see the module
+        docstring).
+    seed_start
+        The first seed (``>= 0``); the seeds are ``seed_start .. seed_start + seeds - 1``.
+    base
+        More overrides of every run, as the sweep's ``base`` (e.g.
+        ``{"learning.days_per_month": 5}``); ``learning.seed`` and ``learning.months`` are
+        set here.
+    workers, scheduler
+        As for :func:`mpcrl_lite.studies.sweep.api.run_sweep` (default: a local Dask cluster of 2
+        workers; ``workers=0`` or ``scheduler='serial'``: in this process).
+    J_star, threshold
+        The convergence rule (:func:`summarize`). Without ``J_star`` the target is set by
+        ``target``.
+    progress
+        Show the sweep's progress bar.
+    lockstep
+        Runs per task, stepped together in one process (:func:`mpcrl_lite.studies.sweep.api.run_sweep`;
+        default each worker's share of the seeds).
+    target
+        One of :data:`TARGETS`: ``'causal'`` (default) computes J* for the study's system and
+        month before any run starts (:func:`causal_target`; kept in ``study_j_star.json``),
+        ``'best_seen'`` judges against the best J_eval reached.
+    """
+    for name, value, low in (("seeds", seeds, 1), ("months", months, 1),
+                             ("seed_start", seed_start, 0)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low:
+            raise ValueError(f"{name}={value!r}: expected an integer >= {low}")
+    if target not in TARGETS:
+        raise ValueError(f"target={target!r}: expected one of {', '.join(map(repr, TARGETS))}")
+    base = dict(base or {})
+    clash = [k for k in base if k in ("learning.seed", "learning.months")]
+    if clash:
+        raise ValueError(f"base sets {clash}: the study sets the seeds and the months itself")
+    seed_list = list(range(int(seed_start), int(seed_start) + int(seeds)))
+    grid = {"base": {**base, "learning.months": int(months)}, "grid": {"learning.seed": seed_list}}
+    # the convergence rule is checked before any run starts
+    summarize(pd.DataFrame({"seed": [], "status": []}), J_star, threshold)
+    out = Path(out)
+    method, note = "given", ""
+    check_out_dir(out)  # before the DP writes its result there
+    if J_star is None and target == "causal":
+        # every run shares the system and the month (only the seed varies)
+        run = load_grid(grid).runs[0]
+        found = _study_target(out, run.system,
+                              Prices.month(run.system, run.learning.days_per_month))
+        J_star, method, note = found["J_star"], found["method"], found["note"]
+    elif J_star is None:
+        note = "target='best_seen': judged against the best J_eval reached"
+    table = run_sweep(grid, out, scheduler=scheduler, workers=workers, progress=progress,
+                      lockstep=lockstep)
+    rows, histories = [], {}
+    for seed, (_, result) in zip(seed_list, table.iterrows()):
+        row: dict[str, Any] = {"seed": seed, "run_id": result["run_id"],
+                               "status": result["status"], "error": result["error"]}
+        if result["status"] == "done":
+            history = History.load(out / result["run_dir"])
+            histories[seed] = history
+            row.update(seed_row(history))
+        rows.append(row)
+    seed_table, summary = summarize(pd.DataFrame(rows), J_star, threshold,
+                                    J_star_method=method or "given", J_star_note=note)
+    seed_table = seed_table.reindex(columns=list(SEED_COLUMNS))
+    curves = curves_table(histories)
+    seed_table.to_csv(out / "study.csv", index=False)
+    curves.to_csv(out / "study_curves.csv", index=False)
+    summary = {"months": int(months), "eval_draws": _eval_draws(histories), **summary}
+    rundir.write_atomic(out / "study.json", rundir.dumps(summary))
+    fig = plot_curves(curves, summary["J_target"])
+    try:
+        with rundir.atomic_output(out / "study_curves.png") as tmp:
+            fig.savefig(tmp, dpi=120, bbox_inches="tight")
+    finally:
+        plt.close(fig)
+    return summary
+
+
+def _eval_draws(histories: Mapping[int, History]) -> int | None:
+    draws = {h.learning.eval_draws for h in histories.values()}
+    return draws.pop() if len(draws) == 1 else None
