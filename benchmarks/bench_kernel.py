@@ -30,12 +30,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _common import machine, median, print_result
 
-from mpcrl_lite.mpc.backends.batch import BatchSolver
-from mpcrl_lite.sim.closed_loop import MPCPolicy, SensitivityRecorder, simulate
 from mpcrl_lite.config import ConfigWarning, LearningConfig, MPCConfig, SystemConfig
-from mpcrl_lite.sim.exploration import GaussianExploration
+from mpcrl_lite.mpc.backends.batch import BatchSolver
 from mpcrl_lite.mpc.backends.kernel import KernelSolver, warm_up
 from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.sim.closed_loop import MPCPolicy, SensitivityRecorder, simulate
+from mpcrl_lite.sim.exploration import GaussianExploration
 from mpcrl_lite.system.prices import Prices
 from mpcrl_lite.theta import Theta
 

@@ -41,10 +41,10 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np
 
-from mpcrl_lite.sim.closed_loop import evaluate_mpc
 from mpcrl_lite.config import LearningConfig
-from mpcrl_lite.system.forecast import until_midnight
 from mpcrl_lite.learning.experiment import Experiment
+from mpcrl_lite.sim.closed_loop import evaluate_mpc
+from mpcrl_lite.system.forecast import until_midnight
 
 J_STAR = -401.5
 J_NOMINAL = 1576.0

@@ -64,9 +64,9 @@ def learning_step(months: int = 2, warmup: int = 1, warm_start: bool = True) -> 
     """
     import numpy as np
 
-    from mpcrl_lite.sim.closed_loop import run_month
     from mpcrl_lite.config import MPCConfig
     from mpcrl_lite.learning.experiment import Experiment
+    from mpcrl_lite.sim.closed_loop import run_month
 
     exp = Experiment(mpc_config=MPCConfig(warm_start=warm_start))
     H, D = exp.system.hours_per_day, exp.learning.days_per_month
@@ -258,9 +258,9 @@ def scaling_point(n: int, N: int, backend: str, hours: int, days: int = 30,
     import warnings
 
     from mpcrl_lite.config import ConfigWarning, MPCConfig, SystemConfig
+    from mpcrl_lite.mpc.backends.registry import make_solver
     from mpcrl_lite.mpc.formulation import MPC
     from mpcrl_lite.system.prices import Prices
-    from mpcrl_lite.mpc.backends.registry import make_solver
     from mpcrl_lite.theta import Theta
 
     with warnings.catch_warnings():

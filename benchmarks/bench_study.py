@@ -52,8 +52,8 @@ EVAL_DRAWS = 1
 def study(seeds: int, months: int, workers: int = 2) -> dict:
     """``run_study`` on a local cluster of ``workers`` processes (lockstep by default)."""
     from mpcrl_lite.config import LearningConfig, SystemConfig
-    from mpcrl_lite.system.prices import Prices
     from mpcrl_lite.studies.study import causal_target, run_study
+    from mpcrl_lite.system.prices import Prices
 
     # J* (the causal DP the study judges against) is computed once per system and month and
     # kept in the study's folder; it is timed apart from the runs

@@ -12,4 +12,4 @@ from .config import LearningConfig, MPCConfig, SystemConfig
 from .theta import Theta
 
 __all__ = ["LearningConfig", "MPCConfig", "SystemConfig", "Theta"]
-__version__ = "0.1.0"
+from ._util.version import __version__

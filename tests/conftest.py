@@ -15,27 +15,81 @@ import numpy as np
 import pytest
 
 from mpcrl_lite.config import MPCConfig, SystemConfig
-from mpcrl_lite.mpc.formulation import MPC
 from mpcrl_lite.mpc.backends.registry import IpoptSolver
+from mpcrl_lite.mpc.formulation import MPC
 from mpcrl_lite.theta import Theta
 
-
 # -- helpers ----------------------------------------------------------------------------------
-def assert_imports_within(module: str, allowed: set[str]) -> None:
-    """Every relative import of ``mpcrl_lite/<module>.py`` is at the top level and names a
-    module of ``allowed``; read from the source (ast), so an import hidden in a function
-    counts too."""
-    import mpcrl_lite
+PACKAGE = Path(__file__).resolve().parents[1] / "mpcrl_lite"
 
-    tree = ast.parse((Path(mpcrl_lite.__file__).parent / f"{module}.py").read_text())
-    top_level = {id(node) for node in tree.body}
-    for node in ast.walk(tree):
-        if not isinstance(node, ast.ImportFrom) or not node.level:
-            continue
-        assert id(node) in top_level, f"{module}: import inside a function, line {node.lineno}"
-        names = [node.module] if node.module else [alias.name for alias in node.names]
-        for name in names:
-            assert name.split(".")[0] in allowed, f"{module} imports {name} (line {node.lineno})"
+
+def package_modules() -> dict[str, Path]:
+    """Every module of the package by dotted name below ``mpcrl_lite`` (``'mpc.formulation'``;
+    a subpackage's ``__init__`` by the subpackage's name, the package's own as ``'__init__'``)."""
+    found = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        parts = list(path.relative_to(PACKAGE).with_suffix("").parts)
+        if parts[-1] == "__init__" and len(parts) > 1:
+            parts = parts[:-1]
+        found[".".join(parts)] = path
+    return found
+
+
+def package_imports(module: str, modules: dict[str, Path] | None = None,
+                    top_level_only: bool = False) -> dict[str, int]:
+    """Package modules imported by ``module`` (dotted, as :func:`package_modules` names them),
+    with the line of the first import; read from the source (ast), so an import inside a
+    function counts too, unless ``top_level_only``. ``from pkg import name`` counts as an
+    import of the module ``pkg.name`` where that is a module, else of ``pkg``."""
+    modules = package_modules() if modules is None else modules
+    path = modules[module]
+    if path.name == "__init__.py":
+        here = [] if module == "__init__" else module.split(".")
+    else:
+        here = module.split(".")[:-1]
+    tree = ast.parse(path.read_text())
+    nodes = tree.body if top_level_only else list(ast.walk(tree))
+    found: dict[str, int] = {}
+
+    def add(target: list[str], line: int) -> None:
+        name = ".".join(target) or "__init__"
+        if name in modules and name != module:
+            found.setdefault(name, line)
+
+    for node in nodes:
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = here[: len(here) - node.level + 1]
+            elif node.module and (node.module == "mpcrl_lite" or node.module.startswith("mpcrl_lite.")):
+                base = []
+            else:
+                continue
+            mod = (node.module or "").split(".") if node.module else []
+            if not node.level:
+                mod = mod[1:]
+            target = base + mod
+            for alias in node.names:
+                if ".".join(target + [alias.name]) in modules:
+                    add(target + [alias.name], node.lineno)
+                else:
+                    add(target, node.lineno)
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name.startswith("mpcrl_lite."):
+                    add(alias.name.split(".")[1:], node.lineno)
+    return found
+
+
+def assert_imports_within(module: str, allowed: set[str]) -> None:
+    """Every package import of ``mpcrl_lite.<module>`` (dotted) is at the top level of the
+    file and names a module of ``allowed``; read from the source (ast), so an import hidden
+    in a function counts too."""
+    everywhere = package_imports(module)
+    top = package_imports(module, top_level_only=True)
+    inside = sorted(set(everywhere) - set(top))
+    assert not inside, f"{module}: import inside a function: {inside}"
+    outside = {name: line for name, line in everywhere.items() if name not in allowed}
+    assert not outside, f"{module} imports {outside} (name: line)"
 
 
 def window(prices: np.ndarray, day: int, hour: int, N: int) -> np.ndarray:

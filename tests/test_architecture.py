@@ -1,91 +1,98 @@
-"""The package's shape: data flows one way, so the import graph has no cycle and no module
-imports from a layer above its own.
+"""The package's shape: data flows one way, so the import graph has no cycle, no subpackage
+imports from a layer above its own, and inside a subpackage no module imports from a module
+placed above it.
 
-Imports are read from the source (every ``from . import`` / ``from .x import`` /
+Imports are read from the source (every ``from . import`` / ``from ..x import`` /
 ``import mpcrl_lite.x``, also those inside functions), so a lazy import that only hides a cycle
-is caught too. A new module must be placed in :data:`LAYERS` before this test passes: its
-place in the data flow is a decision, not an accident.
+is caught too. A new module or subpackage must be placed in :data:`LAYERS` (and in its
+subpackage's :data:`SUBLAYERS`) before this test passes: its place in the data flow is a
+decision, not an accident. An entry that names nothing fails too, so the tables cannot drift
+from the folders.
 """
 
 from __future__ import annotations
 
-import ast
 import graphlib
-from pathlib import Path
 
 import pytest
+from conftest import package_imports, package_modules
 
-import mpcrl_lite
-
-PACKAGE = Path(mpcrl_lite.__file__).parent
-
-#: The layers of the data flow, lowest first (see the README's layout diagram). A module may
-#: import modules of its own layer or of lower layers.
+#: The layers of the data flow, lowest first (the README's layout diagram): top-level modules
+#: and subpackages of ``mpcrl_lite``. A module may import from its own layer or lower ones.
 LAYERS: list[set[str]] = [
-    # foundation: configuration, parameter structure, plain helpers
-    {"config", "theta", "json_values", "resources", "references", "batch_linalg",
-     "causal_kernels"},
-    # the true system and its prices
-    {"prices", "model", "day_end"},
-    # the one MPC formulation
-    {"mpc"},
-    # solution and sensitivity types, below every back-end
-    {"solution"},
-    # the back-ends and the KKT sensitivity
-    {"sensitivity", "batch_kkt", "batch_adjoint", "batch_solver", "ipopt_solver", "_kernel",
-     "kernel_solver", "local_qp", "_explore_kernel", "_coord_kernel"},
-    # the back-end registry
-    {"solvers"},
-    # the one closed loop and its record
-    {"record", "exploration", "closed_loop"},
-    # learning algorithms and results as data
-    {"lstd", "update_rules", "dpg", "rundir", "history"},
-    # what learners, coordination and bounds share
-    {"learner", "coordination", "causal_grid", "causal_dual", "causal", "causal_table"},
-    # learners, baselines and evaluation
-    {"experiment", "decentralized", "baselines", "evaluation", "transfer"},
-    # figures
-    {"plot_style", "paper_figures", "plots"},
-    # classroom and reports
-    {"explore", "controls", "widgets", "alt_text", "html_export", "report", "launch", "site"},
-    # orchestration: studies, sweeps and the command line
-    {"sweep_grid", "sweep_store", "sweep_table", "sweep_run", "sweep_schedule", "sweep",
-     "study", "lockstep", "cli", "cli_inputs", "__main__", "__init__"},
+    {"_util"},  # plain helpers: jit set-up, JSON, statistics, validators, files, references
+    {"config", "theta"},  # every number and choice; the parameter vector
+    {"system"},  # prices, the true batteries, forecasts
+    {"mpc"},  # the one formulation, its solutions and sensitivity, the back-ends
+    {"sim"},  # the one closed loop and its record
+    {"learning"},  # critic, actor, update rules, month loop, run files, history
+    {"decentralized", "bounds"},  # per-battery learners; baselines and the causal optimum
+    {"figures"},
+    {"classroom"},
+    {"publish"},  # reports, HTML, site
+    {"studies"},  # seeds, lockstep, sweeps (a sweep may run a report notebook per run)
+    {"cli", "__init__", "__main__"},
 ]
-RANK = {module: rank for rank, layer in enumerate(LAYERS) for module in layer}
+
+#: Inside a subpackage, its modules lowest first: a module imports only from a lower entry of
+#: its own subpackage (never from its own entry: modules side by side are independent).
+SUBLAYERS: dict[str, list[set[str]]] = {
+    "_util": [{"jit", "jsonio", "resources", "references", "version"}],
+    "system": [{"prices", "battery"}, {"forecast"}],
+    "mpc": [{"formulation"}, {"solution"}, {"sensitivity"}, {"backends"}],
+    "mpc.backends": [{"batch_linalg", "kernel_core"}, {"batch_kkt"}, {"batch_adjoint"},
+                     {"batch", "ipopt", "kernel"}, {"registry"}],
+    "sim": [{"record", "exploration_kernel"}, {"exploration"}, {"closed_loop"}],
+    "learning": [{"lstd", "update_rules", "rundir"}, {"dpg", "history"}, {"learner"},
+                 {"experiment"}],
+    "decentralized": [{"local_qp", "coordination_kernel"}, {"coordination"}, {"learner"}],
+    "bounds": [{"causal"}, {"baselines"}],
+    "bounds.causal": [{"kernels"}, {"grid"}, {"dp", "dual"}, {"table"}],
+    "figures": [{"style"}, {"paper"}, {"plots"}],
+    "classroom": [{"controls", "explorers"}, {"widgets"}],
+    "publish": [{"alt_text", "html_export", "launch"}, {"report"}, {"site"}],
+    "studies": [{"transfer", "lockstep"}, {"sweep"}, {"study"}],
+    "studies.sweep": [{"grid"}, {"store"}, {"table"}, {"run"}, {"schedule"}, {"api"}],
+    "cli": [{"inputs"}, {"main"}, {"warm"}],
+}
+
+MODULES = package_modules()
+GRAPH = {name: package_imports(name, MODULES) for name in MODULES}
+RANK = {unit: rank for rank, layer in enumerate(LAYERS) for unit in layer}
 
 
-def _modules() -> dict[str, Path]:
-    return {path.stem: path for path in PACKAGE.glob("*.py")}
+def _unit(module: str) -> str:
+    """The top-level module or subpackage ``module`` belongs to."""
+    return module.split(".")[0]
 
 
-def _imports(path: Path, modules: set[str]) -> dict[str, int]:
-    """Package modules imported by ``path``, with the line of the first import."""
-    found: dict[str, int] = {}
-    for node in ast.walk(ast.parse(path.read_text())):
-        names: list[str] = []
-        if isinstance(node, ast.ImportFrom) and node.level:
-            names = ([node.module.split(".")[0]] if node.module
-                     else [alias.name for alias in node.names])
-        elif isinstance(node, ast.ImportFrom) and node.module and node.module.startswith(
-                "mpcrl_lite"):
-            parts = node.module.split(".")
-            names = [parts[1]] if len(parts) > 1 else [alias.name for alias in node.names]
-        elif isinstance(node, ast.Import):
-            names = [alias.name.split(".")[1] for alias in node.names
-                     if alias.name.startswith("mpcrl_lite.")]
-        for name in names:
-            if name in modules and name != path.stem:
-                found.setdefault(name, node.lineno)
-    return found
-
-
-GRAPH = {name: _imports(path, set(_modules())) for name, path in _modules().items()}
+def _place(module: str, package: str) -> str | None:
+    """The entry of ``package``'s SUBLAYERS that holds ``module`` (a module or subpackage
+    directly below ``package``), or None if ``module`` is not inside ``package``."""
+    if not module.startswith(package + "."):
+        return None
+    return module[len(package) + 1:].split(".")[0]
 
 
 def test_every_module_has_a_place_in_the_data_flow():
-    unplaced = sorted(set(GRAPH) - set(RANK))
-    assert not unplaced, f"place these modules in LAYERS: {unplaced}"
+    unplaced = sorted({_unit(m) for m in MODULES} - set(RANK))
+    assert not unplaced, f"place these in LAYERS: {unplaced}"
+    for package, layers in SUBLAYERS.items():
+        placed = {name for layer in layers for name in layer}
+        present = {_place(m, package) for m in MODULES} - {None}
+        assert not present - placed, f"place these in SUBLAYERS[{package!r}]: {present - placed}"
+
+
+def test_every_layer_entry_names_a_module():
+    units = {_unit(m) for m in MODULES}
+    assert not set(RANK) - units, f"LAYERS names nothing: {sorted(set(RANK) - units)}"
+    for package, layers in SUBLAYERS.items():
+        assert package in MODULES, f"SUBLAYERS names no subpackage {package!r}"
+        present = {_place(m, package) for m in MODULES} - {None}
+        named = {name for layer in layers for name in layer}
+        assert not named - present, f"SUBLAYERS[{package!r}] names nothing: {named - present}"
+    packages = {m for m, path in MODULES.items() if path.name == "__init__.py" and m != "__init__"}
+    assert packages <= set(SUBLAYERS), f"subpackages without SUBLAYERS: {packages - set(SUBLAYERS)}"
 
 
 def test_the_import_graph_has_no_cycle():
@@ -95,17 +102,41 @@ def test_the_import_graph_has_no_cycle():
         pytest.fail(f"import cycle: {' -> '.join(err.args[1])}")
 
 
-@pytest.mark.parametrize("module", sorted(GRAPH))
+@pytest.mark.parametrize("module", sorted(MODULES))
 def test_no_module_imports_from_a_layer_above(module):
-    if module not in RANK:
-        pytest.fail(f"{module} has no place in LAYERS")
     upward = {name: line for name, line in GRAPH[module].items()
-              if RANK.get(name, len(LAYERS)) > RANK[module]}
+              if RANK[_unit(name)] > RANK[_unit(module)]}
     assert not upward, f"{module} imports from higher layers: {upward} (name: line)"
+
+
+@pytest.mark.parametrize("module", sorted(MODULES))
+def test_inside_a_subpackage_modules_import_only_lower_ones(module):
+    for package, layers in SUBLAYERS.items():
+        mine = _place(module, package)
+        if mine is None:
+            continue
+        rank = {name: r for r, layer in enumerate(layers) for name in layer}
+        for name, line in GRAPH[module].items():
+            theirs = _place(name, package)
+            if theirs is None or theirs == mine:
+                continue
+            assert rank[theirs] < rank[mine], (
+                f"{module} imports {name} (line {line}): in {package}, {theirs!r} is not "
+                f"below {mine!r}")
+
+
+def test_a_subpackage_init_imports_only_its_own_modules():
+    """``__init__`` files hold a docstring (and at most re-export their own modules), so that
+    importing one module of a subpackage loads nothing else."""
+    for package in SUBLAYERS:
+        outside = [name for name in GRAPH[package] if not name.startswith(package + ".")]
+        assert not outside, f"{package}/__init__.py imports {outside}"
 
 
 def test_the_check_sees_imports_inside_functions(tmp_path):
     """The reader counts an import hidden in a function body (a lazy import is no way out)."""
-    source = tmp_path / "probe.py"
-    source.write_text("def f():\n    from .cli import main\n    return main\n")
-    assert _imports(source, {"cli", "probe"}) == {"cli": 2}
+    probe = tmp_path / "probe.py"
+    probe.write_text("def f():\n    from .cli import main\n    return main\n")
+    modules = {"probe": probe, "cli": tmp_path / "cli.py"}
+    assert package_imports("probe", modules) == {"cli": 2}
+    assert package_imports("probe", modules, top_level_only=True) == {}

@@ -21,10 +21,10 @@ from mpcrl_lite.bounds.baselines import (
 from mpcrl_lite.config import LearningConfig, MPCConfig, SystemConfig
 from mpcrl_lite.learning.experiment import run_month
 from mpcrl_lite.learning.history import History
-from mpcrl_lite.system.battery import penalty
-from mpcrl_lite.mpc.formulation import MPC
-from mpcrl_lite.system.prices import Prices
 from mpcrl_lite.mpc.backends.registry import IpoptSolver
+from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.system.battery import penalty
+from mpcrl_lite.system.prices import Prices
 from mpcrl_lite.theta import Theta
 
 SYSTEM = SystemConfig()

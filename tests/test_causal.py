@@ -35,10 +35,10 @@ from mpcrl_lite.bounds.causal.kernels import (
     greedy_actions,
 )
 from mpcrl_lite.config import ConfigWarning, MPCConfig, SystemConfig
-from mpcrl_lite.system.battery import project_action, step
-from mpcrl_lite.mpc.formulation import MPC
-from mpcrl_lite.system.prices import Prices
 from mpcrl_lite.mpc.backends.registry import make_solver
+from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.system.battery import project_action, step
+from mpcrl_lite.system.prices import Prices
 from mpcrl_lite.theta import Theta
 
 SYSTEM = SystemConfig()

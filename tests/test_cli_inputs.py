@@ -17,17 +17,17 @@ from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 from mpcrl_lite.bounds import baselines
-from mpcrl_lite.cli.main import inputs as cli_inputs
-from mpcrl_lite.decentralized.learner import learner as decentralized
-from mpcrl_lite.learning import experiment
-from mpcrl_lite.publish import report
-from mpcrl_lite.mpc.formulation.backends import registry as solvers
-from mpcrl_lite.studies import transfer
+from mpcrl_lite.cli import inputs as cli_inputs
 from mpcrl_lite.cli.main import main
-from mpcrl_lite.sim.closed_loop import evaluate_mpc
 from mpcrl_lite.config import SystemConfig
+from mpcrl_lite.decentralized import learner as decentralized
+from mpcrl_lite.learning import experiment
 from mpcrl_lite.learning.history import History
+from mpcrl_lite.mpc.backends import registry as solvers
 from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.publish import report
+from mpcrl_lite.sim.closed_loop import evaluate_mpc
+from mpcrl_lite.studies import transfer
 from mpcrl_lite.theta import Theta
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures"

@@ -7,7 +7,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from mpcrl_lite.config import SystemConfig
 from mpcrl_lite.learning import history
+from mpcrl_lite.mpc.formulation import MPC
 from mpcrl_lite.sim.closed_loop import (
     Decision,
     GaussianExploration,
@@ -17,11 +19,9 @@ from mpcrl_lite.sim.closed_loop import (
     rollout,
     simulate,
 )
-from mpcrl_lite.config import SystemConfig
-from mpcrl_lite.system.battery import discounted_return, project_action, sample_noise
-from mpcrl_lite.mpc.formulation import MPC
-from mpcrl_lite.system.prices import Prices
 from mpcrl_lite.sim.record import RECORD_ARRAYS, MonthRecord, Record, Trajectory
+from mpcrl_lite.system.battery import discounted_return, project_action, sample_noise
+from mpcrl_lite.system.prices import Prices
 from mpcrl_lite.theta import Theta
 
 SYSTEM = SystemConfig()

@@ -7,8 +7,8 @@ import pytest
 
 from mpcrl_lite.config import CoordinationConfig, MPCConfig, SystemConfig
 from mpcrl_lite.decentralized.coordination import CoordinatedMPC, join_theta, split_theta
-from mpcrl_lite.mpc.backends.ipopt import IpoptSolver
 from mpcrl_lite.decentralized.local_qp import LocalQP, local_system
+from mpcrl_lite.mpc.backends.ipopt import IpoptSolver
 from mpcrl_lite.mpc.formulation import GRID_INEQUALITIES, INEQUALITIES, MPC
 from mpcrl_lite.system.prices import Prices
 from mpcrl_lite.theta import Theta

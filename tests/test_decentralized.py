@@ -18,9 +18,9 @@ from mpcrl_lite.decentralized.learner import (
     split_theta,
 )
 from mpcrl_lite.learning.experiment import Experiment
+from mpcrl_lite.mpc.backends.registry import IpoptSolver
 from mpcrl_lite.mpc.formulation import MPC
 from mpcrl_lite.system.prices import Prices
-from mpcrl_lite.mpc.backends.registry import IpoptSolver
 from mpcrl_lite.theta import Theta
 
 IPOPT = MPCConfig(backend="ipopt")

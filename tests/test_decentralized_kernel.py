@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mpcrl_lite.decentralized.learner import coordination_kernel as _coord_kernel
 from mpcrl_lite.config import CoordinationConfig, LearningConfig, MPCConfig, SystemConfig
+from mpcrl_lite.decentralized import coordination_kernel as _coord_kernel
 from mpcrl_lite.decentralized.coordination import CoordinatedMPC
 from mpcrl_lite.decentralized.learner import DecentralizedExperiment
 from mpcrl_lite.mpc.backends.kernel import warm_up

@@ -26,7 +26,6 @@ from mpcrl_lite.learning.dpg import (
     policy_gradient,
     policy_metric,
 )
-from mpcrl_lite.theta import CONSTANT_PARTS, PARTS, Theta
 from mpcrl_lite.learning.update_rules import (
     UPDATE_RULES,
     Adam,
@@ -34,6 +33,7 @@ from mpcrl_lite.learning.update_rules import (
     UpdateRule,
     make_update_rule,
 )
+from mpcrl_lite.theta import CONSTANT_PARTS, PARTS, Theta
 
 N = 3
 ALPHA = 1.0 / 12.0

@@ -28,13 +28,13 @@ import numpy as np
 import pytest
 
 from mpcrl_lite import LearningConfig, MPCConfig, SystemConfig, Theta
-from mpcrl_lite.learning import rundir
 from mpcrl_lite.cli.main import main
 from mpcrl_lite.decentralized.learner import DecentralizedExperiment
+from mpcrl_lite.learning import rundir
 from mpcrl_lite.learning.experiment import Experiment
 from mpcrl_lite.learning.history import History
-from mpcrl_lite.sim.record import RECORD_ARRAYS
 from mpcrl_lite.learning.rundir import RunDirError, RunWriteError
+from mpcrl_lite.sim.record import RECORD_ARRAYS
 
 FIXTURES = Path(__file__).resolve().parent / "fixtures"
 LEGACY = {"": FIXTURES / "run_v0_centralized", "--decentralized": FIXTURES / "run_v0_decentralized"}

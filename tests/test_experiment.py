@@ -9,12 +9,12 @@ import pytest
 from scipy import stats
 
 from mpcrl_lite import LearningConfig, MPCConfig, SystemConfig, Theta
-from mpcrl_lite.sim.closed_loop import draw_J, evaluate_mpc
 from mpcrl_lite.learning.experiment import Experiment, run_month
 from mpcrl_lite.learning.history import History
-from mpcrl_lite.mpc.formulation import MPC
-from mpcrl_lite.system.prices import Prices
 from mpcrl_lite.mpc.backends.registry import make_solver
+from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.sim.closed_loop import draw_J, evaluate_mpc
+from mpcrl_lite.system.prices import Prices
 
 SMALL = SystemConfig(N=6)
 
@@ -388,8 +388,8 @@ def test_forecast_option_changes_only_the_forecast():
     """``MPCConfig(forecast='until_midnight')``: the MPC's windows are zero after midnight,
     everything else (the true cost, the random draws, the hours whose windows end before
     midnight) is the paper's."""
-    from mpcrl_lite.system.forecast import DayEndPrices
     from mpcrl_lite.system.battery import agent_costs
+    from mpcrl_lite.system.forecast import DayEndPrices
 
     learning = LearningConfig(days_per_month=3, months=1, seed=7, eval_every=0)
     paper = Experiment(system=SMALL, learning=learning)

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from mpcrl_lite import SystemConfig
-from mpcrl_lite.sim.exploration_kernel import project_rows
 from mpcrl_lite.sim.exploration import bounded_exploration
+from mpcrl_lite.sim.exploration_kernel import project_rows
 from mpcrl_lite.system.battery import project_action
 
 

@@ -20,10 +20,10 @@ import numpy as np
 import pytest
 from conftest import convex_theta
 
-from mpcrl_lite.mpc.formulation.backends import kernel_core as _kernel
-from mpcrl_lite.mpc.backends.batch import BatchSolver
 from mpcrl_lite.config import LearningConfig, MPCConfig, SystemConfig
 from mpcrl_lite.learning.experiment import Experiment
+from mpcrl_lite.mpc.backends import kernel_core as _kernel
+from mpcrl_lite.mpc.backends.batch import BatchSolver
 from mpcrl_lite.mpc.backends.kernel import (
     STATUS_BREAKDOWN,
     STATUS_CONVERGED,
@@ -32,9 +32,9 @@ from mpcrl_lite.mpc.backends.kernel import (
     cache_dir,
     warm_up,
 )
+from mpcrl_lite.mpc.backends.registry import BatchSolution, IpoptSolver
 from mpcrl_lite.mpc.formulation import MPC
 from mpcrl_lite.mpc.sensitivity import PolicySensitivity
-from mpcrl_lite.mpc.backends.registry import BatchSolution, IpoptSolver
 from mpcrl_lite.theta import CONSTANT_PARTS, Theta
 
 SEED = 20240703

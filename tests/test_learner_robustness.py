@@ -8,20 +8,20 @@ import json
 import numpy as np
 import pytest
 
+from mpcrl_lite.config import LearningConfig, SystemConfig
+from mpcrl_lite.learning.dpg import DPGUpdater, learnable_mask, policy_gradient, policy_metric
+from mpcrl_lite.learning.experiment import Experiment
+from mpcrl_lite.learning.update_rules import NaturalGradient, natural_direction
 from mpcrl_lite.sim.closed_loop import (
     GaussianExploration,
     bounded_exploration,
     exploration_center,
     simulate,
 )
-from mpcrl_lite.config import LearningConfig, SystemConfig
-from mpcrl_lite.system.forecast import DayEndPrices, until_midnight
-from mpcrl_lite.learning.dpg import DPGUpdater, learnable_mask, policy_gradient, policy_metric
-from mpcrl_lite.learning.experiment import Experiment
 from mpcrl_lite.system.battery import project_action
+from mpcrl_lite.system.forecast import DayEndPrices, until_midnight
 from mpcrl_lite.system.prices import Prices
 from mpcrl_lite.theta import PARTS, Theta
-from mpcrl_lite.learning.update_rules import NaturalGradient, natural_direction
 
 SYSTEM = SystemConfig()  # n = 3, U_bar = 1, P_bar = 1.5
 N = SYSTEM.n

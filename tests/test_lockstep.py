@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from mpcrl_lite import LearningConfig, SystemConfig
-from mpcrl_lite.studies import lockstep
-from mpcrl_lite.sim.closed_loop import MPCPolicy, RunBlocks, run_month, simulate
 from mpcrl_lite.learning.experiment import Experiment
+from mpcrl_lite.sim.closed_loop import MPCPolicy, RunBlocks, run_month, simulate
+from mpcrl_lite.studies import lockstep
 from mpcrl_lite.studies.lockstep import group_key, run_lockstep, split_record
 from mpcrl_lite.system.battery import sample_noise
 from mpcrl_lite.system.prices import Prices

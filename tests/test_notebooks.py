@@ -23,7 +23,12 @@ import nbref
 import papermill
 import pytest
 
-from mpcrl_lite.publish.report import check_parameters, execute_notebook, notebook_parameters, read_summary
+from mpcrl_lite.publish.report import (
+    check_parameters,
+    execute_notebook,
+    notebook_parameters,
+    read_summary,
+)
 
 STEMS = nbref.stems()
 TOOLS = nbref.ROOT / "tools"

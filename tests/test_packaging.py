@@ -133,8 +133,8 @@ def test_a_checkout_reads_the_top_level_folders():
     # This test session imports the package from the checkout (or an editable install of it):
     # no copy inside the package, so the repository's folders are the ones read.
     import mpcrl_lite
-    from mpcrl_lite.system.prices import DATA_DIR
     from mpcrl_lite.publish.report import NOTEBOOK_DIR
+    from mpcrl_lite.system.prices import DATA_DIR
 
     checkout = Path(mpcrl_lite.__file__).resolve().parent.parent
     assert not (checkout / "mpcrl_lite" / "data").exists()

@@ -13,11 +13,8 @@ import numpy as np
 import pytest
 from matplotlib.figure import Figure
 
-from mpcrl_lite.figures import plots
 from mpcrl_lite.config import LearningConfig, SystemConfig
-from mpcrl_lite.learning.experiment import Experiment
-from mpcrl_lite.learning.history import History
-from mpcrl_lite.mpc.formulation import Plan
+from mpcrl_lite.figures import plots
 from mpcrl_lite.figures.plots import (
     FIRST_COLOR,
     LAST_COLOR,
@@ -33,6 +30,9 @@ from mpcrl_lite.figures.plots import (
     plot_day,
     save_paper_figures,
 )
+from mpcrl_lite.learning.experiment import Experiment
+from mpcrl_lite.learning.history import History
+from mpcrl_lite.mpc.formulation import Plan
 from mpcrl_lite.system.prices import Prices
 
 DAYS, MONTHS = 3, 2

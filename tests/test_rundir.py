@@ -279,8 +279,8 @@ def test_a_figure_that_fails_half_way_leaves_the_old_one(tmp_path, monkeypatch):
     matplotlib.use("Agg")
     from matplotlib.figure import Figure
 
-    from mpcrl_lite.learning.history import History
     from mpcrl_lite.figures.paper import PAPER_FIGURES, save_paper_figures
+    from mpcrl_lite.learning.history import History
 
     history = History.load(Path(__file__).resolve().parent / "fixtures" / "run_v0_centralized")
     save_paper_figures(history, tmp_path)

@@ -21,6 +21,7 @@ import nbref
 import pytest
 from matplotlib.figure import Figure
 
+from mpcrl_lite._util.references import DPG, PAPER
 from mpcrl_lite.publish import site as site_module
 from mpcrl_lite.publish.alt_text import _with_alt, describe_figure
 from mpcrl_lite.publish.html_export import (
@@ -37,7 +38,6 @@ from mpcrl_lite.publish.launch import (
     colab_url,
     launch_badges,
 )
-from mpcrl_lite._util.references import DPG, PAPER
 
 matplotlib.use("Agg")
 

@@ -13,14 +13,13 @@ import pytest
 from conftest import assert_imports_within
 
 import mpcrl_lite.mpc.backends.registry as solvers_module
-from mpcrl_lite.mpc.formulation.backends import batch as batch_solver
-from mpcrl_lite.mpc.formulation.backends import ipopt as ipopt_solver
-from mpcrl_lite.mpc.formulation import sensitivity
-from mpcrl_lite.mpc.formulation import solution
 from mpcrl_lite.config import BACKENDS, MPCConfig
+from mpcrl_lite.mpc import sensitivity, solution
+from mpcrl_lite.mpc.backends import batch as batch_solver
+from mpcrl_lite.mpc.backends import ipopt as ipopt_solver
 from mpcrl_lite.mpc.backends.kernel import KernelSolver
-from mpcrl_lite.mpc.formulation import shift
 from mpcrl_lite.mpc.backends.registry import FALLBACK, BatchSolution, IpoptSolver, make_solver
+from mpcrl_lite.mpc.formulation import shift
 from mpcrl_lite.theta import Theta
 
 
@@ -83,20 +82,24 @@ def test_moved_names_keep_their_old_import_paths():
 #: What each module of the solver layer may import from the package: the solution types sit
 #: below every back-end, back-ends never import each other, only the factory imports them.
 SOLVER_LAYER = {
-    "mpc": {"config", "theta"},
-    "solution": {"config", "mpc", "theta"},
-    "sensitivity": {"config", "mpc", "solution", "theta"},
-    "batch_linalg": set(),
-    "batch_kkt": {"batch_linalg", "config", "mpc", "solution", "theta"},
-    "batch_adjoint": {"batch_kkt", "batch_linalg", "config", "solution", "theta"},
-    "batch_solver": {"batch_adjoint", "batch_kkt", "batch_linalg", "config", "mpc", "solution",
-                     "theta"},
-    "ipopt_solver": {"config", "mpc", "sensitivity", "solution", "theta"},
-    # the kernels of the exploration and the coordination rounds only for the cache warm-up
-    "kernel_solver": {"_coord_kernel", "_explore_kernel", "_kernel", "config", "mpc", "solution",
-                      "theta"},
-    "solvers": {"batch_solver", "config", "ipopt_solver", "kernel_solver", "mpc", "solution",
-                "theta"},
+    "mpc.formulation": {"config", "theta"},
+    "mpc.solution": {"config", "mpc.formulation", "theta"},
+    "mpc.sensitivity": {"config", "mpc.formulation", "mpc.solution", "theta"},
+    "mpc.backends.batch_linalg": set(),
+    "mpc.backends.batch_kkt": {"mpc.backends.batch_linalg", "config", "mpc.formulation",
+                               "mpc.solution", "theta"},
+    "mpc.backends.batch_adjoint": {"mpc.backends.batch_kkt", "mpc.backends.batch_linalg",
+                                   "config", "mpc.solution", "theta"},
+    "mpc.backends.batch": {"mpc.backends.batch_adjoint", "mpc.backends.batch_kkt",
+                           "mpc.backends.batch_linalg", "config", "mpc.formulation",
+                           "mpc.solution", "theta"},
+    "mpc.backends.ipopt": {"config", "mpc.formulation", "mpc.sensitivity", "mpc.solution",
+                           "theta"},
+    "mpc.backends.kernel_core": {"_util", "_util.jit"},
+    "mpc.backends.kernel": {"mpc.backends.kernel_core", "config", "mpc.formulation",
+                            "mpc.solution", "theta"},
+    "mpc.backends.registry": {"mpc.backends.batch", "config", "mpc.backends.ipopt",
+                              "mpc.backends.kernel", "mpc.formulation", "mpc.solution", "theta"},
 }
 
 

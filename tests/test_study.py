@@ -9,12 +9,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from mpcrl_lite.studies import study
 from mpcrl_lite.bounds.causal.dp import causal_optimum
 from mpcrl_lite.cli.main import STUDY_TARGETS, main
 from mpcrl_lite.config import SystemConfig
 from mpcrl_lite.learning.history import History
-from mpcrl_lite.system.prices import Prices
+from mpcrl_lite.studies import study
 from mpcrl_lite.studies.study import (
     LATE_COLLAPSE,
     SEED_COLUMNS,
@@ -24,6 +23,7 @@ from mpcrl_lite.studies.study import (
     run_study,
     summarize,
 )
+from mpcrl_lite.system.prices import Prices
 
 
 def test_gap_closed_is_the_share_of_the_gap():

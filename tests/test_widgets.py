@@ -24,15 +24,7 @@ import pytest
 
 from mpcrl_lite.classroom import explorers as explore
 from mpcrl_lite.classroom import widgets as w
-from mpcrl_lite.sim.closed_loop import rollout, run_month
-from mpcrl_lite.config import MPCConfig, SystemConfig
 from mpcrl_lite.classroom.controls import StepSlider, accessible_name, float_slider
-from mpcrl_lite.learning.lstd import lstd_v, value_baseline_features
-from mpcrl_lite.system.battery import grid_power, split_action
-from mpcrl_lite.mpc.formulation import MPC
-from mpcrl_lite.system.prices import Prices
-from mpcrl_lite.mpc.backends.registry import make_solver
-from mpcrl_lite.theta import Theta
 from mpcrl_lite.classroom.widgets import (
     DayPrices,
     cached_solver,
@@ -47,6 +39,14 @@ from mpcrl_lite.classroom.widgets import (
     threshold_rule,
     value_fit,
 )
+from mpcrl_lite.config import MPCConfig, SystemConfig
+from mpcrl_lite.learning.lstd import lstd_v, value_baseline_features
+from mpcrl_lite.mpc.backends.registry import make_solver
+from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.sim.closed_loop import rollout, run_month
+from mpcrl_lite.system.battery import grid_power, split_action
+from mpcrl_lite.system.prices import Prices
+from mpcrl_lite.theta import Theta
 
 PNG = b"\x89PNG"
 

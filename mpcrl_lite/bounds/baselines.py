@@ -94,19 +94,19 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import linprog
 
-from ..learning import rundir
-from .causal.dp import CausalBound, causal_optimum, compare_with_optimum
-from ..sim.closed_loop import MPCPolicy, Policy, simulate
 from ..config import LearningConfig, MPCConfig, SystemConfig
-from ..system.forecast import forecast_prices
-from ..sim.exploration import Projection
+from ..learning import rundir
 from ..learning.history import History
-from ..system.battery import penalty, project_action, sample_noise
-from ..mpc.formulation import MPC
-from ..system.prices import Prices
-from ..sim.record import Record
 from ..mpc.backends.registry import make_solver
+from ..mpc.formulation import MPC
+from ..sim.closed_loop import MPCPolicy, Policy, simulate
+from ..sim.exploration import Projection
+from ..sim.record import Record
+from ..system.battery import penalty, project_action, sample_noise
+from ..system.forecast import forecast_prices
+from ..system.prices import Prices
 from ..theta import Theta
+from .causal.dp import CausalBound, causal_optimum, compare_with_optimum
 
 __all__ = [
     "ClairvoyantResult",

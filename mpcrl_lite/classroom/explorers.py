@@ -37,15 +37,21 @@ from typing import Any
 
 import numpy as np
 
-from ..sim.closed_loop import Policy, rollout, run_month
 from ..config import PRICE_UNIT, ConfigWarning, MPCConfig, SystemConfig
-from ..learning.lstd import FEATURE_SETS, LSTDResult, lstd_v, monte_carlo_returns, value_baseline_features
-from ..system.battery import project_action
-from ..mpc.formulation import MPC
-from ..system.prices import Prices
-from ..sim.record import MonthRecord, Record
-from ..mpc.solution import SolverBackend
+from ..learning.lstd import (
+    FEATURE_SETS,
+    LSTDResult,
+    lstd_v,
+    monte_carlo_returns,
+    value_baseline_features,
+)
 from ..mpc.backends.registry import make_solver
+from ..mpc.formulation import MPC
+from ..mpc.solution import SolverBackend
+from ..sim.closed_loop import Policy, rollout, run_month
+from ..sim.record import MonthRecord, Record
+from ..system.battery import project_action
+from ..system.prices import Prices
 from ..theta import Theta
 
 __all__ = [

@@ -53,6 +53,22 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from ..config import PRICE_UNIT, MPCConfig, SystemConfig
+from ..figures.plots import (
+    COST_UNIT,
+    draw_day,
+    draw_plan,
+    draw_policy_curve,
+    draw_prices,
+    draw_value_fit,
+    plot_day,
+    plot_policy_curve,
+    plot_price_window,
+    plot_value_fit,
+)
+from ..learning.lstd import FEATURE_SETS, state_features
+from ..sim.record import MonthRecord, Record
+from ..system.prices import HOURS_PER_DAY, Prices
+from ..theta import Theta
 from .controls import (
     accessible_name,
     choice_slider,
@@ -78,22 +94,6 @@ from .explorers import (
     threshold_rule,
     value_fit,
 )
-from ..learning.lstd import FEATURE_SETS, state_features
-from ..figures.plots import (
-    COST_UNIT,
-    draw_day,
-    draw_plan,
-    draw_policy_curve,
-    draw_prices,
-    draw_value_fit,
-    plot_day,
-    plot_policy_curve,
-    plot_price_window,
-    plot_value_fit,
-)
-from ..system.prices import HOURS_PER_DAY, Prices
-from ..sim.record import MonthRecord, Record
-from ..theta import Theta
 
 # The data helpers and figure-first drawing functions lived here before; their names stay.
 __all__ = [

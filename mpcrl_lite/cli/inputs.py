@@ -29,8 +29,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ..config import SystemConfig
-from ..system.prices import Prices, load_nordpool_csv, nordpool_areas
 from ..learning.rundir import RunDirError, check_output_dir, inspect
+from ..system.prices import Prices, load_nordpool_csv, nordpool_areas
 
 try:  # optional: a better figure of the available memory
     import psutil

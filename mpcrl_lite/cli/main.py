@@ -36,7 +36,6 @@ from typing import Any
 
 import numpy as np
 
-from ..learning import rundir
 from ..config import (
     BACKENDS,
     FORECASTS,
@@ -46,6 +45,7 @@ from ..config import (
     MPCConfig,
     SystemConfig,
 )
+from ..learning import rundir
 from ..publish.report import PROFILES
 
 # The heavier modules (CasADi, the solvers, matplotlib) are imported inside each command, so
@@ -354,12 +354,12 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     days = prices.days if prices is not None else args.days
     _budget(f"--days {days} --n {system.n}", system.n, days, horizon=system.N)
     out = _out(args, SIMULATE_OUTPUTS)
-    from ..system.forecast import forecast_prices
-    from ..learning.experiment import run_month
-    from ..mpc.formulation import MPC
     from ..figures.plots import plot_day
-    from ..system.prices import Prices
+    from ..learning.experiment import run_month
     from ..mpc.backends.registry import make_solver
+    from ..mpc.formulation import MPC
+    from ..system.forecast import forecast_prices
+    from ..system.prices import Prices
     from ..theta import Theta
 
     if prices is None:
@@ -476,9 +476,9 @@ def cmd_learn(args: argparse.Namespace) -> int:
         out = rundir.check_output_dir(args.out)
     except rundir.RunDirError as err:
         raise UsageError(str(err)) from None
+    from ..figures.plots import PAPER_FIGURES
     from ..learning.experiment import Experiment
     from ..learning.learner import MAX_FAILED_SOLVE_SHARE
-    from ..figures.plots import PAPER_FIGURES
 
     outputs = (rundir.SUMMARY, *PAPER_FIGURES)
     found = rundir.inspect(out, others=outputs)
@@ -599,8 +599,8 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     _budget(f"--draws {args.draws} --days {days} --n {system.n}", system.n, days,
             runs=2 * args.draws, horizon=system.N)
     out = _out(args, EVALUATE_OUTPUTS)
-    from ..theta import Theta
     from ..studies.transfer import evaluate_thetas
+    from ..theta import Theta
 
     if prices is None:
         prices = Prices.month(system, days)

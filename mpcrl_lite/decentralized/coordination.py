@@ -136,15 +136,15 @@ from typing import NamedTuple
 
 import numpy as np
 
-from . import coordination_kernel as _coord_kernel
 from ..config import CoordinationConfig, MPCConfig, SystemConfig
 from ..mpc.backends.kernel import KernelSolver
-from .local_qp import LocalQP, local_system
-from ..system.battery import project_action
+from ..mpc.backends.registry import AUTO, BatchSolution, IpoptSolver
 from ..mpc.formulation import MPC
 from ..mpc.sensitivity import PolicySensitivity
-from ..mpc.backends.registry import AUTO, BatchSolution, IpoptSolver
+from ..system.battery import project_action
 from ..theta import PARTS, Theta
+from . import coordination_kernel as _coord_kernel
+from .local_qp import LocalQP, local_system
 
 __all__ = ["CoordinatedMPC", "CoordinatedSolution", "join_theta", "split_theta"]
 

@@ -58,7 +58,6 @@ from typing import Any
 
 import numpy as np
 
-from ..sim.closed_loop import Decision, simulate
 from ..config import (
     CoordinationConfig,
     LearningConfig,
@@ -66,16 +65,17 @@ from ..config import (
     SystemConfig,
     check_int,
 )
-from .coordination import CoordinatedMPC, CoordinatedSolution, join_theta, split_theta
 from ..learning.dpg import DPGUpdater
 from ..learning.experiment import Experiment
-from ..sim.exploration import GaussianExploration
 from ..learning.history import History, MonthRecord
 from ..learning.learner import Learner, lstd_policy_gradient, parse_theta, resolve_setup
-from .local_qp import local_system
-from ..system.prices import Prices
 from ..learning.rundir import CHECKPOINT, RunDirError, plain
+from ..sim.closed_loop import Decision, simulate
+from ..sim.exploration import GaussianExploration
+from ..system.prices import Prices
 from ..theta import PARTS, Theta
+from .coordination import CoordinatedMPC, CoordinatedSolution, join_theta, split_theta
+from .local_qp import local_system
 
 __all__ = [
     "CHECKPOINT",

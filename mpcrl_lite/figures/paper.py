@@ -33,6 +33,9 @@ from matplotlib.ticker import MultipleLocator
 
 from ..config import PRICE_UNIT, check_instance, check_int
 from ..learning.history import History
+from ..learning.rundir import atomic_output
+from ..system.prices import Prices
+from ..theta import PARTS
 from .style import (
     COST_UNIT,
     CURRENCY,
@@ -47,9 +50,6 @@ from .style import (
     steps,
     u_bar_lines,
 )
-from ..system.prices import Prices
-from ..learning.rundir import atomic_output
-from ..theta import PARTS
 
 __all__ = [
     "PAPER_FIGURES",

@@ -44,6 +44,8 @@ from matplotlib.lines import Line2D
 
 from ..config import PRICE_UNIT, SystemConfig, check_int
 from ..mpc.formulation import Plan
+from ..sim.record import Record
+from ..system.prices import HOURS_PER_DAY, Prices
 from .paper import (
     PAPER_FIGURES,
     fig1_trajectories,
@@ -72,8 +74,6 @@ from .style import (
     steps,
     u_bar_lines,
 )
-from ..system.prices import HOURS_PER_DAY, Prices
-from ..sim.record import Record
 
 __all__ = [
     "AGENT_COLORS",

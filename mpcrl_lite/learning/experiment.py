@@ -46,19 +46,19 @@ from typing import Any
 
 import numpy as np
 
-from ..sim.closed_loop import evaluate_mpc, run_month
 from ..config import LearningConfig, MPCConfig, SystemConfig
-from .dpg import DPGUpdater
+from ..mpc.backends.registry import make_solver
+from ..mpc.formulation import MPC
+from ..sim.closed_loop import evaluate_mpc, run_month
 from ..sim.exploration import exploration_center
+from ..sim.record import MonthRecord
+from ..system.prices import Prices
+from ..theta import Theta
+from .dpg import DPGUpdater
 from .history import History
 from .learner import Learner, lstd_policy_gradient, parse_theta, resolve_setup, run_months
 from .lstd import value_baseline_features
-from ..mpc.formulation import MPC
-from ..system.prices import Prices
-from ..sim.record import MonthRecord
 from .rundir import CHECKPOINT, RunDirError, plain
-from ..mpc.backends.registry import make_solver
-from ..theta import Theta
 
 # run_month (mpcrl_lite.sim.closed_loop), value_baseline_features (mpcrl_lite.learning.lstd), run_months
 # and resolve_setup (mpcrl_lite.learning.learner) stay importable from here.

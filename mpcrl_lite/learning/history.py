@@ -32,11 +32,11 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from . import rundir
 from ..config import LearningConfig, MPCConfig, SystemConfig
 from ..sim.record import MONTH_ARRAYS, RECORD_ARRAYS, MonthRecord, Record
-from .rundir import RECOVER, RunDirError
 from ..theta import PARTS, Theta
+from . import rundir
+from .rundir import RECOVER, RunDirError
 
 # MonthRecord and MONTH_ARRAYS live in mpcrl_lite.sim.record; they stay importable from here.
 __all__ = ["MONTH_ARRAYS", "History", "MonthRecord", "mean_ci"]

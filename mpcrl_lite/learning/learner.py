@@ -64,16 +64,16 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
-from . import rundir
 from ..config import LearningConfig, MPCConfig, SystemConfig
+from ..sim.record import MonthRecord
 from ..system.forecast import forecast_of, forecast_prices
+from ..system.prices import Prices
+from ..theta import PARTS, Theta
+from . import rundir
 from .dpg import policy_gradient
 from .history import History
 from .lstd import compatible_features, lstd_q, value_baseline_features
-from ..system.prices import Prices
-from ..sim.record import MonthRecord
 from .rundir import RECOVER, RunDirError, RunDirMissing
-from ..theta import PARTS, Theta
 
 __all__ = [
     "BLAS_THREADS",

@@ -37,8 +37,8 @@ from typing import Protocol
 import numpy as np
 
 from ..config import MPCConfig
-from .formulation import MPC
 from ..theta import Theta
+from .formulation import MPC
 
 __all__ = [
     "FALLBACK",

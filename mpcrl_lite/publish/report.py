@@ -31,11 +31,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-from ..learning import rundir
-from ..config import InputTypeError, check_choice
-from .html_export import copy_mathjax, write_html
 from .._util.jsonio import plain_json
 from .._util.resources import package_folder
+from ..config import InputTypeError, check_choice
+from ..learning import rundir
+from .html_export import copy_mathjax, write_html
 
 __all__ = [
     "CI_PARAMETERS",

@@ -36,10 +36,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .. import __version__
+from .._util.references import PAPER
+from .._util.version import __version__
 from .html_export import MATHJAX_DIRNAME, mathjax_tags, remote_resources, write_html
 from .launch import binder_url, colab_url
-from .._util.references import PAPER
 from .report import PROFILES, notebook_paths, run_report
 
 __all__ = [

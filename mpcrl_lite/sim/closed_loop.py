@@ -50,6 +50,8 @@ from typing import Any
 import numpy as np
 
 from ..config import SystemConfig
+from ..system.battery import StepResult, sample_noise, step
+from ..theta import Theta
 from .exploration import (
     GaussianExploration,
     Projection,
@@ -57,9 +59,7 @@ from .exploration import (
     check_margin,
     exploration_center,
 )
-from ..system.battery import StepResult, sample_noise, step
 from .record import MonthRecord, Record
-from ..theta import Theta
 
 __all__ = [
     "ActionHook",

@@ -21,9 +21,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .exploration_kernel import ensure_compiled, explore_rows
 from ..config import EXPLORATION_BOUNDS, SystemConfig, check_choice, check_real
 from ..system.battery import project_action
+from .exploration_kernel import ensure_compiled, explore_rows
 
 __all__ = [
     "GaussianExploration",

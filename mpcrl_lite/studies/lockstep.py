@@ -68,10 +68,10 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
-from ..sim.closed_loop import RunBlocks, run_month
 from ..learning.experiment import Experiment
 from ..learning.history import History
 from ..learning.learner import BLAS_THREADS, Learner, close_month, open_run
+from ..sim.closed_loop import RunBlocks, run_month
 from ..sim.record import MonthRecord
 from ..theta import Theta
 

@@ -57,10 +57,10 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
-from ..learning import rundir
 from ..bounds.causal.dual import lagrangian_bound
 from ..bounds.causal.table import causal_bound
 from ..config import SystemConfig
+from ..learning import rundir
 from ..learning.history import History
 from ..learning.learner import prices_fingerprint
 from ..system.prices import Prices

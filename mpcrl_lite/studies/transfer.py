@@ -16,12 +16,12 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from ..sim.closed_loop import evaluate_mpc
 from ..config import MPCConfig, SystemConfig
-from ..system.forecast import forecast_prices
-from ..mpc.formulation import MPC
-from ..system.prices import Prices
 from ..mpc.backends.registry import make_solver
+from ..mpc.formulation import MPC
+from ..sim.closed_loop import evaluate_mpc
+from ..system.forecast import forecast_prices
+from ..system.prices import Prices
 from ..theta import Theta
 
 __all__ = ["evaluate_thetas", "mean_ci"]

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from .._util.resources import candidate_folders, package_folder
 from ..config import (
     HOURS_PER_DAY,
     PRICE_UNIT,
@@ -38,7 +39,6 @@ from ..config import (
     check_int,
     check_real,
 )
-from .._util.resources import candidate_folders, package_folder
 
 __all__ = [
     "DATA_DIR",

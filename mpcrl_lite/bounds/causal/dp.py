@@ -93,10 +93,10 @@ from typing import Any
 
 import numpy as np
 
-from .grid import SocGrid, _penalty, day_prices, distinct_days
-from .kernels import bellman_min, bellman_min3, greedy3, greedy_actions
 from ...config import SystemConfig
 from ...system.prices import Prices
+from .grid import SocGrid, _penalty, day_prices, distinct_days
+from .kernels import bellman_min, bellman_min3, greedy3, greedy_actions
 
 __all__ = [
     "MAX_POST_VALUES",

@@ -42,9 +42,9 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize
 
-from .grid import SocGrid, _penalty, day_prices, distinct_days
 from ...config import SystemConfig
 from ...system.prices import Prices
+from .grid import SocGrid, _penalty, day_prices, distinct_days
 
 __all__ = ["LagrangianBound", "dual_function", "lagrangian_bound"]
 

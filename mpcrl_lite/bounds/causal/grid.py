@@ -34,9 +34,9 @@ from typing import Any
 import numpy as np
 from scipy.special import ndtr
 
-from .kernels import expected_cost_rows
 from ...config import SystemConfig
 from ...system.prices import Prices
+from .kernels import expected_cost_rows
 
 __all__ = [
     "SocGrid",

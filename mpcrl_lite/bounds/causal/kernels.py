@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
 from ..._util.jit import njit_cached
 
 __all__ = [

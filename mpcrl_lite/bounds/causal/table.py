@@ -21,10 +21,10 @@ from typing import Any
 
 import pandas as pd
 
-from .dp import CausalBound, causal_optimum
-from .grid import SocGrid, day_prices, distinct_days
 from ...config import SystemConfig
 from ...system.prices import DATA_DIR, Prices
+from .dp import CausalBound, causal_optimum
+from .grid import SocGrid, day_prices, distinct_days
 
 __all__ = ["TABLE_CSV", "causal_bound", "provenance", "stored_bound"]
 

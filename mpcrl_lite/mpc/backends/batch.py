@@ -59,8 +59,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from .batch_adjoint import batch_sensitivity
-from .batch_kkt import TINY, BatchData, BatchKKT, KKTFactor
 from ...config import MPCConfig
 from ..formulation import MPC, shift
 from ..solution import (
@@ -74,6 +72,8 @@ from ..solution import (
     Sensitivity,
     StartSettings,
 )
+from .batch_adjoint import batch_sensitivity
+from .batch_kkt import TINY, BatchData, BatchKKT, KKTFactor
 
 # shift (mpcrl_lite.mpc.formulation) and the STATUS_* strings (mpcrl_lite.mpc.solution), importable from
 # here as before

@@ -46,10 +46,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...theta import PARTS
+from ..solution import BatchSolution, MPCSolution, Sensitivity
 from .batch_kkt import TINY, BatchData, BatchKKT, KKTFactor
 from .batch_linalg import cholesky_solve
-from ..solution import BatchSolution, MPCSolution, Sensitivity
-from ...theta import PARTS
 
 __all__ = ["batch_sensitivity", "grad_weights"]
 

@@ -67,10 +67,10 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from .batch_linalg import cholesky, cholesky_solve, tridiag_inverse
+from ...theta import PARTS
 from ..formulation import MPC
 from ..solution import BatchSolution, MPCSolution, check_parameters
-from ...theta import PARTS
+from .batch_linalg import cholesky, cholesky_solve, tridiag_inverse
 
 __all__ = ["TINY", "BatchData", "BatchKKT", "KKTFactor"]
 

@@ -43,7 +43,6 @@ import time
 import casadi as ca
 import numpy as np
 
-from . import kernel_core as K
 from ...config import MPCConfig
 from ..formulation import MPC
 from ..solution import (
@@ -58,6 +57,7 @@ from ..solution import (
     StartSettings,
     check_parameters,
 )
+from . import kernel_core as K
 
 __all__ = [
     "STATUS_BREAKDOWN",

@@ -73,7 +73,7 @@ import math
 import numpy as np
 
 from ..._util import jit
-from ..._util.jit import CACHED, njit_cached
+from ..._util.jit import njit_cached
 
 log = logging.getLogger("mpcrl_lite.mpc.backends.kernel")
 

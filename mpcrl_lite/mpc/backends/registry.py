@@ -25,13 +25,13 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 
-from .batch import BatchSolver
 from ...config import BACKENDS, MPCConfig
-from .ipopt import IpoptSolver
-from .kernel import KernelSolver
+from ...theta import Theta
 from ..formulation import MPC
 from ..solution import FALLBACK, BatchSolution, MPCSolution, SolverBackend
-from ...theta import Theta
+from .batch import BatchSolver
+from .ipopt import IpoptSolver
+from .kernel import KernelSolver
 
 # MPCSolution, BatchSolution, FALLBACK and IpoptSolver live in their own modules and stay
 # importable from here.

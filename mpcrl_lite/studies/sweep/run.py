@@ -21,8 +21,8 @@ from pathlib import Path
 from typing import Any
 
 from ...learning.experiment import Experiment
-from ..lockstep import run_lockstep
 from ...publish.report import _check_values, execute_notebook, notebook_parameters
+from ..lockstep import run_lockstep
 from .grid import GridError, MissingFileError, Sweep, SweepRun
 from .store import (
     is_done,
