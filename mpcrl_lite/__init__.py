@@ -1,15 +1,146 @@
 """mpcrl_lite: MPC-based reinforcement learning for a multi-agent battery storage system.
 
-The package follows the data flow of the experiment, one way (``tests/test_architecture.py``
-holds the layers)::
+``import mpcrl_lite as ml`` gives the names a user needs; each is loaded on first use, so the
+import itself stays light (no CasADi, numba, pandas, scipy or matplotlib until asked for).
 
-    config -> prices / model -> mpc -> solution <- back-ends (ipopt, batch, kernel) -> solvers
-           -> sensitivity -> closed_loop -> record -> lstd / dpg -> learner -> experiment,
-              decentralized, baselines, causal -> history -> plots -> widgets / report / site
+Configuration and parameters
+    ``SystemConfig``, ``MPCConfig``, ``LearningConfig``: every number and choice (Table I and
+    the open ones); ``Theta``: the MPC parameters, named parts per battery.
+The system (:mod:`mpcrl_lite.system`)
+    ``Prices``: a month of buying and selling prices; ``load_nordpool_csv``: a Nord Pool
+    export as prices; ``until_midnight``: the forecast that stops at midnight (an extension);
+    ``step``: one hour of the true batteries (paper eq. 1).
+The MPC (:mod:`mpcrl_lite.mpc`)
+    ``MPC``: the paper's MPC (eq. 9) in CasADi; ``make_solver``: a solver back-end for it;
+    ``policy_sensitivity``: d pi / d theta from the KKT conditions (eq. 21).
+The closed loop (:mod:`mpcrl_lite.sim`)
+    ``simulate``: the one closed loop; ``MPCPolicy``: the MPC as a policy; ``run_month``: a
+    month in closed loop; ``evaluate_mpc``: a theta on common noise draws; ``Record``: the
+    record of a simulated period.
+Learning (:mod:`mpcrl_lite.learning`, :mod:`mpcrl_lite.decentralized`)
+    ``Experiment``: the centralized learner (LSTD critic, DPG actor); ``History``: a run's
+    results; ``lstd_q``: the compatible critic's fit; ``policy_gradient``: the DPG estimate
+    (eq. 15); ``DecentralizedExperiment``: one learner per battery.
+Bounds and studies (:mod:`mpcrl_lite.bounds`, :mod:`mpcrl_lite.studies`)
+    ``evaluate_baselines``: the clairvoyant bound, nominal MPC and price rule on one scenario;
+    ``causal_optimum``: the best causal policy J* by dynamic programming;
+    ``lagrangian_bound``: a lower bound on J* for any number of batteries; ``run_study``:
+    one learning run over many seeds; ``run_sweep``: a grid of runs.
+Figures (:mod:`mpcrl_lite.figures`)
+    ``plot_day``: one day in closed loop; ``save_paper_figures``: the paper's Figs. 1-7.
+
+The subpackages follow the data flow, one way (``tests/test_architecture.py`` holds the
+layers)::
+
+    config, theta -> system -> mpc -> sim -> learning -> decentralized, bounds
+        -> figures -> classroom -> publish -> studies -> cli
 """
 
-from .config import LearningConfig, MPCConfig, SystemConfig
-from .theta import Theta
+from __future__ import annotations
 
-__all__ = ["LearningConfig", "MPCConfig", "SystemConfig", "Theta"]
+import importlib
+from typing import TYPE_CHECKING, Any
+
 from ._util.version import __version__
+
+#: Where each public name lives (module below ``mpcrl_lite``); loaded on first access.
+_HOMES: dict[str, str] = {
+    "SystemConfig": "config",
+    "MPCConfig": "config",
+    "LearningConfig": "config",
+    "Theta": "theta",
+    "Prices": "system.prices",
+    "load_nordpool_csv": "system.prices",
+    "until_midnight": "system.forecast",
+    "step": "system.battery",
+    "MPC": "mpc.formulation",
+    "make_solver": "mpc.backends.registry",
+    "policy_sensitivity": "mpc.sensitivity",
+    "simulate": "sim.closed_loop",
+    "MPCPolicy": "sim.closed_loop",
+    "run_month": "sim.closed_loop",
+    "evaluate_mpc": "sim.closed_loop",
+    "Record": "sim.record",
+    "Experiment": "learning.experiment",
+    "History": "learning.history",
+    "lstd_q": "learning.lstd",
+    "policy_gradient": "learning.dpg",
+    "DecentralizedExperiment": "decentralized.learner",
+    "evaluate_baselines": "bounds.baselines",
+    "causal_optimum": "bounds.causal.dp",
+    "lagrangian_bound": "bounds.causal.dual",
+    "run_study": "studies.study",
+    "run_sweep": "studies.sweep.api",
+    "plot_day": "figures.plots",
+    "save_paper_figures": "figures.paper",
+}
+
+__all__ = [
+    "MPC",
+    "DecentralizedExperiment",
+    "Experiment",
+    "History",
+    "LearningConfig",
+    "MPCConfig",
+    "MPCPolicy",
+    "Prices",
+    "Record",
+    "SystemConfig",
+    "Theta",
+    "__version__",
+    "causal_optimum",
+    "evaluate_baselines",
+    "evaluate_mpc",
+    "lagrangian_bound",
+    "load_nordpool_csv",
+    "lstd_q",
+    "make_solver",
+    "plot_day",
+    "policy_gradient",
+    "policy_sensitivity",
+    "run_month",
+    "run_study",
+    "run_sweep",
+    "save_paper_figures",
+    "simulate",
+    "step",
+    "until_midnight",
+]
+
+
+def __getattr__(name: str) -> Any:
+    home = _HOMES.get(name)
+    if home is None:
+        raise AttributeError(f"module 'mpcrl_lite' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{home}"), name)
+    globals()[name] = value  # later look-ups skip this function
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_HOMES))
+
+
+if TYPE_CHECKING:  # the same names for type checkers and editors
+    from .bounds.baselines import evaluate_baselines
+    from .bounds.causal.dp import causal_optimum
+    from .bounds.causal.dual import lagrangian_bound
+    from .config import LearningConfig, MPCConfig, SystemConfig
+    from .decentralized.learner import DecentralizedExperiment
+    from .figures.paper import save_paper_figures
+    from .figures.plots import plot_day
+    from .learning.dpg import policy_gradient
+    from .learning.experiment import Experiment
+    from .learning.history import History
+    from .learning.lstd import lstd_q
+    from .mpc.backends.registry import make_solver
+    from .mpc.formulation import MPC
+    from .mpc.sensitivity import policy_sensitivity
+    from .sim.closed_loop import MPCPolicy, evaluate_mpc, run_month, simulate
+    from .sim.record import Record
+    from .studies.study import run_study
+    from .studies.sweep.api import run_sweep
+    from .system.battery import step
+    from .system.forecast import until_midnight
+    from .system.prices import Prices, load_nordpool_csv
+    from .theta import Theta
