@@ -23,7 +23,7 @@ import numpy as np
 
 from mpcrl_lite.config import ConfigWarning, MPCConfig, SystemConfig
 from mpcrl_lite.mpc.backends.batch import BatchSolver
-from mpcrl_lite.mpc.backends.registry import IpoptSolver
+from mpcrl_lite.mpc.backends.ipopt import IpoptSolver
 from mpcrl_lite.mpc.formulation import MPC
 from mpcrl_lite.mpc.sensitivity import PolicySensitivity
 from mpcrl_lite.theta import Theta

@@ -318,7 +318,7 @@ def consistency_check(agent, env, system, mpc_config) -> dict:
     differences), so the comparison is known to be between equal problems."""
     import numpy as np
 
-    from mpcrl_lite.mpc.backends.registry import IpoptSolver
+    from mpcrl_lite.mpc.backends.ipopt import IpoptSolver
     from mpcrl_lite.mpc.formulation import MPC
     from mpcrl_lite.theta import PARTS, Theta
 

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from mpcrl_lite.config import MPCConfig, SystemConfig
-from mpcrl_lite.mpc.backends.registry import IpoptSolver
+from mpcrl_lite.mpc.backends.ipopt import IpoptSolver
 from mpcrl_lite.mpc.formulation import MPC
 from mpcrl_lite.theta import Theta
 

@@ -12,6 +12,7 @@ from the folders.
 
 from __future__ import annotations
 
+import ast
 import graphlib
 
 import pytest
@@ -37,7 +38,7 @@ LAYERS: list[set[str]] = [
 #: Inside a subpackage, its modules lowest first: a module imports only from a lower entry of
 #: its own subpackage (never from its own entry: modules side by side are independent).
 SUBLAYERS: dict[str, list[set[str]]] = {
-    "_util": [{"jit", "jsonio", "resources", "references", "version"}],
+    "_util": [{"jit", "jsonio", "resources", "references", "stats", "version"}],
     "system": [{"prices", "battery"}, {"forecast"}],
     "mpc": [{"formulation"}, {"solution"}, {"sensitivity"}, {"backends"}],
     "mpc.backends": [{"batch_linalg", "kernel_core"}, {"batch_kkt"}, {"batch_adjoint"},
@@ -131,6 +132,32 @@ def test_a_subpackage_init_imports_only_its_own_modules():
     for package in SUBLAYERS:
         outside = [name for name in GRAPH[package] if not name.startswith(package + ".")]
         assert not outside, f"{package}/__init__.py imports {outside}"
+
+
+#: Modules whose ``__all__`` gathers names from other modules on purpose: the package's face
+#: and the sweep's public API.
+FACES = {"__init__", "studies.sweep.api"}
+
+
+def _defined(module: str) -> set[str]:
+    names: set[str] = set()
+    for node in ast.parse(MODULES[module].read_text()).body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+            names.add(node.name)
+        elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+            names |= {n.id for t in targets for n in ast.walk(t) if isinstance(n, ast.Name)}
+    return names
+
+
+@pytest.mark.parametrize("module", sorted(set(MODULES) - FACES))
+def test_every_public_name_has_one_home(module):
+    """A module's ``__all__`` lists only what it defines: each name is imported from the one
+    module that holds it (no re-exports that keep two paths to one object)."""
+    for node in ast.parse(MODULES[module].read_text()).body:
+        if isinstance(node, ast.Assign) and getattr(node.targets[0], "id", "") == "__all__":
+            foreign = sorted(set(ast.literal_eval(node.value)) - _defined(module))
+            assert not foreign, f"{module}.__all__ lists names defined elsewhere: {foreign}"
 
 
 def test_the_check_sees_imports_inside_functions(tmp_path):

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from mpcrl_lite.bounds.baselines import (
-    MPCPolicy,
     RuleBasedPolicy,
     Scenario,
     clairvoyant,
@@ -19,10 +18,10 @@ from mpcrl_lite.bounds.baselines import (
     run_baselines_cli,
 )
 from mpcrl_lite.config import LearningConfig, MPCConfig, SystemConfig
-from mpcrl_lite.learning.experiment import run_month
 from mpcrl_lite.learning.history import History
-from mpcrl_lite.mpc.backends.registry import IpoptSolver
+from mpcrl_lite.mpc.backends.ipopt import IpoptSolver
 from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.sim.closed_loop import MPCPolicy, run_month
 from mpcrl_lite.system.battery import penalty
 from mpcrl_lite.system.prices import Prices
 from mpcrl_lite.theta import Theta

@@ -20,16 +20,12 @@ from conftest import convex_theta
 
 import mpcrl_lite.mpc.backends.batch_adjoint as adjoint
 from mpcrl_lite.config import MPCConfig, SystemConfig
-from mpcrl_lite.mpc.backends.batch import (
-    STATUS_CONVERGED,
-    STATUS_MAX_ITER,
-    BatchSolver,
-    shift,
-)
+from mpcrl_lite.mpc.backends.batch import BatchSolver
 from mpcrl_lite.mpc.backends.batch_adjoint import grad_weights
-from mpcrl_lite.mpc.backends.registry import BatchSolution, make_solver
-from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.mpc.backends.registry import make_solver
+from mpcrl_lite.mpc.formulation import MPC, shift
 from mpcrl_lite.mpc.sensitivity import PolicySensitivity
+from mpcrl_lite.mpc.solution import STATUS_CONVERGED, STATUS_MAX_ITER, BatchSolution
 from mpcrl_lite.theta import PARTS, Theta
 
 SEED = 20240601  # random states and thetas of the scenarios

@@ -11,7 +11,6 @@ from scipy import integrate
 from scipy.stats import norm
 
 from mpcrl_lite.bounds.baselines import (
-    MPCPolicy,
     RuleBasedPolicy,
     clairvoyant,
     evaluate_baselines,
@@ -37,6 +36,7 @@ from mpcrl_lite.bounds.causal.kernels import (
 from mpcrl_lite.config import ConfigWarning, MPCConfig, SystemConfig
 from mpcrl_lite.mpc.backends.registry import make_solver
 from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.sim.closed_loop import MPCPolicy
 from mpcrl_lite.system.battery import project_action, step
 from mpcrl_lite.system.prices import Prices
 from mpcrl_lite.theta import Theta

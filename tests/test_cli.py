@@ -11,7 +11,7 @@ import pytest
 
 from mpcrl_lite.cli.main import build_parser, main
 from mpcrl_lite.config import BACKENDS, OPTIMIZERS, LearningConfig, MPCConfig, SystemConfig
-from mpcrl_lite.learning.experiment import CHECKPOINT
+from mpcrl_lite.learning.rundir import CHECKPOINT
 from mpcrl_lite.publish.report import PROFILES
 
 

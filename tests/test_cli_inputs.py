@@ -16,6 +16,7 @@ import pytest
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
+from mpcrl_lite._util.stats import mean_ci
 from mpcrl_lite.bounds import baselines
 from mpcrl_lite.cli import inputs as cli_inputs
 from mpcrl_lite.cli.main import main
@@ -175,10 +176,10 @@ def test_evaluate_pairs_the_learned_and_nominal_mpc(export, tmp_path, capsys):
 
 
 def test_mean_ci_is_the_t_interval():
-    stats = transfer.mean_ci([1.0, 2.0, 3.0, 6.0])
+    stats = mean_ci([1.0, 2.0, 3.0, 6.0]).as_dict()
     half = 3.182446305284263 * np.std([1, 2, 3, 6], ddof=1) / 2  # t_{0.975, 3}
     assert stats["ci_high"] - stats["mean"] == pytest.approx(half)
-    assert transfer.mean_ci([4.0])["ci_low"] is None
+    assert mean_ci([4.0]).as_dict()["ci_low"] is None
 
 
 @pytest.mark.skipif(not REAL_EXPORT.is_file(), reason="the Nord Pool export is not present")

@@ -10,15 +10,8 @@ import pytest
 from mpcrl_lite.config import SystemConfig
 from mpcrl_lite.learning import history
 from mpcrl_lite.mpc.formulation import MPC
-from mpcrl_lite.sim.closed_loop import (
-    Decision,
-    GaussianExploration,
-    MPCPolicy,
-    Projection,
-    SensitivityRecorder,
-    rollout,
-    simulate,
-)
+from mpcrl_lite.sim.closed_loop import Decision, MPCPolicy, SensitivityRecorder, rollout, simulate
+from mpcrl_lite.sim.exploration import GaussianExploration, Projection
 from mpcrl_lite.sim.record import RECORD_ARRAYS, MonthRecord, Record, Trajectory
 from mpcrl_lite.system.battery import discounted_return, project_action, sample_noise
 from mpcrl_lite.system.prices import Prices

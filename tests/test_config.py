@@ -164,7 +164,7 @@ def test_huge_integers_are_refused_without_overflow():
 
 
 def test_coordination_config_lives_with_the_other_configs():
-    from mpcrl_lite.decentralized.learner import CoordinationConfig as FromDecentralized
+    from mpcrl_lite.config import CoordinationConfig as FromDecentralized
 
     assert FromDecentralized is CoordinationConfig
     config = CoordinationConfig(tol=1e-9, max_iter=np.int64(10))

@@ -8,17 +8,18 @@ import warnings
 import numpy as np
 import pytest
 
-from mpcrl_lite.config import ConfigWarning, LearningConfig, MPCConfig, SystemConfig
-from mpcrl_lite.decentralized.learner import (
-    CoordinatedMPC,
+from mpcrl_lite.config import (
+    ConfigWarning,
     CoordinationConfig,
-    DecentralizedExperiment,
-    join_theta,
-    local_system,
-    split_theta,
+    LearningConfig,
+    MPCConfig,
+    SystemConfig,
 )
+from mpcrl_lite.decentralized.coordination import CoordinatedMPC, join_theta, split_theta
+from mpcrl_lite.decentralized.learner import DecentralizedExperiment
+from mpcrl_lite.decentralized.local_qp import local_system
 from mpcrl_lite.learning.experiment import Experiment
-from mpcrl_lite.mpc.backends.registry import IpoptSolver
+from mpcrl_lite.mpc.backends.ipopt import IpoptSolver
 from mpcrl_lite.mpc.formulation import MPC
 from mpcrl_lite.system.prices import Prices
 from mpcrl_lite.theta import Theta

@@ -16,9 +16,6 @@ from mpcrl_lite.config import (
     SystemConfig,
 )
 from mpcrl_lite.learning.dpg import (
-    ADAM_BETAS,
-    ADAM_EPS,
-    ADAM_STEP_SIZE,
     DEFAULT_SCALE,
     DPGUpdater,
     learnable_mask,
@@ -27,6 +24,9 @@ from mpcrl_lite.learning.dpg import (
     policy_metric,
 )
 from mpcrl_lite.learning.update_rules import (
+    ADAM_BETAS,
+    ADAM_EPS,
+    ADAM_STEP_SIZE,
     UPDATE_RULES,
     Adam,
     GradientDescent,

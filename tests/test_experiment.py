@@ -9,11 +9,11 @@ import pytest
 from scipy import stats
 
 from mpcrl_lite import LearningConfig, MPCConfig, SystemConfig, Theta
-from mpcrl_lite.learning.experiment import Experiment, run_month
+from mpcrl_lite.learning.experiment import Experiment
 from mpcrl_lite.learning.history import History
 from mpcrl_lite.mpc.backends.registry import make_solver
 from mpcrl_lite.mpc.formulation import MPC
-from mpcrl_lite.sim.closed_loop import draw_J, evaluate_mpc
+from mpcrl_lite.sim.closed_loop import draw_J, evaluate_mpc, run_month
 from mpcrl_lite.system.prices import Prices
 
 SMALL = SystemConfig(N=6)
@@ -180,8 +180,7 @@ def test_experiment_rejects_bad_input():
 
 # -- critic features --------------------------------------------------------------------------
 def test_value_baseline_features():
-    from mpcrl_lite.learning.experiment import value_baseline_features
-    from mpcrl_lite.learning.lstd import value_features
+    from mpcrl_lite.learning.lstd import value_baseline_features, value_features
 
     soc = np.random.default_rng(0).uniform(size=(25, 4, 3))
     paper = value_baseline_features(soc, "paper")

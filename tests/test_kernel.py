@@ -24,17 +24,16 @@ from mpcrl_lite.config import LearningConfig, MPCConfig, SystemConfig
 from mpcrl_lite.learning.experiment import Experiment
 from mpcrl_lite.mpc.backends import kernel_core as _kernel
 from mpcrl_lite.mpc.backends.batch import BatchSolver
-from mpcrl_lite.mpc.backends.kernel import (
+from mpcrl_lite.mpc.backends.ipopt import IpoptSolver
+from mpcrl_lite.mpc.backends.kernel import KernelSolver, cache_dir, warm_up
+from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.mpc.sensitivity import PolicySensitivity
+from mpcrl_lite.mpc.solution import (
     STATUS_BREAKDOWN,
     STATUS_CONVERGED,
     STATUS_MAX_ITER,
-    KernelSolver,
-    cache_dir,
-    warm_up,
+    BatchSolution,
 )
-from mpcrl_lite.mpc.backends.registry import BatchSolution, IpoptSolver
-from mpcrl_lite.mpc.formulation import MPC
-from mpcrl_lite.mpc.sensitivity import PolicySensitivity
 from mpcrl_lite.theta import CONSTANT_PARTS, Theta
 
 SEED = 20240703

@@ -12,12 +12,8 @@ from mpcrl_lite.config import LearningConfig, SystemConfig
 from mpcrl_lite.learning.dpg import DPGUpdater, learnable_mask, policy_gradient, policy_metric
 from mpcrl_lite.learning.experiment import Experiment
 from mpcrl_lite.learning.update_rules import NaturalGradient, natural_direction
-from mpcrl_lite.sim.closed_loop import (
-    GaussianExploration,
-    bounded_exploration,
-    exploration_center,
-    simulate,
-)
+from mpcrl_lite.sim.closed_loop import simulate
+from mpcrl_lite.sim.exploration import GaussianExploration, bounded_exploration, exploration_center
 from mpcrl_lite.system.battery import project_action
 from mpcrl_lite.system.forecast import DayEndPrices, until_midnight
 from mpcrl_lite.system.prices import Prices

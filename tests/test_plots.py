@@ -15,9 +15,7 @@ from matplotlib.figure import Figure
 
 from mpcrl_lite.config import LearningConfig, SystemConfig
 from mpcrl_lite.figures import plots
-from mpcrl_lite.figures.plots import (
-    FIRST_COLOR,
-    LAST_COLOR,
+from mpcrl_lite.figures.paper import (
     PAPER_FIGURES,
     fig1_trajectories,
     fig2_performance,
@@ -26,10 +24,10 @@ from mpcrl_lite.figures.plots import (
     fig5_policy_and_agent_costs,
     fig6_prices,
     fig7_theta,
-    find_lines,
-    plot_day,
     save_paper_figures,
 )
+from mpcrl_lite.figures.plots import plot_day
+from mpcrl_lite.figures.style import FIRST_COLOR, LAST_COLOR, find_lines
 from mpcrl_lite.learning.experiment import Experiment
 from mpcrl_lite.learning.history import History
 from mpcrl_lite.mpc.formulation import Plan

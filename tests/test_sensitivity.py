@@ -27,9 +27,10 @@ import pytest
 from conftest import random_theta, window
 
 from mpcrl_lite.config import MPCConfig, SystemConfig
-from mpcrl_lite.mpc.backends.registry import BatchSolution, IpoptSolver
+from mpcrl_lite.mpc.backends.ipopt import IpoptSolver
 from mpcrl_lite.mpc.formulation import MPC
-from mpcrl_lite.mpc.sensitivity import PolicySensitivity, Sensitivity, policy_sensitivity
+from mpcrl_lite.mpc.sensitivity import PolicySensitivity, policy_sensitivity
+from mpcrl_lite.mpc.solution import BatchSolution, Sensitivity
 from mpcrl_lite.theta import CONSTANT_PARTS, PARTS, Theta
 
 RTOL = 1e-5  # relative error allowed between finite differences and the KKT sensitivity

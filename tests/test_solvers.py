@@ -14,12 +14,10 @@ from conftest import assert_imports_within
 
 import mpcrl_lite.mpc.backends.registry as solvers_module
 from mpcrl_lite.config import BACKENDS, MPCConfig
-from mpcrl_lite.mpc import sensitivity, solution
-from mpcrl_lite.mpc.backends import batch as batch_solver
-from mpcrl_lite.mpc.backends import ipopt as ipopt_solver
+from mpcrl_lite.mpc.backends.ipopt import IpoptSolver
 from mpcrl_lite.mpc.backends.kernel import KernelSolver
-from mpcrl_lite.mpc.backends.registry import FALLBACK, BatchSolution, IpoptSolver, make_solver
-from mpcrl_lite.mpc.formulation import shift
+from mpcrl_lite.mpc.backends.registry import make_solver
+from mpcrl_lite.mpc.solution import FALLBACK, BatchSolution
 from mpcrl_lite.theta import Theta
 
 
@@ -68,15 +66,6 @@ def test_make_solver_rejects_an_unregistered_backend(mpc, monkeypatch):
     with pytest.raises(ValueError, match=r"'batch' is not available; expected one of "
                                          r"\('auto', 'ipopt', 'kernel'\)"):
         make_solver(mpc, MPCConfig(backend="batch"))
-
-
-def test_moved_names_keep_their_old_import_paths():
-    assert solvers_module.MPCSolution is solution.MPCSolution
-    assert solvers_module.BatchSolution is solution.BatchSolution
-    assert solvers_module.FALLBACK is solution.FALLBACK
-    assert solvers_module.IpoptSolver is ipopt_solver.IpoptSolver
-    assert sensitivity.Sensitivity is solution.Sensitivity
-    assert batch_solver.shift is shift
 
 
 #: What each module of the solver layer may import from the package: the solution types sit

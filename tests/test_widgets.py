@@ -25,22 +25,23 @@ import pytest
 from mpcrl_lite.classroom import explorers as explore
 from mpcrl_lite.classroom import widgets as w
 from mpcrl_lite.classroom.controls import StepSlider, accessible_name, float_slider
-from mpcrl_lite.classroom.widgets import (
+from mpcrl_lite.classroom.explorers import (
     DayPrices,
     cached_solver,
-    day_explorer,
-    lstd_explorer,
     policy_curve,
-    price_day_picker,
-    rule_explorer,
     simulate_day,
-    state_features,
-    tau_explorer,
     threshold_rule,
     value_fit,
 )
+from mpcrl_lite.classroom.widgets import (
+    day_explorer,
+    lstd_explorer,
+    price_day_picker,
+    rule_explorer,
+    tau_explorer,
+)
 from mpcrl_lite.config import MPCConfig, SystemConfig
-from mpcrl_lite.learning.lstd import lstd_v, value_baseline_features
+from mpcrl_lite.learning.lstd import lstd_v, state_features, value_baseline_features
 from mpcrl_lite.mpc.backends.registry import make_solver
 from mpcrl_lite.mpc.formulation import MPC
 from mpcrl_lite.sim.closed_loop import rollout, run_month

@@ -108,19 +108,7 @@ from ..system.prices import Prices
 from ..theta import Theta
 from .causal.dp import CausalBound, causal_optimum, compare_with_optimum
 
-__all__ = [
-    "ClairvoyantResult",
-    "MPCPolicy",
-    "PolicyResult",
-    "RuleBasedPolicy",
-    "Scenario",
-    "clairvoyant",
-    "clairvoyant_lp",
-    "evaluate_baselines",
-    "evaluate_policy",
-    "make_scenario",
-    "run_baselines_cli",
-]
+__all__ = ["ClairvoyantResult", "PolicyResult", "RuleBasedPolicy", "Scenario", "clairvoyant", "clairvoyant_lp", "evaluate_baselines", "evaluate_policy", "make_scenario", "run_baselines_cli"]
 
 # -- the common scenario ----------------------------------------------------------------------
 @dataclass(frozen=True, eq=False)

@@ -52,25 +52,19 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ..config import PRICE_UNIT, MPCConfig, SystemConfig
+from ..config import HOURS_PER_DAY, PRICE_UNIT, MPCConfig, SystemConfig
 from ..figures.plots import (
-    COST_UNIT,
-    draw_day,
-    draw_plan,
-    draw_policy_curve,
-    draw_prices,
-    draw_value_fit,
     plot_day,
     plot_policy_curve,
     plot_price_window,
     plot_value_fit,
 )
-from ..learning.lstd import FEATURE_SETS, state_features
+from ..figures.style import COST_UNIT
+from ..learning.lstd import FEATURE_SETS
 from ..sim.record import MonthRecord, Record
-from ..system.prices import HOURS_PER_DAY, Prices
+from ..system.prices import Prices
 from ..theta import Theta
 from .controls import (
-    accessible_name,
     choice_slider,
     day_slider,
     dropdown,
@@ -83,48 +77,17 @@ from .explorers import (
     POLICY_RANGES,
     POLICY_VARIABLES,
     TAUS,
-    DayPrices,
-    cached_solver,
     policy_curve,
     price_window,
     replace_system,
     resolve_mpc_config,
     rule_day,
     simulate_day,
-    threshold_rule,
     value_fit,
 )
 
 # The data helpers and figure-first drawing functions lived here before; their names stay.
-__all__ = [
-    "FEATURE_SETS",
-    "POLICY_VARIABLES",
-    "TAUS",
-    "DayExplorer",
-    "DayPrices",
-    "Explorer",
-    "LSTDExplorer",
-    "PriceDayPicker",
-    "RuleExplorer",
-    "TauExplorer",
-    "accessible_name",
-    "cached_solver",
-    "day_explorer",
-    "draw_day",
-    "draw_plan",
-    "draw_policy_curve",
-    "draw_prices",
-    "draw_value_fit",
-    "lstd_explorer",
-    "policy_curve",
-    "price_day_picker",
-    "rule_explorer",
-    "simulate_day",
-    "state_features",
-    "tau_explorer",
-    "threshold_rule",
-    "value_fit",
-]
+__all__ = ["DayExplorer", "Explorer", "LSTDExplorer", "PriceDayPicker", "RuleExplorer", "TauExplorer", "day_explorer", "lstd_explorer", "price_day_picker", "rule_explorer", "tau_explorer"]
 
 
 def _layout_signature(fig: Figure) -> tuple:

@@ -2,7 +2,3 @@
 checks it makes before any work (:mod:`~mpcrl_lite.cli.inputs`) and the kernel warm-up
 ``python -m mpcrl_lite.cli.warm``. The top layer: may import everything below it.
 """
-
-from .main import main
-
-__all__ = ["main"]

@@ -355,9 +355,9 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     _budget(f"--days {days} --n {system.n}", system.n, days, horizon=system.N)
     out = _out(args, SIMULATE_OUTPUTS)
     from ..figures.plots import plot_day
-    from ..learning.experiment import run_month
     from ..mpc.backends.registry import make_solver
     from ..mpc.formulation import MPC
+    from ..sim.closed_loop import run_month
     from ..system.forecast import forecast_prices
     from ..system.prices import Prices
     from ..theta import Theta
@@ -476,7 +476,7 @@ def cmd_learn(args: argparse.Namespace) -> int:
         out = rundir.check_output_dir(args.out)
     except rundir.RunDirError as err:
         raise UsageError(str(err)) from None
-    from ..figures.plots import PAPER_FIGURES
+    from ..figures.paper import PAPER_FIGURES
     from ..learning.experiment import Experiment
     from ..learning.learner import MAX_FAILED_SOLVE_SHARE
 
@@ -514,7 +514,7 @@ def cmd_learn(args: argparse.Namespace) -> int:
     except OSError as err:
         raise UsageError(str(err)) from None
     if not args.no_figures:
-        from ..figures.plots import save_paper_figures
+        from ..figures.paper import save_paper_figures
 
         save_paper_figures(history, out, prices=exp.prices)
     print(json.dumps(rundir.plain({

@@ -137,10 +137,12 @@ from typing import NamedTuple
 import numpy as np
 
 from ..config import CoordinationConfig, MPCConfig, SystemConfig
+from ..mpc.backends.ipopt import IpoptSolver
 from ..mpc.backends.kernel import KernelSolver
-from ..mpc.backends.registry import AUTO, BatchSolution, IpoptSolver
+from ..mpc.backends.registry import AUTO
 from ..mpc.formulation import MPC
 from ..mpc.sensitivity import PolicySensitivity
+from ..mpc.solution import BatchSolution
 from ..system.battery import project_action
 from ..theta import PARTS, Theta
 from . import coordination_kernel as _coord_kernel

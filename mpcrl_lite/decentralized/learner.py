@@ -69,27 +69,14 @@ from ..learning.dpg import DPGUpdater
 from ..learning.experiment import Experiment
 from ..learning.history import History, MonthRecord
 from ..learning.learner import Learner, lstd_policy_gradient, parse_theta, resolve_setup
-from ..learning.rundir import CHECKPOINT, RunDirError, plain
+from ..learning.rundir import RunDirError, plain
 from ..sim.closed_loop import Decision, simulate
 from ..sim.exploration import GaussianExploration
 from ..system.prices import Prices
 from ..theta import PARTS, Theta
-from .coordination import CoordinatedMPC, CoordinatedSolution, join_theta, split_theta
-from .local_qp import local_system
+from .coordination import CoordinatedMPC, join_theta, split_theta
 
-__all__ = [
-    "CHECKPOINT",
-    "CoordinatedMPC",
-    "CoordinatedSolution",
-    "CoordinationConfig",
-    "DecentralizedExperiment",
-    "DecentralizedMonth",
-    "compare_learners",
-    "join_theta",
-    "local_system",
-    "run_month_decentralized",
-    "split_theta",
-]
+__all__ = ["DecentralizedExperiment", "DecentralizedMonth", "compare_learners", "run_month_decentralized"]
 
 log = logging.getLogger(__name__)
 

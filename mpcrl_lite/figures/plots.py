@@ -42,31 +42,17 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from ..config import PRICE_UNIT, SystemConfig, check_int
+from ..config import HOURS_PER_DAY, PRICE_UNIT, SystemConfig, check_int
 from ..mpc.formulation import Plan
 from ..sim.record import Record
-from ..system.prices import HOURS_PER_DAY, Prices
-from .paper import (
-    PAPER_FIGURES,
-    fig1_trajectories,
-    fig2_performance,
-    fig3_gradient_norm,
-    fig4_grid_power,
-    fig5_policy_and_agent_costs,
-    fig6_prices,
-    fig7_theta,
-    save_paper_figures,
-)
+from ..system.prices import Prices
 from .style import (
-    AGENT_COLORS,
-    COST_UNIT,
     FIRST_COLOR,
     LAST_COLOR,
     REF_GREY,
     agent_color,
     axes_or_new,
     day_axis,
-    find_lines,
     headroom,
     legend_beside,
     p_bar_line,
@@ -75,33 +61,7 @@ from .style import (
     u_bar_lines,
 )
 
-__all__ = [
-    "AGENT_COLORS",
-    "COST_UNIT",
-    "FIRST_COLOR",
-    "LAST_COLOR",
-    "PAPER_FIGURES",
-    "agent_color",
-    "draw_day",
-    "draw_plan",
-    "draw_policy_curve",
-    "draw_prices",
-    "draw_value_fit",
-    "fig1_trajectories",
-    "fig2_performance",
-    "fig3_gradient_norm",
-    "fig4_grid_power",
-    "fig5_policy_and_agent_costs",
-    "fig6_prices",
-    "fig7_theta",
-    "find_lines",
-    "plot_day",
-    "plot_plan",
-    "plot_policy_curve",
-    "plot_price_window",
-    "plot_value_fit",
-    "save_paper_figures",
-]
+__all__ = ["draw_day", "draw_plan", "draw_policy_curve", "draw_prices", "draw_value_fit", "plot_day", "plot_plan", "plot_policy_curve", "plot_price_window", "plot_value_fit"]
 
 _GRID = {"color": "0.9", "lw": 0.6}
 

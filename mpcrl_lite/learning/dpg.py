@@ -58,23 +58,12 @@ from ..theta import CONSTANT_PARTS, PARTS, Theta
 from .update_rules import (
     ADAM_BETAS,
     ADAM_EPS,
-    ADAM_STEP_SIZE,
     STATE_KEYS,
     UpdateRule,
     make_update_rule,
 )
 
-__all__ = [
-    "ADAM_BETAS",
-    "ADAM_EPS",
-    "ADAM_STEP_SIZE",
-    "DEFAULT_SCALE",
-    "DPGUpdater",
-    "learnable_mask",
-    "part_scales",
-    "policy_gradient",
-    "policy_metric",
-]
+__all__ = ["DEFAULT_SCALE", "DPGUpdater", "learnable_mask", "part_scales", "policy_gradient", "policy_metric"]
 
 
 #: Typical magnitude of each part of theta for Adam, for prices in NOK/MWh (multiplied by

@@ -56,14 +56,12 @@ from ..system.prices import Prices
 from ..theta import Theta
 from .dpg import DPGUpdater
 from .history import History
-from .learner import Learner, lstd_policy_gradient, parse_theta, resolve_setup, run_months
-from .lstd import value_baseline_features
-from .rundir import CHECKPOINT, RunDirError, plain
+from .learner import Learner, lstd_policy_gradient, parse_theta, resolve_setup
+from .rundir import RunDirError, plain
 
 # run_month (mpcrl_lite.sim.closed_loop), value_baseline_features (mpcrl_lite.learning.lstd), run_months
 # and resolve_setup (mpcrl_lite.learning.learner) stay importable from here.
-__all__ = ["CHECKPOINT", "Callback", "Experiment", "resolve_setup", "run_month", "run_months",
-           "value_baseline_features"]
+__all__ = ["Callback", "Experiment"]
 
 log = logging.getLogger(__name__)
 

@@ -30,38 +30,15 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
+from .._util.stats import mean_ci
 from ..config import LearningConfig, MPCConfig, SystemConfig
-from ..sim.record import MONTH_ARRAYS, RECORD_ARRAYS, MonthRecord, Record
+from ..sim.record import RECORD_ARRAYS, MonthRecord, Record
 from ..theta import PARTS, Theta
 from . import rundir
 from .rundir import RECOVER, RunDirError
 
-# MonthRecord and MONTH_ARRAYS live in mpcrl_lite.sim.record; they stay importable from here.
-__all__ = ["MONTH_ARRAYS", "History", "MonthRecord", "mean_ci"]
-
-
-def mean_ci(values: Any, level: float = 0.95) -> tuple[float, float, float]:
-    r"""Mean of ``values`` and its Student-t confidence interval.
-
-    ``mean -+ t_{(1+level)/2, K-1} * sd / sqrt(K)`` for ``K`` values (``sd`` with ``K - 1``
-    degrees of freedom); with fewer than 2 values the interval is ``(nan, nan)``.
-
-    Returns
-    -------
-    mean, low, high : float
-    """
-    if not (isinstance(level, float) and 0.0 < level < 1.0):
-        raise ValueError(f"level={level!r}: expected a float in (0, 1)")
-    x = np.asarray(values, dtype=float).reshape(-1)
-    if x.size == 0:
-        raise ValueError("values: expected at least one value")
-    mean = float(x.mean())
-    if x.size < 2:
-        return mean, math.nan, math.nan
-    half = float(stats.t.ppf(0.5 + level / 2, x.size - 1) * x.std(ddof=1) / math.sqrt(x.size))
-    return mean, mean - half, mean + half
+__all__ = ["History"]
 
 
 @dataclass(eq=False)
@@ -76,7 +53,7 @@ class History:
     the ``K = LearningConfig.eval_draws`` fixed noise draws (no exploration; each draw a month
     of ``days_per_month`` days), ``J_eval[j]`` the mean over the draws of each draw's J,
     ``J_eval_ci_low[j]``, ``J_eval_ci_high[j]`` its 95 % Student-t confidence interval over
-    the K draws (:func:`mean_ci`; NaN for K = 1 and in files written before it existed),
+    the K draws (:func:`~mpcrl_lite._util.stats.mean_ci`; NaN for K = 1 and in files written before it existed),
     ``J_eval_per_agent[j]`` the per-agent J^i, ``eval_hours_soc_below_0_1[j]`` the
     agent-hours with soc < 0.1 per draw (mean over the draws), ``eval_max_P_mpc[j]`` the
     largest planned grid power and ``eval_bound_share[j]`` the share of actions within 0.05 of
@@ -194,7 +171,8 @@ class History:
                              f"record's {record.days} days")
         s = record.summary()
         per_draw = record.J_per_day().reshape(draws, -1).mean(axis=1)
-        mean, low, high = mean_ci(per_draw)
+        ci = mean_ci(per_draw)
+        mean, low, high = ci.mean, ci.ci_low, ci.ci_high
         self.eval_month.append(int(month))
         self.J_eval.append(mean)
         self.J_eval_ci_low.append(low)

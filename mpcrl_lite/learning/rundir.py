@@ -74,33 +74,7 @@ import numpy as np
 
 from .._util.jsonio import json_default as jsonable
 
-__all__ = [
-    "CHECKPOINT",
-    "FORMAT",
-    "HISTORY_JSON",
-    "HISTORY_NPZ",
-    "KINDS",
-    "MANIFEST",
-    "RECOVER",
-    "STAGING",
-    "SUMMARY",
-    "Contents",
-    "Run",
-    "RunDirError",
-    "RunDirMissing",
-    "RunWriteError",
-    "atomic_output",
-    "check_output_dir",
-    "clear",
-    "commit",
-    "config_sha256",
-    "dumps",
-    "inspect",
-    "jsonable",
-    "plain",
-    "read",
-    "write_atomic",
-]
+__all__ = ["CHECKPOINT", "FORMAT", "HISTORY_JSON", "HISTORY_NPZ", "KINDS", "MANIFEST", "RECOVER", "STAGING", "SUMMARY", "Contents", "Run", "RunDirError", "RunDirMissing", "RunWriteError", "atomic_output", "check_output_dir", "clear", "commit", "config_sha256", "dumps", "inspect", "plain", "read", "write_atomic"]
 
 FORMAT = "mpcrl_lite.Run/1"
 MANIFEST = "manifest.json"

@@ -36,7 +36,7 @@ from .solution import BatchSolution, MPCSolution, Sensitivity
 
 # Sensitivity is defined in mpcrl_lite.mpc.solution (below every back-end) and kept importable
 # from here.
-__all__ = ["PolicySensitivity", "Sensitivity", "policy_sensitivity"]
+__all__ = ["PolicySensitivity", "policy_sensitivity"]
 
 
 class PolicySensitivity:

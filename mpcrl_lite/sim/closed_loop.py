@@ -54,35 +54,10 @@ from ..system.battery import StepResult, sample_noise, step
 from ..theta import Theta
 from .exploration import (
     GaussianExploration,
-    Projection,
-    bounded_exploration,
-    check_margin,
-    exploration_center,
 )
 from .record import MonthRecord, Record
 
-__all__ = [
-    "ActionHook",
-    "DayHook",
-    "Decision",
-    "GaussianExploration",
-    "HourHook",
-    "HourStep",
-    "MPCPolicy",
-    "Policy",
-    "Projection",
-    "RunBlocks",
-    "SensitivityRecorder",
-    "bounded_exploration",
-    "check_margin",
-    "draw_J",
-    "evaluate_mpc",
-    "evaluation_rng",
-    "exploration_center",
-    "rollout",
-    "run_month",
-    "simulate",
-]
+__all__ = ["ActionHook", "DayHook", "Decision", "HourHook", "HourStep", "MPCPolicy", "Policy", "RunBlocks", "SensitivityRecorder", "draw_J", "evaluate_mpc", "evaluation_rng", "rollout", "run_month", "simulate"]
 
 #: A plain policy: ``policy(hour, soc)`` with ``soc`` of shape ``(days, n)`` returns the
 #: commanded net powers ``a`` of shape ``(days, n)``.

@@ -14,8 +14,8 @@ import time
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
+from .._util.stats import mean_ci
 from ..config import MPCConfig, SystemConfig
 from ..mpc.backends.registry import make_solver
 from ..mpc.formulation import MPC
@@ -24,32 +24,7 @@ from ..system.forecast import forecast_prices
 from ..system.prices import Prices
 from ..theta import Theta
 
-__all__ = ["evaluate_thetas", "mean_ci"]
-
-
-def mean_ci(values: Any, level: float = 0.95) -> dict[str, Any]:
-    """Mean, sample std and the ``level`` confidence interval of the mean (Student's t).
-
-    Parameters
-    ----------
-    values : array_like, shape (K,)
-
-    Returns
-    -------
-    dict
-        ``{"mean", "std", "ci_low", "ci_high", "draws"}``; std and the interval are None
-        for one value.
-    """
-    x = np.asarray(values, dtype=float).ravel()
-    if x.size == 0:
-        raise ValueError("values: expected at least one number")
-    mean = float(x.mean())
-    if x.size < 2:
-        return {"mean": mean, "std": None, "ci_low": None, "ci_high": None, "draws": 1}
-    std = float(x.std(ddof=1))
-    half = float(stats.t.ppf(0.5 + level / 2, x.size - 1)) * std / np.sqrt(x.size)
-    return {"mean": mean, "std": std, "ci_low": mean - half, "ci_high": mean + half,
-            "draws": int(x.size)}
+__all__ = ["evaluate_thetas"]
 
 
 def evaluate_thetas(
@@ -96,7 +71,7 @@ def evaluate_thetas(
             runs.append(evaluate_mpc(theta, solver, seen, system, s).summary())
         policies[name] = {
             "J": [r["J"] for r in runs],
-            "J_stats": mean_ci([r["J"] for r in runs]),
+            "J_stats": mean_ci([r["J"] for r in runs]).as_dict(),
             "solver_failures": int(sum(r["solver_failures"] for r in runs)),
             "hours_soc_below_0_1": [r["hours_soc_below_0_1"] for r in runs],
             "max_P_mpc": max(r["max_P_mpc"] for r in runs),
@@ -105,6 +80,6 @@ def evaluate_thetas(
         }
     names = list(policies)
     base = np.asarray(policies[names[0]]["J"])
-    difference = {f"{name} - {names[0]}": mean_ci(np.asarray(policies[name]["J"]) - base)
+    difference = {f"{name} - {names[0]}": mean_ci(np.asarray(policies[name]["J"]) - base).as_dict()
                   for name in names[1:]}
     return {"draws": draws, "seeds": seeds, "policies": policies, "difference": difference}

@@ -40,16 +40,7 @@ from ..config import (
     check_real,
 )
 
-__all__ = [
-    "DATA_DIR",
-    "HOURS_PER_DAY",
-    "LOCAL_TZ",
-    "Prices",
-    "daily_matrix",
-    "load_default_profile",
-    "load_nordpool_csv",
-    "nordpool_areas",
-]
+__all__ = ["DATA_DIR", "LOCAL_TZ", "Prices", "daily_matrix", "load_default_profile", "load_nordpool_csv", "nordpool_areas"]
 
 #: Folder of the shipped data, found through the package (never through the working directory):
 #: ``mpcrl_lite/data`` in an installed wheel, the repository's ``data/`` in a checkout.

@@ -60,7 +60,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...config import MPCConfig
-from ..formulation import MPC, shift
+from ..formulation import MPC
 from ..solution import (
     STATUS_BREAKDOWN,
     STATUS_CONVERGED,
@@ -77,14 +77,7 @@ from .batch_kkt import TINY, BatchData, BatchKKT, KKTFactor
 
 # shift (mpcrl_lite.mpc.formulation) and the STATUS_* strings (mpcrl_lite.mpc.solution), importable from
 # here as before
-__all__ = [
-    "STATUS_BREAKDOWN",
-    "STATUS_CONVERGED",
-    "STATUS_MAX_ITER",
-    "STATUS_NON_FINITE",
-    "BatchSolver",
-    "shift",
-]
+__all__ = ["BatchSolver"]
 
 _ETA = 0.995  # fraction to the boundary
 

@@ -59,15 +59,7 @@ from ..solution import (
 )
 from . import kernel_core as K
 
-__all__ = [
-    "STATUS_BREAKDOWN",
-    "STATUS_CONVERGED",
-    "STATUS_MAX_ITER",
-    "STATUS_NON_FINITE",
-    "KernelSolver",
-    "cache_dir",
-    "warm_up",
-]
+__all__ = ["KernelSolver", "cache_dir", "warm_up"]
 
 log = logging.getLogger(__name__)
 

@@ -28,23 +28,14 @@ from collections.abc import Callable
 from ...config import BACKENDS, MPCConfig
 from ...theta import Theta
 from ..formulation import MPC
-from ..solution import FALLBACK, BatchSolution, MPCSolution, SolverBackend
+from ..solution import SolverBackend
 from .batch import BatchSolver
 from .ipopt import IpoptSolver
 from .kernel import KernelSolver
 
 # MPCSolution, BatchSolution, FALLBACK and IpoptSolver live in their own modules and stay
 # importable from here.
-__all__ = [
-    "AUTO",
-    "FALLBACK",
-    "REGISTRY",
-    "BatchSolution",
-    "IpoptSolver",
-    "MPCSolution",
-    "SolverBackend",
-    "make_solver",
-]
+__all__ = ["AUTO", "REGISTRY", "make_solver"]
 
 log = logging.getLogger(__name__)
 
