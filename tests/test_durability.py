@@ -28,6 +28,7 @@ import numpy as np
 import pytest
 
 from mpcrl_lite import LearningConfig, MPCConfig, SystemConfig, Theta
+from mpcrl_lite._util import jsonio
 from mpcrl_lite.cli.main import main
 from mpcrl_lite.decentralized.learner import DecentralizedExperiment
 from mpcrl_lite.learning import rundir
@@ -71,7 +72,7 @@ def comparable(history: History) -> str:
             if k != "wall_time_s"}
     data["update_info"] = [_drop_times(info) for info in history.update_info]
     data["theta_final"], data["backend"] = history.theta_final, history.backend
-    return json.dumps(rundir.plain(data), sort_keys=True)
+    return json.dumps(jsonio.plain(data), sort_keys=True)
 
 
 def _drop_times(value):
@@ -185,7 +186,7 @@ def started(out: Path, proc: subprocess.Popen) -> float:
 @pytest.mark.parametrize("learner", LEARNERS)
 def test_real_kills_at_random_times(learner, tmp_path, capsys):
     """``python -m mpcrl_lite learn`` killed at random times after its start-up."""
-    env = {**os.environ, "PYTHONPATH": str(Path(rundir.__file__).parents[1]),
+    env = {**os.environ, "PYTHONPATH": str(Path(rundir.__file__).parents[2]),
            "MPLBACKEND": "Agg"}
     command = [sys.executable, "-m", "mpcrl_lite"]
     reference = tmp_path / "reference"
@@ -295,9 +296,9 @@ def recommit(directory: Path, change_checkpoint=None, change_history=None) -> No
     run = rundir.read(directory, ["history.json", "history.npz", "checkpoint.json"])
     files = dict(run.files)
     if change_checkpoint:
-        files["checkpoint.json"] = rundir.dumps(change_checkpoint(json.loads(files["checkpoint.json"])))
+        files["checkpoint.json"] = jsonio.dumps(change_checkpoint(json.loads(files["checkpoint.json"])))
     if change_history:
-        files["history.json"] = rundir.dumps(change_history(json.loads(files["history.json"])))
+        files["history.json"] = jsonio.dumps(change_history(json.loads(files["history.json"])))
     manifest = run.manifest
     rundir.commit(directory, files, kind=manifest["kind"], months_done=manifest["months_done"],
                   configs_hash=manifest["config_sha256"])

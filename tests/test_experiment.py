@@ -446,6 +446,7 @@ def test_forecast_round_trips_through_history_and_checkpoint(tmp_path):
 def test_a_run_from_before_the_forecast_option_resumes_with_the_paper_forecast(tmp_path):
     """Checkpoints and manifests written before ``MPCConfig.forecast`` (and the price
     fingerprint) existed resume unchanged."""
+    from mpcrl_lite._util import jsonio
     from mpcrl_lite.learning import rundir
 
     small_experiment(months=2).run(months=1, out=tmp_path, progress=False)
@@ -454,7 +455,7 @@ def test_a_run_from_before_the_forecast_option_resumes_with_the_paper_forecast(t
     for data in (state, history):
         del data["mpc"]["forecast"]
     del state["prices"]
-    files = {"checkpoint.json": rundir.dumps(state), "history.json": rundir.dumps(history),
+    files = {"checkpoint.json": jsonio.dumps(state), "history.json": jsonio.dumps(history),
              "history.npz": (tmp_path / "history.npz").read_bytes()}
     configs = {key: state[key] for key in ("system", "mpc", "learning")}
     configs["learning"] = {k: v for k, v in configs["learning"].items() if k != "months"}

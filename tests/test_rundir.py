@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mpcrl_lite._util import jsonio
 from mpcrl_lite.learning import rundir
 from mpcrl_lite.learning.rundir import RunDirError, RunDirMissing, RunWriteError
 
@@ -166,16 +167,16 @@ def test_clear_removes_the_manifest_and_the_run(tmp_path):
 def test_dumps_writes_strict_json():
     data = {"x": float("nan"), "y": [np.float64(np.inf), -np.inf, 1.5], "z": np.arange(2),
             "w": np.int64(3)}
-    text = rundir.dumps(data).decode()
+    text = jsonio.dumps(data).decode()
 
     def no_constants(name):
         raise AssertionError(f"{name} is not JSON")
 
     assert json.loads(text, parse_constant=no_constants) == {
         "x": None, "y": [None, None, 1.5], "z": [0, 1], "w": 3}
-    assert rundir.plain({"a": (1, np.float32(0.5))}) == {"a": [1, 0.5]}
+    assert jsonio.plain({"a": (1, np.float32(0.5))}) == {"a": [1, 0.5]}
     with pytest.raises(TypeError, match="cannot store object"):
-        rundir.dumps({"a": object()})
+        jsonio.dumps({"a": object()})
 
 
 def test_config_hash_ignores_key_order():

@@ -563,9 +563,9 @@ def _files(root: Path) -> list[Path]:
         ("grid is a directory", r"grid file \S+ is a directory; expected a YAML file"),
         ("grid is missing", r"grid file \S+missing\.yaml not found"),
         ("grid is not YAML", r"grid file \S+: not valid YAML: line 3, column 16: "),
-        ("out is a file", r"output directory \S+taken is a file; expected a directory"),
+        ("out is a file", r"--out \S+taken: is an existing file; expected a directory"),
         ("out is under a file",
-         r"output directory \S+taken/out: \S+taken is a file, so it cannot be created"),
+         r"--out \S+taken/out: \S+taken is an existing file, so it cannot be created"),
     ],
 )
 def test_cli_errors_before_the_start_are_one_line(
@@ -604,10 +604,11 @@ def test_read_only_output_directory_is_refused_before_any_work(
         monkeypatch.setattr(
             os, "access", lambda path, mode, **kw: False if Path(path) == out
             else access(path, mode, **kw))
-    with pytest.raises(GridError, match=r"^output directory \S+read_only is not writable$"):
+    with pytest.raises(GridError, match=r"^--out \S+read_only: cannot write there \(\S+"
+                                        r"read_only is not writable\); expected a writable"):
         run_sweep(GRID, out, scheduler="serial", progress=False)
-    with pytest.raises(GridError, match=r"^output directory \S+read_only/new cannot be created: "
-                                        r"\S+read_only is not writable$"):
+    with pytest.raises(GridError, match=r"^--out \S+read_only/new: cannot write there \(\S+"
+                                        r"read_only is not writable\); expected a writable"):
         run_sweep(GRID, out / "new", scheduler="serial", progress=False)
     assert list(out.iterdir()) == []
 

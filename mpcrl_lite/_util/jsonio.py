@@ -1,18 +1,22 @@
-"""JSON from results that hold numpy values: arrays become lists, numpy scalars numbers.
+"""Strict JSON from results that hold numpy values: the one JSON encoding of the package.
 
-A learning step's diagnostics, a checkpoint and a notebook's summary all mix Python and numpy
-values; :func:`json_default` is the one ``default=`` hook of :func:`json.dumps` for them, and
-:func:`plain_json` gives a copy made of JSON types only (what reading the file back gives).
+A learning step's diagnostics, a checkpoint, a sweep's files and a notebook's summary all mix
+Python and numpy values: :func:`dumps` writes them as strict JSON (numpy arrays as lists,
+numpy scalars as numbers, paths as strings, every NaN or infinity as ``null`` -- ``NaN`` is
+not JSON and other readers reject it), :func:`plain` gives what reading that back gives.
+Files are written atomically by :func:`mpcrl_lite.learning.rundir.write_json` (fsync, rename).
 """
 
 from __future__ import annotations
 
 import json
+import math
+import os
 from typing import Any
 
 import numpy as np
 
-__all__ = ["json_default", "plain_json"]
+__all__ = ["dumps", "json_default", "plain", "plain_json", "to_json_types"]
 
 
 def json_default(value: Any) -> Any:
@@ -27,7 +31,37 @@ def json_default(value: Any) -> Any:
         return value.tolist()
     if isinstance(value, np.generic):
         return value.item()
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
     raise TypeError(f"cannot store {type(value).__name__} in JSON")
+
+
+def to_json_types(value: Any) -> Any:
+    """``value`` with numpy values as Python ones and every non-finite float as ``None``."""
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    elif isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: to_json_types(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [to_json_types(v) for v in value]
+    return value
+
+
+def dumps(data: Any, indent: int | None = 1, **options: Any) -> bytes:
+    """Strict JSON (UTF-8) of ``data``: numpy values as plain numbers, NaN and infinities
+    as ``null``; ``options`` go to :func:`json.dumps` (e.g. ``sort_keys``, ``separators``)."""
+    text = json.dumps(to_json_types(data), indent=indent, allow_nan=False,
+                      default=json_default, **options)
+    return text.encode("utf-8")
+
+
+def plain(data: Any) -> Any:
+    """``data`` as it reads back from :func:`dumps` (plain lists, dicts, numbers, None)."""
+    return json.loads(dumps(data, indent=None))
 
 
 def plain_json(value: Any) -> Any:

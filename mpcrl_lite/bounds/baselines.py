@@ -721,5 +721,5 @@ def run_baselines_cli(
     result = evaluate_baselines(system, mpc_config, learning.days_per_month, learning.seed, thetas,
                                 prices=prices)
     result["history"] = None if history_dir is None else str(history_dir)
-    rundir.write_atomic(out / BASELINES_JSON, rundir.dumps(result))
+    rundir.write_json(out / BASELINES_JSON, result)
     return result

@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 
+from .._util import jsonio
 from ..config import (
     BACKENDS,
     FORECASTS,
@@ -286,7 +287,7 @@ def _configs(args: argparse.Namespace, **learning: Any):
 def _write_json(path: Path, data: dict[str, Any]) -> None:
     """Strict JSON (NaN as null), written atomically."""
     try:
-        rundir.write_atomic(path, rundir.dumps(data))
+        rundir.write_json(path, data)
     except OSError as err:
         raise UsageError(str(err)) from None
 
@@ -394,7 +395,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     fig.savefig(buffer, format="png", dpi=110)
     _write_bytes(out / "day0.png", buffer.getvalue())
     _write_json(out / "summary.json", summary)
-    print(json.dumps(rundir.plain({k: summary[k] for k in (
+    print(json.dumps(jsonio.plain({k: summary[k] for k in (
         "J", "max_P_mpc", "max_P_applied", "hours_soc_below_0_1", "solver_failures", "wall_time_s"
     )})))
     return 0
@@ -510,14 +511,14 @@ def cmd_learn(args: argparse.Namespace) -> int:
         raise UsageError(str(err)) from None
     summary = {**history.summary(), "forecast": history.mpc.forecast}
     try:
-        rundir.write_atomic(out / rundir.SUMMARY, rundir.dumps(summary))
+        rundir.write_json(out / rundir.SUMMARY, summary)
     except OSError as err:
         raise UsageError(str(err)) from None
     if not args.no_figures:
         from ..figures.paper import save_paper_figures
 
         save_paper_figures(history, out, prices=exp.prices)
-    print(json.dumps(rundir.plain({
+    print(json.dumps(jsonio.plain({
         "months": history.months,
         "J_first": history.J[0],
         "J_last": history.J[-1],
@@ -574,7 +575,7 @@ def cmd_baselines(args: argparse.Namespace) -> int:
                                    prices=prices, force=args.force)
     except (ValueError, OSError) as err:  # FileNotFoundError, RunDirError, RunWriteError
         raise UsageError(str(err)) from None
-    print(json.dumps(rundir.plain({k: v["J"] for k, v in result["policies"].items()})))
+    print(json.dumps(jsonio.plain({k: v["J"] for k, v in result["policies"].items()})))
     return 0
 
 
@@ -620,7 +621,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     }
     _write_json(out / rundir.SUMMARY, summary)
     policies = summary["policies"]
-    print(json.dumps(rundir.plain({name: policies[name]["J_stats"] for name in policies})))
+    print(json.dumps(jsonio.plain({name: policies[name]["J_stats"] for name in policies})))
     return 0
 
 

@@ -58,6 +58,7 @@ from typing import Any
 
 import numpy as np
 
+from .._util.jsonio import plain
 from ..config import (
     CoordinationConfig,
     LearningConfig,
@@ -69,7 +70,7 @@ from ..learning.dpg import DPGUpdater
 from ..learning.experiment import Experiment
 from ..learning.history import History, MonthRecord
 from ..learning.learner import Learner, lstd_policy_gradient, parse_theta, resolve_setup
-from ..learning.rundir import RunDirError, plain
+from ..learning.rundir import RunDirError
 from ..sim.closed_loop import Decision, simulate
 from ..sim.exploration import GaussianExploration
 from ..system.prices import Prices

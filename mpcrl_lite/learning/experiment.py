@@ -46,6 +46,7 @@ from typing import Any
 
 import numpy as np
 
+from .._util.jsonio import plain
 from ..config import LearningConfig, MPCConfig, SystemConfig
 from ..mpc.backends.registry import make_solver
 from ..mpc.formulation import MPC
@@ -57,7 +58,7 @@ from ..theta import Theta
 from .dpg import DPGUpdater
 from .history import History
 from .learner import Learner, lstd_policy_gradient, parse_theta, resolve_setup
-from .rundir import RunDirError, plain
+from .rundir import RunDirError
 
 # run_month (mpcrl_lite.sim.closed_loop), value_baseline_features (mpcrl_lite.learning.lstd), run_months
 # and resolve_setup (mpcrl_lite.learning.learner) stay importable from here.

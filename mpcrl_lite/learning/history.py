@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from .._util import jsonio
 from .._util.stats import mean_ci
 from ..config import LearningConfig, MPCConfig, SystemConfig
 from ..sim.record import RECORD_ARRAYS, MonthRecord, Record
@@ -244,7 +245,7 @@ class History:
             arrays.update(self.last_month.arrays("last"))
         buffer = io.BytesIO()
         np.savez_compressed(buffer, **arrays)
-        return {rundir.HISTORY_JSON: rundir.dumps(meta), rundir.HISTORY_NPZ: buffer.getvalue()}
+        return {rundir.HISTORY_JSON: jsonio.dumps(meta), rundir.HISTORY_NPZ: buffer.getvalue()}
 
     def save(self, directory: str | Path) -> Path:
         """Write ``history.json`` and ``history.npz`` into ``directory`` as one commit

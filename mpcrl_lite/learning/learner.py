@@ -64,6 +64,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
+from .._util import jsonio
 from ..config import LearningConfig, MPCConfig, SystemConfig
 from ..sim.record import MonthRecord
 from ..system.forecast import forecast_of, forecast_prices
@@ -382,7 +383,7 @@ class Learner:
     def save_checkpoint(self, directory: str | Path) -> None:
         """Commit the History and the checkpoint to ``directory`` (one atomic commit)."""
         files = self.history.to_files()
-        files[rundir.CHECKPOINT] = rundir.dumps(self.checkpoint_state())
+        files[rundir.CHECKPOINT] = jsonio.dumps(self.checkpoint_state())
         rundir.commit(directory, files, kind=self.KIND, months_done=self.history.months,
                       configs_hash=self.configs_hash())
 

@@ -59,7 +59,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import os
 import re
 import signal
@@ -70,11 +69,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
+from .._util.jsonio import dumps
 
-from .._util.jsonio import json_default as jsonable
-
-__all__ = ["CHECKPOINT", "FORMAT", "HISTORY_JSON", "HISTORY_NPZ", "KINDS", "MANIFEST", "RECOVER", "STAGING", "SUMMARY", "Contents", "Run", "RunDirError", "RunDirMissing", "RunWriteError", "atomic_output", "check_output_dir", "clear", "commit", "config_sha256", "dumps", "inspect", "plain", "read", "write_atomic"]
+__all__ = ["CHECKPOINT", "FORMAT", "HISTORY_JSON", "HISTORY_NPZ", "KINDS", "MANIFEST", "RECOVER", "STAGING", "SUMMARY", "Contents", "Run", "RunDirError", "RunDirMissing", "RunWriteError", "atomic_output", "check_output_dir", "clear", "commit", "config_sha256", "inspect", "read", "write_atomic", "write_json"]
 
 FORMAT = "mpcrl_lite.Run/1"
 MANIFEST = "manifest.json"
@@ -110,33 +107,6 @@ class RunWriteError(OSError):
     """Writing a commit failed; the directory still holds the previous commit."""
 
 
-# -- JSON ---------------------------------------------------------------------------------
-def _finite_or_none(value: Any) -> Any:
-    if isinstance(value, np.ndarray):
-        value = value.tolist()
-    elif isinstance(value, np.generic):
-        value = value.item()
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _finite_or_none(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_finite_or_none(v) for v in value]
-    return value
-
-
-def dumps(data: Any, indent: int | None = 1) -> bytes:
-    """Strict JSON (UTF-8): numpy values as plain numbers, and every NaN or infinity as
-    ``null`` -- ``NaN`` is not JSON and other readers reject it."""
-    text = json.dumps(_finite_or_none(data), indent=indent, allow_nan=False, default=jsonable)
-    return text.encode("utf-8")
-
-
-def plain(data: Any) -> Any:
-    """``data`` as it reads back from :func:`dumps` (plain lists, dicts, numbers, None)."""
-    return json.loads(dumps(data, indent=None))
-
-
 #: Configuration fields added after run directories existed, with the value the older runs
 #: had: left out of :func:`config_sha256` at that value, so older manifests still match.
 LEGACY_VALUES: dict[str, dict[str, Any]] = {"learning": {"eval_draws": 1},
@@ -150,9 +120,8 @@ def config_sha256(configs: Mapping[str, Mapping[str, Any]]) -> str:
     value is left out."""
     configs = {key: {k: v for k, v in cfg.items() if LEGACY_VALUES.get(key, {}).get(k, _NO) != v}
                if isinstance(cfg, Mapping) else cfg for key, cfg in configs.items()}
-    text = json.dumps(_finite_or_none(configs), sort_keys=True, separators=(",", ":"),
-                      allow_nan=False, default=jsonable)
-    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+    text = dumps(configs, indent=None, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text).hexdigest()
 
 
 def _sha256(data: bytes) -> str:
@@ -230,6 +199,12 @@ def write_atomic(path: str | os.PathLike, data: bytes) -> None:
     except OSError as err:
         tmp.unlink(missing_ok=True)
         raise RunWriteError(err.errno, f"could not write {path}: {_reason(err)}") from err
+
+
+def write_json(path: str | os.PathLike, data: Any) -> None:
+    """Write ``data`` as strict JSON (:func:`mpcrl_lite._util.jsonio.dumps`: NaN as ``null``)
+    to ``path`` atomically (:func:`write_atomic`): the one JSON writer of the package."""
+    write_atomic(path, dumps(data))
 
 
 @contextmanager
@@ -311,14 +286,39 @@ def inspect(directory: str | os.PathLike, others: Iterable[str] = ()) -> Content
     return found
 
 
-def check_output_dir(path: str | os.PathLike, flag: str = "--out") -> Path:
+def _existing_ancestor(path: Path) -> Path:
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return path
+
+
+def check_output_dir(path: str | os.PathLike, flag: str = "--out", create: bool = True) -> Path:
     """An output directory that exists (created if needed) and can be written, or a
-    :class:`RunDirError` naming the problem; called before any work starts."""
+    :class:`RunDirError` naming the problem; called before any work starts.
+
+    With ``create=False`` nothing is created: a directory that does not exist yet is judged by
+    its nearest existing parent (it must be a directory this process can write to). The one
+    check of every command's output directory (runs, sweeps, studies, reports).
+    """
     text = os.fspath(path)
     if text == "":
         raise RunDirError(f"{flag} '': expected a directory path (an empty path would "
                           "write into the current directory; pass '.' to mean it)")
     directory = Path(text)
+    if not create:
+        try:
+            if directory.exists() and not directory.is_dir():
+                raise RunDirError(f"{flag} {text}: is an existing file; expected a directory")
+            parent = _existing_ancestor(directory)
+            if not parent.is_dir():
+                raise RunDirError(f"{flag} {text}: {parent} is an existing file, so it cannot be "
+                                  "created; expected a directory")
+            if not os.access(parent, os.W_OK | os.X_OK):
+                raise RunDirError(f"{flag} {text}: cannot write there ({parent} is not "
+                                  "writable); expected a writable directory")
+        except OSError as err:
+            raise RunDirError(f"{flag} {text}: cannot be checked ({_reason(err)})") from None
+        return directory
     created = False
     try:
         if directory.exists() and not directory.is_dir():

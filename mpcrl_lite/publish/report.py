@@ -296,5 +296,5 @@ def run_report(
             "parameters": params.get(path.stem, {}),
             "results": read_summary(nb),
         }
-        rundir.write_atomic(out / "summary.json", rundir.dumps(summary))
+        rundir.write_json(out / "summary.json", summary)
     return summary

@@ -57,6 +57,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
+from .._util import jsonio
 from ..bounds.causal.dual import lagrangian_bound
 from ..bounds.causal.table import causal_bound
 from ..config import SystemConfig
@@ -283,13 +284,13 @@ def _study_target(out: Path, system: SystemConfig, prices: Prices) -> dict[str, 
     path = out / J_STAR_FILE
     try:
         saved = json.loads(path.read_text())
-        if saved.get("for") == rundir.plain(key):
+        if saved.get("for") == jsonio.plain(key):
             return saved["target"]
     except (OSError, ValueError, AttributeError, KeyError):
         pass
     target = causal_target(system, prices)
     out.mkdir(parents=True, exist_ok=True)
-    rundir.write_atomic(path, rundir.dumps({"for": key, "target": target}))
+    rundir.write_json(path, {"for": key, "target": target})
     return target
 
 
@@ -422,7 +423,7 @@ def run_study(
     seed_table.to_csv(out / "study.csv", index=False)
     curves.to_csv(out / "study_curves.csv", index=False)
     summary = {"months": int(months), "eval_draws": _eval_draws(histories), **summary}
-    rundir.write_atomic(out / "study.json", rundir.dumps(summary))
+    rundir.write_json(out / "study.json", summary)
     fig = plot_curves(curves, summary["J_target"])
     try:
         with rundir.atomic_output(out / "study_curves.png") as tmp:

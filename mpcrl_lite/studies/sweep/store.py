@@ -15,10 +15,10 @@ is reported as a :class:`DamagedFileError` naming it, never as a bare ``JSONDeco
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 from typing import Any
 
+from ...learning import rundir
 from ...learning.rundir import LEGACY_VALUES
 from .grid import SECTIONS, GridError, Sweep, SweepRun, one_line
 
@@ -40,10 +40,9 @@ class DamagedFileError(GridError):
 
 
 def write_json(path: Path, data: Any) -> None:
-    """Write ``data`` as JSON to ``path`` atomically (values JSON lacks become strings)."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1, default=str))
-    tmp.replace(path)
+    """Write ``data`` as strict JSON to ``path`` atomically
+    (:func:`mpcrl_lite.learning.rundir.write_json`)."""
+    rundir.write_json(path, data)
 
 
 def read_json(path: Path) -> dict[str, Any] | None:
@@ -103,41 +102,23 @@ def is_done(run: SweepRun, directory: Path) -> bool:
 
 
 # -- checks before anything is written -----------------------------------------------------
-def _existing_ancestor(path: Path) -> Path:
-    while not path.exists() and path != path.parent:
-        path = path.parent
-    return path
-
-
 def check_out_dir(out: Path) -> None:
-    """Fail in one line if ``out`` cannot be (or become) a directory this process writes to.
-
-    Nothing is created: when ``out`` does not exist, its nearest existing parent is checked.
+    """Fail in one line if ``out`` cannot be (or become) a directory this process writes to
+    (:func:`mpcrl_lite.learning.rundir.check_output_dir`, creating nothing), or if its
+    ``runs`` or ``reports`` is a file.
 
     Raises
     ------
     GridError
-        ``out`` (or a parent of it) is a file, the directory is not writable, or it cannot
-        even be looked at (a parent that is not searchable).
+        With the check's message.
     """
     try:
-        _check_out_dir(out)
-    except OSError as err:
-        raise GridError(f"output directory {out} cannot be checked: {one_line(err)}") from None
-
-
-def _check_out_dir(out: Path) -> None:
-    if out.exists() and not out.is_dir():
-        raise GridError(f"output directory {out} is a file; expected a directory (or a new path)")
-    parent = _existing_ancestor(out)
-    if not parent.is_dir():
-        raise GridError(f"output directory {out}: {parent} is a file, so it cannot be created")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        what = "is" if parent == out else f"cannot be created: {parent} is"
-        raise GridError(f"output directory {out} {what} not writable")
+        rundir.check_output_dir(out, create=False)
+    except rundir.RunDirError as err:
+        raise GridError(str(err)) from None
     for sub in ("runs", "reports"):
         if (out / sub).exists() and not (out / sub).is_dir():
-            raise GridError(f"output directory {out}: {out / sub} is a file; expected a directory")
+            raise GridError(f"--out {out}: {out / sub} is a file; expected a directory")
 
 
 def check_run_dirs(sweep: Sweep, out: Path) -> None:
