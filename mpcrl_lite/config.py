@@ -15,7 +15,8 @@ the field, the value given and the range allowed, before any work starts. Numeri
 stored as plain Python ``int``/``float`` whatever was given (numpy scalars included), so a
 config always serialises to JSON.
 
-The validators behind them are the package's shared ones: :func:`check_real`,
+The validators behind them are the package's shared ones (:mod:`mpcrl_lite._util.validate`,
+still importable from here): :func:`check_real`,
 :func:`check_int`, :func:`check_choice`, :func:`check_bool` and :func:`check_instance`. Every
 module checks its arguments with them, so every bad input reads the same way:
 ``"P_bar=-1.0: expected a value in (0, inf)"``.
@@ -124,12 +125,20 @@ battery, ``'paper+hour'``) the median was -180 and 3 of the 20 seeds never learn
 from __future__ import annotations
 
 import math
-import numbers
-import reprlib
 import warnings
-from collections.abc import Sequence
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
+
+# the shared validators, also importable from here (their home is mpcrl_lite._util.validate)
+from ._util.validate import (  # noqa: F401
+    InputTypeError,
+    check_bool,
+    check_choice,
+    check_instance,
+    check_int,
+    check_real,
+    show,
+)
 
 __all__ = [
     "BACKENDS",
@@ -143,17 +152,12 @@ __all__ = [
     "PAPER_TAU",
     "PRICE_UNIT",
     "VALUE_FEATURES",
+    "VALUE_FEATURE_SETS",
     "ConfigWarning",
     "CoordinationConfig",
-    "InputTypeError",
     "LearningConfig",
     "MPCConfig",
     "SystemConfig",
-    "check_bool",
-    "check_choice",
-    "check_instance",
-    "check_int",
-    "check_real",
 ]
 
 #: Unit of every price in the project (see the module docstring for why).
@@ -167,155 +171,6 @@ HOURS_PER_DAY = 24
 
 class ConfigWarning(UserWarning):
     """A setting that is legal but probably not what the user meant."""
-
-
-class InputTypeError(TypeError, ValueError):
-    """A value of the wrong type (a string for a number, an array for a choice, ...).
-
-    A :class:`TypeError` by Python's convention, and a :class:`ValueError` by the project's:
-    every bad input raises a ``ValueError`` whose message names the argument, the value given
-    and what was expected, so one ``except ValueError`` (as in the command line) catches all
-    of them.
-    """
-
-
-# -- validators shared by the whole package ---------------------------------------------------
-# Each returns the value normalised to a plain Python type (numpy scalars become int/float/
-# str), so that what was validated is also what is stored and written to JSON.
-
-_shown = reprlib.Repr()
-_shown.maxstring = _shown.maxother = 60
-_shown.maxlist = _shown.maxtuple = _shown.maxdict = _shown.maxset = 6
-
-
-def _show(value: Any) -> str:
-    """A short ``repr`` of a bad value for an error message (long ones are cut)."""
-    return _shown.repr(value)
-
-
-def _interval(low: float | None, high: float | None, low_open: bool, high_open: bool) -> str:
-    lo = "-inf" if low is None else f"{low:g}"
-    hi = "inf" if high is None else f"{high:g}"
-    left = "(" if (low_open or low is None) else "["
-    right = ")" if (high_open or high is None) else "]"
-    return f"{left}{lo}, {hi}{right}"
-
-
-def check_real(
-    name: str,
-    value: Any,
-    low: float | None = None,
-    high: float | None = None,
-    *,
-    low_open: bool = False,
-    high_open: bool = False,
-) -> float:
-    """``value`` as a finite Python ``float`` in the interval given, else an error naming it.
-
-    Parameters
-    ----------
-    name : str
-        What the value is, as the user wrote it (``'P_bar'``, ``'factor'``).
-    value : object
-        Any real number (``int``, ``float``, numpy scalar, ``Fraction``); not ``bool``.
-    low, high : float, optional
-        Bounds (``None``: unbounded); closed unless ``low_open``/``high_open``.
-
-    Returns
-    -------
-    float
-
-    Raises
-    ------
-    InputTypeError
-        If ``value`` is not a real number.
-    ValueError
-        If it is not finite or outside the interval; the message reads
-        ``"P_bar=-1.0: expected a value in (0, inf)"``.
-    """
-    interval = _interval(low, high, low_open, high_open)
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise InputTypeError(
-            f"{name}={_show(value)}: expected a real number in {interval}, "
-            f"got {type(value).__name__}"
-        )
-    try:
-        number = float(value)
-    except OverflowError:  # an int beyond the float range
-        number = math.inf if value > 0 else -math.inf
-    if not math.isfinite(number):
-        raise ValueError(f"{name}={_show(value)}: expected a finite value in {interval}")
-    below = low is not None and (number <= low if low_open else number < low)
-    above = high is not None and (number >= high if high_open else number > high)
-    if below or above:
-        raise ValueError(f"{name}={_show(value)}: expected a value in {interval}")
-    return number
-
-
-def check_int(
-    name: str, value: Any, low: int | None = None, high: int | None = None, note: str = ""
-) -> int:
-    """``value`` as a Python ``int`` in ``[low, high]``, else an error naming it.
-
-    Accepts ``int`` and numpy integers, not ``bool`` and not floats (``3.0`` is refused:
-    a count written as a float is usually a mistake elsewhere). ``note`` is appended to the
-    message (why the range is what it is).
-
-    Raises
-    ------
-    InputTypeError
-        If ``value`` is not an integer.
-    ValueError
-        If it is outside the range; the message reads ``"n=0: expected an integer >= 1"``.
-    """
-    if low is not None and high is not None:
-        expected = f"an integer in [{low}, {high}]"
-    elif low is not None:
-        expected = f"an integer >= {low}"
-    elif high is not None:
-        expected = f"an integer <= {high}"
-    else:
-        expected = "an integer"
-    suffix = f" ({note})" if note else ""
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-        raise InputTypeError(
-            f"{name}={_show(value)}: expected {expected}, got {type(value).__name__}{suffix}"
-        )
-    if (low is not None and value < low) or (high is not None and value > high):
-        raise ValueError(f"{name}={_show(value)}: expected {expected}{suffix}")
-    return int(value)
-
-
-def check_choice(name: str, value: Any, choices: Sequence[str]) -> str:
-    """``value`` as one of the strings ``choices``, else an error naming it and the choices.
-
-    Only strings are compared (an array or a list is refused with the same message instead
-    of numpy's "truth value of an array is ambiguous").
-    """
-    expected = f"expected one of {', '.join(map(repr, choices))}"
-    if not isinstance(value, str):
-        raise InputTypeError(f"{name}={_show(value)}: {expected}, got {type(value).__name__}")
-    if value not in choices:
-        raise ValueError(f"{name}={_show(value)}: {expected}")
-    return str(value)
-
-
-def check_bool(name: str, value: Any) -> bool:
-    """``value`` if it is ``True`` or ``False`` (not ``0``/``1``), else an error naming it."""
-    if not isinstance(value, bool):
-        raise InputTypeError(
-            f"{name}={_show(value)}: expected True or False, got {type(value).__name__}"
-        )
-    return value
-
-
-def check_instance(name: str, value: Any, kind: type | tuple[type, ...]) -> Any:
-    """``value`` unchanged if it is an instance of ``kind``, else an error naming it."""
-    if not isinstance(value, kind):
-        kinds = kind if isinstance(kind, tuple) else (kind,)
-        expected = " or ".join(k.__name__ for k in kinds)
-        raise InputTypeError(f"{name}: expected a {expected}, got {type(value).__name__}")
-    return value
 
 
 class _Config:
@@ -406,7 +261,7 @@ class SystemConfig(_Config):
         set_("P_bar", check_real("P_bar", self.P_bar, 0.0, low_open=True))
         for name in ("omega", "omega_f"):
             value = getattr(self, name)
-            expected = f"{name}={_show(value)}: expected a pair (above, below) of weights >= 0"
+            expected = f"{name}={show(value)}: expected a pair (above, below) of weights >= 0"
             if not isinstance(value, tuple):
                 raise InputTypeError(f"{expected}, got {type(value).__name__}")
             if len(value) != 2:
@@ -514,8 +369,16 @@ class MPCConfig(_Config):
 
 #: Names of the DPG update rules (:data:`mpcrl_lite.learning.update_rules.UPDATE_RULES`).
 OPTIMIZERS = ("sgd", "adam", "natural")
-#: Feature sets of the critic's value baseline (see :data:`mpcrl_lite.learning.lstd.FEATURE_SETS`).
-VALUE_FEATURES = ("paper", "paper+hour", "hour", "hour*paper")
+#: Feature sets of the critic's value baseline by name, with a short description
+#: (built by :func:`mpcrl_lite.learning.lstd.value_features`).
+VALUE_FEATURE_SETS: dict[str, str] = {
+    "paper": "the paper's [soc_i^2, soc_i, 1]",
+    "paper+hour": "soc_i^2, soc_i and one indicator per hour",
+    "hour": "one indicator per hour of the day",
+    "hour*paper": "the paper's [soc_i^2, soc_i, 1] for each hour of the day",
+}
+#: Their names, the values ``LearningConfig.value_features`` takes.
+VALUE_FEATURES = tuple(VALUE_FEATURE_SETS)
 #: How the exploration respects the input bounds and the grid limit
 #: (:class:`mpcrl_lite.sim.exploration.GaussianExploration`).
 EXPLORATION_BOUNDS = ("symmetric", "radial", "project")

@@ -23,7 +23,7 @@ from mpcrl_lite.config import MPCConfig, SystemConfig
 from mpcrl_lite.mpc.backends.batch import BatchSolver
 from mpcrl_lite.mpc.backends.batch_adjoint import grad_weights
 from mpcrl_lite.mpc.backends.registry import make_solver
-from mpcrl_lite.mpc.formulation import MPC, shift
+from mpcrl_lite.mpc.formulation import MPC
 from mpcrl_lite.mpc.sensitivity import PolicySensitivity
 from mpcrl_lite.mpc.solution import STATUS_CONVERGED, STATUS_MAX_ITER, BatchSolution
 from mpcrl_lite.theta import PARTS, Theta
@@ -295,18 +295,6 @@ def test_single_solve_equals_batch_row(prices, mpc_of):
     np.testing.assert_allclose(sens.grad[0], solver.sensitivity(batch).grad[1], atol=1e-12)
 
 
-def test_shift_drops_stage_zero_and_repeats_the_last(mpc_of):
-    mpc = mpc_of()
-    x = np.arange(2 * mpc.nx, dtype=float).reshape(2, mpc.nx)
-    out = BatchSolver(mpc).shift(x)
-    block = 5 * mpc.n
-    np.testing.assert_array_equal(out[:, :-block], x[:, block:])
-    np.testing.assert_array_equal(out[:, -block:], x[:, -block:])
-    np.testing.assert_array_equal(out, mpc.shift(x))
-    with pytest.raises(ValueError, match="multiple of 5 n = 15"):
-        shift(np.zeros(7), 3)
-
-
 def test_warm_start_gives_the_cold_start_solution(prices, mpc_of):
     mpc = mpc_of()
     solver = BatchSolver(mpc)
@@ -320,7 +308,7 @@ def test_warm_start_gives_the_cold_start_solution(prices, mpc_of):
     cold = solver.solve_batch(soc_next, buy, sell, theta)
     garbage = np.full_like(first.x, np.nan)
     garbage[:3] = 5.0  # far outside the bounds
-    for x0 in (solver.shift(first.x), garbage):
+    for x0 in (mpc.shift(first.x), garbage):
         warm = solver.solve_batch(soc_next, buy, sell, theta, x0=x0)
         assert warm.success.all()
         np.testing.assert_allclose(warm.x, cold.x, atol=1e-8)

@@ -21,9 +21,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mpcrl_lite.config import VALUE_FEATURES
+from mpcrl_lite.config import VALUE_FEATURE_SETS, VALUE_FEATURES
 from mpcrl_lite.learning.lstd import (
-    FEATURE_SETS,
     LSTDResult,
     compatible_features,
     lstd_q,
@@ -73,10 +72,10 @@ def test_value_features_shape_and_order():
 
 
 def test_feature_sets_are_the_configs_and_agree_with_each_other():
-    assert tuple(FEATURE_SETS) == VALUE_FEATURES
+    assert tuple(VALUE_FEATURE_SETS) == VALUE_FEATURES
     soc = np.random.default_rng(1).uniform(size=(6, 2, 3))  # a 5-hour day, 2 days
     hour = np.array([0, 1, 2, 3, 4, 5])[:, None]           # 5 is the end of the day
-    for kind in FEATURE_SETS:
+    for kind in VALUE_FEATURE_SETS:
         # states at given hours and the states of a recorded period give the same features
         np.testing.assert_array_equal(
             state_features(soc, hour, kind, hours_per_day=5), value_baseline_features(soc, kind)

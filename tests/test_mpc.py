@@ -15,7 +15,7 @@ from scipy.optimize import linprog
 
 from mpcrl_lite.config import MPCConfig, SystemConfig
 from mpcrl_lite.mpc.backends.ipopt import IpoptSolver
-from mpcrl_lite.mpc.formulation import GRID_INEQUALITIES, INEQUALITIES, MPC, Plan, QPData, shift
+from mpcrl_lite.mpc.formulation import GRID_INEQUALITIES, INEQUALITIES, MPC, Plan, QPData
 from mpcrl_lite.mpc.solution import BatchSolution, MPCSolution
 from mpcrl_lite.theta import PARTS, Theta
 
@@ -196,7 +196,6 @@ def test_shift_drops_stage_zero_and_repeats_the_last(mpc):
     np.testing.assert_array_equal(out[:, :-block], x[:, block:])
     np.testing.assert_array_equal(out[:, -block:], x[:, -block:])
     np.testing.assert_array_equal(mpc.shift(x[0]), out[0])
-    np.testing.assert_array_equal(shift(x, mpc.n), out)
     with pytest.raises(ValueError, match=r"expected \(\.\.\., nx=180\)"):
         mpc.shift(x[:, :-1])
 

@@ -433,14 +433,6 @@ def test_value_fit_uses_the_critics_features(record):
     np.testing.assert_allclose(value_fit(record, "paper+hour")["fit"].v, direct.v, rtol=1e-12)
 
 
-def test_old_names_stay_importable_from_widgets():
-    for name in ("TAUS", "POLICY_VARIABLES", "DayPrices", "cached_solver", "threshold_rule",
-                 "simulate_day", "policy_curve", "FEATURE_SETS", "state_features", "value_fit",
-                 "draw_day", "draw_prices", "draw_plan", "draw_policy_curve", "draw_value_fit"):
-        assert name in w.__all__ and hasattr(w, name), name
-    assert w.simulate_day is explore.simulate_day and w.threshold_rule is explore.threshold_rule
-
-
 def test_data_and_figures_do_not_depend_on_the_widgets():
     """explore and plots sit below widgets in the data flow: no ipywidgets to import them."""
     code = ("import sys; import mpcrl_lite.classroom.explorers, mpcrl_lite.figures.plots, mpcrl_lite.cli.main; "

@@ -37,9 +37,8 @@ from typing import Any
 
 import numpy as np
 
-from ..config import PRICE_UNIT, ConfigWarning, MPCConfig, SystemConfig
+from ..config import PRICE_UNIT, VALUE_FEATURE_SETS, ConfigWarning, MPCConfig, SystemConfig
 from ..learning.lstd import (
-    FEATURE_SETS,
     LSTDResult,
     lstd_v,
     monte_carlo_returns,
@@ -438,7 +437,7 @@ def value_fit(record: Record, features: str = "paper", days: int | None = None,
     record : Record
         Transitions ``(soc_k, L~_k, soc_{k+1})`` of ``H`` hours and ``D`` days.
     features : str
-        A key of :data:`mpcrl_lite.learning.lstd.FEATURE_SETS`.
+        A key of :data:`mpcrl_lite.config.VALUE_FEATURE_SETS`.
     days : int, optional
         Use only the first ``days`` days (default all).
     gamma : float, optional
@@ -451,8 +450,8 @@ def value_fit(record: Record, features: str = "paper", days: int | None = None,
         value at every visited state and the Monte-Carlo return from it, ``rmse`` and ``r2``
         of ``V`` against ``G``, ``features``, ``gamma``, ``days``.
     """
-    if features not in FEATURE_SETS:
-        raise ValueError(f"features={features!r}: expected one of {list(FEATURE_SETS)}")
+    if features not in VALUE_FEATURE_SETS:
+        raise ValueError(f"features={features!r}: expected one of {list(VALUE_FEATURE_SETS)}")
     H, D = record.stage_cost.shape
     days = D if days is None else int(days)
     if not 1 <= days <= D:

@@ -52,7 +52,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ..config import HOURS_PER_DAY, PRICE_UNIT, MPCConfig, SystemConfig
+from ..config import HOURS_PER_DAY, PRICE_UNIT, VALUE_FEATURE_SETS, MPCConfig, SystemConfig
 from ..figures.plots import (
     plot_day,
     plot_policy_curve,
@@ -60,7 +60,6 @@ from ..figures.plots import (
     plot_value_fit,
 )
 from ..figures.style import COST_UNIT
-from ..learning.lstd import FEATURE_SETS
 from ..sim.record import MonthRecord, Record
 from ..system.prices import Prices
 from ..theta import Theta
@@ -442,9 +441,9 @@ class LSTDExplorer(Explorer):
         self.record = record
         D = record.stage_cost.shape[1]
         controls = {
-            "features": dropdown("features", list(FEATURE_SETS), features,
+            "features": dropdown("features", list(VALUE_FEATURE_SETS), features,
                                  "Features of the value function: "
-                                 + "; ".join(f"{k}: {d}" for k, d in FEATURE_SETS.items())),
+                                 + "; ".join(f"{k}: {d}" for k, d in VALUE_FEATURE_SETS.items())),
             "days": int_slider("days used", D, 1, D, "number of recorded days used",
                                "How many of the recorded days the fit uses"),
             "gamma": choice_slider("discount γ", record.system.gamma, [0.9, 0.95, 0.99, 1.0],
@@ -554,9 +553,9 @@ def lstd_explorer(record: Record, features: str = "paper", render: bool = True
     """Fit the value of the policy behind ``record`` by LSTD and compare it with the
     Monte-Carlo returns; no MPC is solved, so updates are instant.
 
-    Controls: ``features`` (see :data:`FEATURE_SETS`), ``days`` (how many of the recorded days
+    Controls: ``features`` (see :data:`VALUE_FEATURE_SETS`), ``days`` (how many of the recorded days
     are used), ``gamma``. ``result`` is a :func:`value_fit` dict.
     """
-    if features not in FEATURE_SETS:
-        raise ValueError(f"features={features!r}: expected one of {list(FEATURE_SETS)}")
+    if features not in VALUE_FEATURE_SETS:
+        raise ValueError(f"features={features!r}: expected one of {list(VALUE_FEATURE_SETS)}")
     return LSTDExplorer(record, features, render)

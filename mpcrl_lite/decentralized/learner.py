@@ -59,13 +59,8 @@ from typing import Any
 import numpy as np
 
 from .._util.jsonio import plain
-from ..config import (
-    CoordinationConfig,
-    LearningConfig,
-    MPCConfig,
-    SystemConfig,
-    check_int,
-)
+from .._util.validate import check_int
+from ..config import CoordinationConfig, LearningConfig, MPCConfig, SystemConfig
 from ..learning.dpg import DPGUpdater
 from ..learning.experiment import Experiment
 from ..learning.history import History, MonthRecord

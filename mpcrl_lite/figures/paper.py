@@ -31,7 +31,8 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.ticker import MultipleLocator
 
-from ..config import PRICE_UNIT, check_instance, check_int
+from .._util.validate import check_instance, check_int
+from ..config import PRICE_UNIT
 from ..learning.history import History
 from ..learning.rundir import atomic_output
 from ..system.prices import Prices

@@ -42,7 +42,8 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 
-from ..config import HOURS_PER_DAY, PRICE_UNIT, SystemConfig, check_int
+from .._util.validate import check_int
+from ..config import HOURS_PER_DAY, PRICE_UNIT, SystemConfig
 from ..mpc.formulation import Plan
 from ..sim.record import Record
 from ..system.prices import Prices

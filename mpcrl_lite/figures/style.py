@@ -33,7 +33,8 @@ from matplotlib.legend import Legend
 from matplotlib.lines import Line2D
 from matplotlib.ticker import MultipleLocator
 
-from ..config import PRICE_UNIT, SystemConfig, check_int
+from .._util.validate import check_int
+from ..config import PRICE_UNIT, SystemConfig
 
 __all__ = [
     "AGENT_COLORS",

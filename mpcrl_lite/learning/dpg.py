@@ -46,14 +46,8 @@ from typing import Any
 
 import numpy as np
 
-from ..config import (
-    ConfigWarning,
-    LearningConfig,
-    SystemConfig,
-    check_instance,
-    check_int,
-    check_real,
-)
+from .._util.validate import check_instance, check_int, check_real
+from ..config import ConfigWarning, LearningConfig, SystemConfig
 from ..theta import CONSTANT_PARTS, PARTS, Theta
 from .update_rules import (
     ADAM_BETAS,

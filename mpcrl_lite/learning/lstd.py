@@ -49,7 +49,7 @@ Numerics
 Value features
 --------------
 The state features :math:`\Phi` of the baseline :math:`V^v(s) = \Phi(s)^\top v` live here,
-one set per name of :data:`mpcrl_lite.config.VALUE_FEATURES` (:data:`FEATURE_SETS`): the
+one set per name of :data:`mpcrl_lite.config.VALUE_FEATURES` (:data:`mpcrl_lite.config.VALUE_FEATURE_SETS`): the
 paper's :math:`[soc_i^2, soc_i, 1]` (:func:`value_features`), the same with the constant
 replaced by one indicator per hour of the day, the hour indicators alone, and the paper's
 features once per hour (``'hour*paper'``, a quadratic in soc for each hour of the day)
@@ -72,10 +72,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._util.validate import check_real
 from ..config import VALUE_FEATURES
 
 __all__ = [
-    "FEATURE_SETS",
     "LSTDResult",
     "compatible_features",
     "lstd_q",
@@ -85,17 +85,6 @@ __all__ = [
     "value_baseline_features",
     "value_features",
 ]
-
-_DESCRIPTIONS = {
-    "paper": "the paper's [soc_i^2, soc_i, 1]",
-    "paper+hour": "soc_i^2, soc_i and one indicator per hour",
-    "hour": "one indicator per hour of the day",
-    "hour*paper": "the paper's [soc_i^2, soc_i, 1] for each hour of the day",
-}
-#: The value-feature sets by name (the names of :data:`mpcrl_lite.config.VALUE_FEATURES`),
-#: with a short description.
-FEATURE_SETS: dict[str, str] = {name: _DESCRIPTIONS[name] for name in VALUE_FEATURES}
-
 
 # -- features ------------------------------------------------------------------------------
 def value_features(soc: np.ndarray) -> np.ndarray:
@@ -122,7 +111,7 @@ def value_features(soc: np.ndarray) -> np.ndarray:
 def state_features(
     soc: np.ndarray, hour: np.ndarray, kind: str = "paper", hours_per_day: int = 24
 ) -> np.ndarray:
-    r"""Features :math:`\Phi(s)` of a set of :data:`FEATURE_SETS` for states at known hours.
+    r"""Features :math:`\Phi(s)` of a set of :data:`mpcrl_lite.config.VALUE_FEATURE_SETS` for states at known hours.
 
     Parameters
     ----------
@@ -144,8 +133,8 @@ def state_features(
     array, shape ``(..., 2 n + 1)``, ``(..., 2 n + hours_per_day)``,
     ``(..., hours_per_day)`` or ``(..., hours_per_day (2 n + 1))`` (hour-major)
     """
-    if kind not in FEATURE_SETS:
-        raise ValueError(f"kind={kind!r}: expected one of {list(FEATURE_SETS)}")
+    if kind not in VALUE_FEATURES:
+        raise ValueError(f"kind={kind!r}: expected one of {list(VALUE_FEATURES)}")
     paper = value_features(soc)
     if kind == "paper":
         return paper
@@ -175,7 +164,7 @@ def value_baseline_features(soc: np.ndarray, kind: str = "paper+hour") -> np.nda
         States of charge of a recorded period, row ``k`` at hour ``k`` of the day (row ``H``
         the end of the day, which has no hour indicator: the day is an episode).
     kind : str
-        A name of :data:`FEATURE_SETS` (``LearningConfig.value_features``); see
+        A name of :data:`mpcrl_lite.config.VALUE_FEATURE_SETS` (``LearningConfig.value_features``); see
         :func:`state_features`.
 
     Returns
@@ -456,17 +445,11 @@ def _check_cost_done(
 
 
 def _check_gamma(gamma: float) -> float:
-    gamma = float(gamma)
-    if not 0.0 < gamma <= 1.0:
-        raise ValueError(f"gamma={gamma!r}: expected a value in (0, 1]")
-    return gamma
+    return check_real("gamma", gamma, 0.0, 1.0, low_open=True)
 
 
 def _check_ridge(ridge: float) -> float:
-    ridge = float(ridge)
-    if not (np.isfinite(ridge) and ridge >= 0.0):
-        raise ValueError(f"ridge={ridge!r}: expected a finite value >= 0")
-    return ridge
+    return check_real("ridge", ridge, 0.0)
 
 
 def _solve(

@@ -30,7 +30,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from ..config import check_choice, check_real
+from .._util.validate import check_choice, check_real
 
 __all__ = [
     "ADAM_BETAS",

@@ -51,7 +51,7 @@ import numpy as np
 from ..config import SystemConfig
 from ..theta import PARTS, Theta
 
-__all__ = ["GRID_INEQUALITIES", "INEQUALITIES", "MPC", "Plan", "QPData", "shift"]
+__all__ = ["GRID_INEQUALITIES", "INEQUALITIES", "MPC", "Plan", "QPData"]
 
 #: The groups of inequality rows of one stage of ``h``, in their order: name -> the constraint
 #: ``expression <= 0``. A group has one row per agent, except the grid limits (one row).
@@ -69,36 +69,6 @@ INEQUALITIES: dict[str, str] = {
 }
 #: The groups of :data:`INEQUALITIES` with one row per stage (the grid peak limits, eq. 9f).
 GRID_INEQUALITIES = ("grid_b", "grid_s")
-
-
-def shift(x: np.ndarray, n: int) -> np.ndarray:
-    """Shift MPC solutions one stage forward, for warm starting the next hour.
-
-    Stage ``j`` of the result is stage ``j + 1`` of ``x``; the last stage is repeated (see
-    :meth:`MPC.shift`, which checks the full size).
-
-    Parameters
-    ----------
-    x
-        Primal solutions in this module's layout, shape ``(..., 5 n N)``.
-    n
-        Number of agents.
-
-    Returns
-    -------
-    numpy.ndarray
-        Array of the same shape as ``x``.
-    """
-    x = np.asarray(x, dtype=float)
-    stage = 5 * n
-    if x.shape[-1] % stage:
-        raise ValueError(
-            f"x has {x.shape[-1]} entries per problem; expected a multiple of 5 n = {stage}"
-        )
-    out = np.empty_like(x)
-    out[..., :-stage] = x[..., stage:]
-    out[..., -stage:] = x[..., -stage:]
-    return out
 
 
 @dataclass(frozen=True)
@@ -317,12 +287,16 @@ class MPC:
         """Warm start for the next hour: drop stage 0, repeat the last stage.
 
         ``x`` has shape ``(..., nx)``; the result has the same shape. Every back-end and the
-        closed loop warm start through this (:func:`shift` with a check of the size).
+        closed loop warm start through this one method.
         """
         x = np.asarray(x, dtype=float)
         if x.shape[-1:] != (self.nx,):
             raise ValueError(f"x has shape {x.shape}; expected (..., nx={self.nx})")
-        return shift(x, self.n)
+        stage = 5 * self.n
+        out = np.empty_like(x)
+        out[..., :-stage] = x[..., stage:]
+        out[..., -stage:] = x[..., -stage:]
+        return out
 
     def qp_data(self, p: np.ndarray) -> QPData:
         """The QP at one parameter vector ``p`` of shape ``(np,)``."""

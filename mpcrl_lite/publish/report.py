@@ -33,7 +33,7 @@ from typing import Any
 
 from .._util.jsonio import plain_json
 from .._util.resources import package_folder
-from ..config import InputTypeError, check_choice
+from .._util.validate import InputTypeError, check_choice
 from ..learning import rundir
 from .html_export import copy_mathjax, write_html
 

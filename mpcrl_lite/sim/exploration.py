@@ -21,7 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..config import EXPLORATION_BOUNDS, SystemConfig, check_choice, check_real
+from .._util.validate import check_choice, check_real
+from ..config import EXPLORATION_BOUNDS, SystemConfig
 from ..system.battery import project_action
 from .exploration_kernel import ensure_compiled, explore_rows
 

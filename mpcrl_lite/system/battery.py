@@ -54,6 +54,7 @@ __all__ = [
     "sample_noise",
     "split_action",
     "step",
+    "unchecked_penalty",
 ]
 
 # -- input checks ---------------------------------------------------------------------------
@@ -338,7 +339,12 @@ def penalty(soc: Any, system: SystemConfig) -> np.ndarray:
     numpy.ndarray, shape of ``soc``
     """
     _check_system(system)
-    soc = _as_float_array("soc", soc)
+    return unchecked_penalty(_as_float_array("soc", soc), system)
+
+
+def unchecked_penalty(soc: np.ndarray, system: SystemConfig) -> np.ndarray:
+    """:func:`penalty` of a float array without the input checks, for hot loops (the causal
+    dynamic program's grids)."""
     return system.p * np.maximum(soc - system.soc_high, 0.0) + system.p * np.maximum(
         system.soc_low - soc, 0.0
     )

@@ -29,7 +29,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..config import FORECASTS, HOURS_PER_DAY, MPCConfig, check_choice, check_instance
+from .._util.validate import check_choice, check_instance
+from ..config import FORECASTS, HOURS_PER_DAY, MPCConfig
 from .prices import Prices
 
 __all__ = ["DayEndPrices", "forecast_of", "forecast_prices", "until_midnight"]

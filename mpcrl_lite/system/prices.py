@@ -30,15 +30,8 @@ import numpy as np
 import pandas as pd
 
 from .._util.resources import candidate_folders, package_folder
-from ..config import (
-    HOURS_PER_DAY,
-    PRICE_UNIT,
-    InputTypeError,
-    SystemConfig,
-    check_instance,
-    check_int,
-    check_real,
-)
+from .._util.validate import InputTypeError, check_instance, check_int, check_real
+from ..config import HOURS_PER_DAY, PRICE_UNIT, SystemConfig
 
 __all__ = ["DATA_DIR", "LOCAL_TZ", "Prices", "daily_matrix", "load_default_profile", "load_nordpool_csv", "nordpool_areas"]
 

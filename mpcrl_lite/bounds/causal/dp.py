@@ -94,8 +94,9 @@ from typing import Any
 import numpy as np
 
 from ...config import SystemConfig
+from ...system.battery import unchecked_penalty
 from ...system.prices import Prices
-from .grid import SocGrid, _penalty, day_prices, distinct_days
+from .grid import SocGrid, day_prices, distinct_days
 from .kernels import bellman_min, bellman_min3, greedy3, greedy_actions
 
 __all__ = [
@@ -228,7 +229,7 @@ class _Stage:
         unsorted[rows] = steps
         value = np.empty_like(best)
         value[rows] = best
-        return unsorted, value + _penalty(soc, self.system).sum(axis=1)
+        return unsorted, value + unchecked_penalty(soc, self.system).sum(axis=1)
 
 
 @dataclass(frozen=True, eq=False)

@@ -43,8 +43,9 @@ import numpy as np
 from scipy.optimize import minimize
 
 from ...config import SystemConfig
+from ...system.battery import unchecked_penalty
 from ...system.prices import Prices
-from .grid import SocGrid, _penalty, day_prices, distinct_days
+from .grid import SocGrid, day_prices, distinct_days
 
 __all__ = ["LagrangianBound", "dual_function", "lagrangian_bound"]
 
@@ -61,7 +62,7 @@ class _SingleBattery:
         self.discount = system.gamma ** np.arange(system.hours_per_day)
         # hour 0 starts at soc0, which need not be a node: its post-decision states and costs
         soc0 = np.array([[system.soc0]])
-        self.pen0 = float(_penalty(soc0, system)[0, 0])
+        self.pen0 = float(unchecked_penalty(soc0, system)[0, 0])
         # post-grid coordinates of soc0's post-decision states; E[V_1] there is interpolated
         # between post-grid nodes, as in the coupled DP, and so is the next distribution
         self.coord0 = system.soc0 / grid.h_y + grid.steps + M

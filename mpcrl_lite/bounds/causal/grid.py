@@ -35,6 +35,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from ...config import SystemConfig
+from ...system.battery import unchecked_penalty
 from ...system.prices import Prices
 from .kernels import expected_cost_rows
 
@@ -165,12 +166,6 @@ def expected_net_power(soc: Any, a: Any, system: SystemConfig) -> tuple[np.ndarr
     return e_net, np.where(a >= 0, e_net + above_cut / alpha, below_cut / alpha)
 
 
-def _penalty(soc: np.ndarray, system: SystemConfig) -> np.ndarray:
-    # mpcrl_lite.system.battery.penalty without its input checks (called in hot loops)
-    return system.p * (np.maximum(soc - system.soc_high, 0.0)
-                       + np.maximum(system.soc_low - soc, 0.0))
-
-
 def expected_agent_cost(soc: Any, a: Any, buy: Any, sell: Any, system: SystemConfig) -> np.ndarray:
     """``E[L~_i]`` of one hour for commanded net power ``a`` at ``soc``.
 
@@ -189,7 +184,7 @@ def expected_agent_cost(soc: Any, a: Any, buy: Any, sell: Any, system: SystemCon
     """
     e_net, e_plus = expected_net_power(soc, a, system)
     buy, sell = np.asarray(buy, dtype=float), np.asarray(sell, dtype=float)
-    return sell * e_net + (buy - sell) * e_plus + _penalty(np.asarray(soc, dtype=float), system)
+    return sell * e_net + (buy - sell) * e_plus + unchecked_penalty(np.asarray(soc, dtype=float), system)
 
 
 # -- the grids --------------------------------------------------------------------------------
@@ -264,7 +259,7 @@ class SocGrid:
         self.actions = self.steps * self.action_step
         self.post_nodes = (np.arange(r * (G - 1) + 1 + 2 * self.M) - self.M) * self.h_y
         self.weights = interpolation_weights(self.post_nodes, self.nodes, system)
-        self.penalty = _penalty(self.nodes, system)
+        self.penalty = unchecked_penalty(self.nodes, system)
         self.e_net, self.e_net_plus = expected_net_power(self.nodes[:, None],
                                                          self.actions[None, :], system)
 

@@ -75,8 +75,6 @@ from ..solution import (
 from .batch_adjoint import batch_sensitivity
 from .batch_kkt import TINY, BatchData, BatchKKT, KKTFactor
 
-# shift (mpcrl_lite.mpc.formulation) and the STATUS_* strings (mpcrl_lite.mpc.solution), importable from
-# here as before
 __all__ = ["BatchSolver"]
 
 _ETA = 0.995  # fraction to the boundary
@@ -311,9 +309,3 @@ class BatchSolver(StartSettings, BackendBase):
         """Scaled KKT residual of each problem of ``solution``, shape (days,), at
         ``config.tau`` (see :meth:`~mpcrl_lite.mpc.backends.batch_kkt.BatchKKT.residual`)."""
         return self.kkt.residual(solution, self.config.tau)
-
-    # -------------------------------------------------------------------- misc ------------
-    def shift(self, x: np.ndarray) -> np.ndarray:
-        """Shift solutions ``x`` (..., nx) one stage forward for warm starting (see
-        :meth:`mpcrl_lite.mpc.formulation.MPC.shift`)."""
-        return self.mpc.shift(x)

@@ -277,16 +277,6 @@ class KernelSolver(StartSettings, BackendBase):
                 ok[d] = True
         return Sensitivity(grad, ok, cond, tuple(reasons))
 
-    # -------------------------------------------------------------------- misc -----------
-    def shift(self, x: np.ndarray) -> np.ndarray:
-        """Shift solutions ``x`` (..., nx) one stage forward for warm starting (see
-        :meth:`MPC.shift <mpcrl_lite.mpc.formulation.MPC.shift>`)."""
-        x = np.asarray(x, dtype=float)
-        if x.shape[-1] != self.mpc.nx:
-            raise ValueError(f"x has {x.shape[-1]} entries per problem; expected nx = "
-                             f"{self.mpc.nx}")
-        return self.mpc.shift(x)
-
 
 def main(argv: list[str] | None = None) -> int:
     """``python -m mpcrl_lite.mpc.backends.kernel --warm``: fill numba's cache."""
