@@ -61,11 +61,13 @@ import numpy as np
 from .._util.jsonio import plain
 from .._util.validate import check_int
 from ..config import CoordinationConfig, LearningConfig, MPCConfig, SystemConfig
+from ..learning.checkpoint import parse_theta
 from ..learning.dpg import DPGUpdater
 from ..learning.experiment import Experiment
 from ..learning.history import History, MonthRecord
-from ..learning.learner import Learner, lstd_policy_gradient, parse_theta, resolve_setup
+from ..learning.learner import Learner, resolve_setup
 from ..learning.rundir import RunDirError
+from ..learning.step import lstd_policy_gradient
 from ..sim.closed_loop import Decision, simulate
 from ..sim.exploration import GaussianExploration
 from ..system.prices import Prices
@@ -272,7 +274,7 @@ class DecentralizedExperiment(Learner):
         self, record: MonthRecord, extra: DecentralizedMonth
     ) -> tuple[list[np.ndarray], int, list[dict[str, Any]]]:
         """Each battery's LSTD fit and policy gradient on its own cost and soc
-        (:func:`mpcrl_lite.learning.learner.lstd_policy_gradient`); returns ``(grads, skipped,
+        (:func:`mpcrl_lite.learning.step.lstd_policy_gradient`); returns ``(grads, skipped,
         infos)`` with ``grads[i]`` of shape ``(len(PARTS),)``."""
         grads, infos = [], []
         any_skipped = np.zeros(record.stage_cost.shape, bool)

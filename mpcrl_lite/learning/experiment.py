@@ -55,10 +55,12 @@ from ..sim.exploration import exploration_center
 from ..sim.record import MonthRecord
 from ..system.prices import Prices
 from ..theta import Theta
+from .checkpoint import parse_theta
 from .dpg import DPGUpdater
 from .history import History
-from .learner import Learner, lstd_policy_gradient, parse_theta, resolve_setup
+from .learner import Learner, resolve_setup
 from .rundir import RunDirError
+from .step import lstd_policy_gradient
 
 # run_month (mpcrl_lite.sim.closed_loop), value_baseline_features (mpcrl_lite.learning.lstd), run_months
 # and resolve_setup (mpcrl_lite.learning.learner) stay importable from here.
@@ -118,7 +120,7 @@ class Experiment(Learner):
 
     # -- one learning step ----------------------------------------------------------------
     def learning_step(self, record: MonthRecord) -> tuple[np.ndarray, int, dict[str, Any]]:
-        """LSTD + policy gradient from a month (:func:`mpcrl_lite.learning.learner.lstd_policy_gradient`
+        """LSTD + policy gradient from a month (:func:`mpcrl_lite.learning.step.lstd_policy_gradient`
         on all batteries and the stage cost); returns ``(grad, skipped, info)``."""
         use = record.sens_ok & record.solver_ok
         skipped = int(use.size - np.count_nonzero(use))

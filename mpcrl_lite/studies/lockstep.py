@@ -68,9 +68,10 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
+from ..learning.checkpoint import open_run
 from ..learning.experiment import Experiment
 from ..learning.history import History
-from ..learning.learner import BLAS_THREADS, Learner, close_month, open_run
+from ..learning.learner import BLAS_THREADS, Learner, close_month
 from ..sim.closed_loop import RunBlocks, run_month
 from ..sim.record import MonthRecord
 from ..theta import Theta

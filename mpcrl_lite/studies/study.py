@@ -62,8 +62,8 @@ from ..bounds.causal.dual import lagrangian_bound
 from ..bounds.causal.table import causal_bound
 from ..config import SystemConfig
 from ..learning import rundir
+from ..learning.checkpoint import prices_fingerprint
 from ..learning.history import History
-from ..learning.learner import prices_fingerprint
 from ..system.prices import Prices
 from .sweep.api import run_sweep
 from .sweep.grid import load_grid

@@ -1,0 +1,288 @@
+r"""Checkpoints of a learning run: what is saved after every month, and the verified resume.
+
+After every month the run directory (:mod:`mpcrl_lite.learning.rundir`) gets one commit holding
+``history.json``, ``history.npz`` and ``checkpoint.json``; the latter has ``format`` (the
+learner's), ``months_done``, ``theta``, the optimizer state (``updater``, or ``updaters``
+per battery), the generator state ``rng``, the configurations and ``prices``, a fingerprint of
+the month's prices (:func:`prices_fingerprint`). :meth:`Learner.load_checkpoint` verifies
+everything -- checksums, formats, the learner kind, months_done against the History and the
+manifest, every series one entry per month, the configurations, the prices -- before changing
+anything: a directory that does not verify is refused with one line, never half-resumed.
+Checkpoints written before the price fingerprint existed resume without that check.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+
+from .._util import jsonio
+from ..config import LearningConfig, MPCConfig, SystemConfig
+from ..system.prices import Prices
+from ..theta import PARTS, Theta
+from . import rundir
+from .history import History
+from .rundir import RECOVER, RunDirError, RunDirMissing
+
+__all__ = ["Checkpointing", "open_run", "parse_theta", "prices_fingerprint"]
+
+log = logging.getLogger(__name__)
+
+
+def prices_fingerprint(prices: Prices) -> dict[str, Any]:
+    """What identifies a month of prices in a checkpoint.
+
+    Returns
+    -------
+    dict
+        ``sha256`` (of the shape and the float64 bytes of :attr:`Prices.buy` and
+        :attr:`Prices.sell`, what the true system is charged), ``shape`` (``[days, 24]``) and
+        ``source`` (informational, not compared).
+    """
+    buy = np.ascontiguousarray(prices.buy, dtype="<f8")
+    sell = np.ascontiguousarray(prices.sell, dtype="<f8")
+    digest = hashlib.sha256(json.dumps([list(buy.shape), list(sell.shape)]).encode())
+    digest.update(buy.tobytes())
+    digest.update(sell.tobytes())
+    return {"sha256": digest.hexdigest(), "shape": list(buy.shape), "source": prices.source}
+
+
+def open_run(learner: Checkpointing, months: int | None, out: str | Path | None, resume: bool,
+             force: bool) -> int:
+    """Check the arguments of :func:`run_months` and prepare ``out`` (resume, replace or
+    refuse); returns the number of months to reach."""
+    months = learner.learning.months if months is None else months
+    if isinstance(months, bool) or not isinstance(months, int) or months < 1:
+        raise ValueError(f"months={months!r}: expected an integer >= 1")
+    if resume and force:
+        raise ValueError("resume=True and force=True exclude each other")
+    out = Path(out) if out is not None else None
+    if resume and out is None:
+        raise ValueError("resume=True needs out=DIR (where the checkpoint is)")
+    if out is not None:
+        found = rundir.inspect(out)
+        if resume and found.holds_run:
+            learner.load_checkpoint(out)
+            if not found.manifest:  # a run of the previous format: committed in this one
+                learner.save_checkpoint(out)
+        elif resume:
+            log.info("no run in %s to resume: starting a new one", out)
+        elif found.holds_run and not force:
+            raise RunDirError(
+                f"{out} already holds a run ({', '.join(found.names)}): resume it "
+                "(--resume, resume=True), replace it (--force, force=True) or choose another "
+                "directory"
+            )
+        elif found.holds_run:
+            rundir.clear(out)
+    return months
+
+
+class Checkpointing:
+    """What a learner needs to checkpoint and resume: its kind and format, its configurations,
+    its prices, its generator, its History and its own state (theta and optimizer)."""
+
+    KIND: ClassVar[str] = ""
+    FORMAT: ClassVar[str] = ""
+    #: What ``checkpoint.json`` of a learner kind is called, to name the right learner.
+    FORMATS: ClassVar[dict[str, str]] = {
+        "mpcrl_lite.Checkpoint/1": "centralized",
+        "mpcrl_lite.DecentralizedCheckpoint/1": "decentralized",
+    }
+    #: How each kind is resumed (for the message when the wrong learner is used).
+    RESUME_WITH: ClassVar[dict[str, str]] = {
+        "centralized": "Experiment, `learn` without --decentralized",
+        "decentralized": "DecentralizedExperiment, `learn --decentralized`",
+    }
+
+    system: SystemConfig
+    mpc_config: MPCConfig
+    learning: LearningConfig
+    prices: Prices
+    rng: np.random.Generator
+    history: History
+
+    def learner_state(self) -> dict[str, Any]:
+        """The learner's own part of ``checkpoint.json`` (theta and optimizer state)."""
+        raise NotImplementedError
+
+    def restore_learner_state(self, state: dict[str, Any], where: str) -> Any:
+        """Check the learner's part of a checkpoint (raising :class:`RunDirError` naming
+        ``where``) and return a function that applies it; nothing changes before that
+        function is called."""
+        raise NotImplementedError
+
+    def configs(self) -> dict[str, Any]:
+        """The configuration objects a checkpoint must match, by key."""
+        return {"system": self.system, "mpc": self.mpc_config, "learning": self.learning}
+
+    def configs_hash(self) -> str:
+        """sha256 of the configurations, ``learning.months`` left out (a resume may extend
+        the run)."""
+        return rundir.config_sha256(_plain_configs(self.configs()))
+
+    def checkpoint_state(self) -> dict[str, Any]:
+        """The content of ``checkpoint.json``."""
+        return {
+            "format": self.FORMAT,
+            "months_done": self.history.months,
+            **self.learner_state(),
+            "rng": self.rng.bit_generator.state,
+            **{key: cfg.to_dict() for key, cfg in self.configs().items()},
+            "prices": prices_fingerprint(self.prices),
+        }
+
+    def save_checkpoint(self, directory: str | Path) -> None:
+        """Commit the History and the checkpoint to ``directory`` (one atomic commit)."""
+        files = self.history.to_files()
+        files[rundir.CHECKPOINT] = jsonio.dumps(self.checkpoint_state())
+        rundir.commit(directory, files, kind=self.KIND, months_done=self.history.months,
+                      configs_hash=self.configs_hash())
+
+    def load_checkpoint(self, directory: str | Path) -> None:
+        """Continue from the run in ``directory``; everything is verified before anything
+        changes (see the module docstring). Raises :class:`RunDirError` (a ValueError)."""
+        directory = Path(directory)
+        found = rundir.inspect(directory)
+        if not found.holds_run:
+            raise RunDirMissing(f"{directory} holds no run to resume (no {rundir.MANIFEST} "
+                                f"or {rundir.CHECKPOINT})")
+        if not found.manifest and rundir.HISTORY_JSON not in found.run_files:
+            raise RunDirError(
+                f"{directory / rundir.HISTORY_JSON} is missing next to {rundir.CHECKPOINT} "
+                f"(an incomplete or damaged run); {RECOVER}")
+        run = rundir.read(directory, [rundir.HISTORY_JSON, rundir.HISTORY_NPZ, rundir.CHECKPOINT],
+                          optional=[rundir.HISTORY_NPZ, rundir.CHECKPOINT])
+        if run.kind == "history" or rundir.CHECKPOINT not in run.files:
+            raise RunDirError(
+                f"{directory} holds a History without {rundir.CHECKPOINT}: it cannot be "
+                "resumed (the learner's state is missing); start over in it with --force "
+                "(force=True) or choose another directory")
+        self._check_kind(run.kind, directory, "its manifest")
+        where = str(directory / rundir.CHECKPOINT)
+        state = _parse_checkpoint(run.files[rundir.CHECKPOINT], where)
+        kind = self.FORMATS.get(state.get("format"))
+        if kind is None:
+            raise RunDirError(f"{where}: format {state.get('format')!r}, expected "
+                              f"{self.FORMAT!r}; {RECOVER}")
+        self._check_kind(kind, directory, rundir.CHECKPOINT)
+        missing = [k for k in self.checkpoint_state() if k not in state and k not in _LATER_KEYS]
+        if missing:
+            raise RunDirError(f"{where} lacks {', '.join(map(repr, missing))}; {RECOVER}")
+        saved = self._check_configs(state, directory, where)
+        self._check_prices(state.get("prices"), directory, where)
+        history = History.from_files(run.files, directory)
+        months_done = state["months_done"]
+        if isinstance(months_done, bool) or not isinstance(months_done, int) or months_done < 0:
+            raise RunDirError(f"{where}: months_done={months_done!r}, expected an integer >= 0; "
+                              f"{RECOVER}")
+        if months_done != history.months or run.months_done not in (None, months_done):
+            manifest = "" if run.months_done is None else f", {rundir.MANIFEST} {run.months_done}"
+            raise RunDirError(
+                f"{where} records months_done={months_done} but history.json {history.months} "
+                f"months{manifest}: the files are from different months; {RECOVER}")
+        shared = {key: saved[key] for key in history.configs()}
+        if _plain_configs(history.configs()) != _plain_configs(shared):
+            raise RunDirError(f"{directory}: history.json and {rundir.CHECKPOINT} were written "
+                              f"with different configurations; {RECOVER}")
+        if run.manifest is not None and run.manifest["config_sha256"] != rundir.config_sha256(
+                _plain_configs(saved)):
+            raise RunDirError(f"{directory / rundir.MANIFEST}: config_sha256 does not match "
+                              f"{rundir.CHECKPOINT}; {RECOVER}")
+        rng = np.random.Generator(type(self.rng.bit_generator)())
+        try:
+            rng.bit_generator.state = state["rng"]
+        except (TypeError, ValueError, KeyError, OverflowError) as err:
+            raise RunDirError(f"{where}: 'rng' is not a {type(self.rng.bit_generator).__name__} "
+                              f"state ({err}); {RECOVER}") from None
+        apply = self.restore_learner_state(state, where)
+        # everything verified: from here on nothing can fail half-way
+        if run.manifest is not None:
+            rundir.read(directory, list(run.manifest["files"]), repair=True)
+        self.history = history
+        self.rng.bit_generator.state = rng.bit_generator.state
+        apply()
+
+    def _check_kind(self, kind: str | None, directory: Path, source: str) -> None:
+        if kind is not None and kind != self.KIND:
+            raise RunDirError(
+                f"{directory} holds a {kind} run ({source}); this is a {self.KIND} learner: "
+                f"resume it with {self.RESUME_WITH.get(kind, kind)}")
+
+    def _check_prices(self, saved: Any, directory: Path, where: str) -> None:
+        """The run's prices (``checkpoint.json``'s ``prices``) must be the learner's."""
+        if saved is None:  # written before the fingerprint existed: nothing to compare
+            return
+        if not (isinstance(saved, dict) and isinstance(saved.get("sha256"), str)):
+            raise RunDirError(f"{where}: bad 'prices' ({saved!r:.80}); {RECOVER}")
+        now = prices_fingerprint(self.prices)
+        if saved["sha256"] != now["sha256"]:
+            def show(p: dict[str, Any]) -> str:
+                shape = "x".join(map(str, p.get("shape") or [])) or "?"
+                return f"{p.get('source', '?')!r} ({shape}, sha256 {p['sha256'][:12]})"
+
+            raise RunDirError(
+                f"checkpoint in {directory} was written with other prices: {show(saved)} in "
+                f"the run, {show(now)} now (resume with the run's --prices/--area/--month, or "
+                "start over with --force / force=True)")
+
+    def _check_configs(self, state: dict[str, Any], directory: Path, where: str) -> dict[str, Any]:
+        """The saved configurations, which must equal the learner's (months aside)."""
+        saved: dict[str, Any] = {}
+        differ: list[str] = []
+        fields: list[str] = []
+        for key, cfg in self.configs().items():
+            try:
+                saved[key] = type(cfg).from_dict(state[key])
+            except (TypeError, ValueError, AttributeError) as err:
+                raise RunDirError(f"{where}: bad {key} config ({err}); {RECOVER}") from None
+            old, new = saved[key].to_dict(), cfg.to_dict()
+            if key == "learning":
+                old.pop("months"), new.pop("months")
+            changed = [f for f in new if old.get(f) != new.get(f)]
+            if changed:
+                differ.append(key)
+                fields += [f"{key}.{f}={old.get(f)!r} in the run, {new.get(f)!r} now"
+                           for f in changed]
+        if differ:
+            raise RunDirError(
+                f"checkpoint in {directory} was written with a different {' and '.join(differ)} "
+                f"config: {'; '.join(fields)} (resume with the run's settings, or start over "
+                "with --force / force=True)")
+        return saved
+
+
+#: Keys of ``checkpoint.json`` added after checkpoints existed (an older one lacks them).
+_LATER_KEYS = ("prices",)
+
+
+def _plain_configs(configs: dict[str, Any]) -> dict[str, Any]:
+    plain = {key: cfg if isinstance(cfg, dict) else cfg.to_dict() for key, cfg in configs.items()}
+    plain = json.loads(json.dumps(plain))
+    plain["learning"].pop("months", None)
+    return plain
+
+
+def _parse_checkpoint(data: bytes, where: str) -> dict[str, Any]:
+    try:
+        state = json.loads(data)
+    except ValueError as err:
+        raise RunDirError(f"{where} is not valid JSON ({err}); {RECOVER}") from None
+    if not isinstance(state, dict):
+        raise RunDirError(f"{where} holds a {type(state).__name__}, expected an object; {RECOVER}")
+    return state
+
+
+def parse_theta(value: Any, n: int, where: str) -> Theta:
+    """theta from a checkpoint: ``len(PARTS) * n`` finite numbers, or a RunDirError."""
+    size = len(PARTS) * n
+    ok = isinstance(value, list) and len(value) == size and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) for v in value)
+    if not ok:
+        raise RunDirError(f"{where}: 'theta' is not a list of {size} finite numbers; {RECOVER}")
+    return Theta.from_vector(np.asarray(value, dtype=float), n)
