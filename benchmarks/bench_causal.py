@@ -34,9 +34,9 @@ import warnings
 
 import numpy as np
 
-from mpcrl_lite.bounds.baselines import evaluate_policy, make_scenario
 from mpcrl_lite.bounds.causal.dp import causal_optimum
 from mpcrl_lite.bounds.causal.dual import lagrangian_bound
+from mpcrl_lite.bounds.scenario import evaluate_policy, make_scenario
 from mpcrl_lite.config import SystemConfig
 from mpcrl_lite.system.prices import Prices
 

@@ -47,7 +47,7 @@ SUBLAYERS: dict[str, list[set[str]]] = {
     "learning": [{"lstd", "update_rules", "rundir"}, {"dpg", "history"}, {"step", "checkpoint"},
                  {"learner"}, {"experiment"}],
     "decentralized": [{"local_qp", "coordination_kernel"}, {"coordination"}, {"learner"}],
-    "bounds": [{"causal"}, {"baselines"}],
+    "bounds": [{"causal", "scenario"}, {"rule", "clairvoyant"}, {"baselines"}],
     "bounds.causal": [{"kernels"}, {"grid"}, {"dp", "dual"}, {"table"}],
     "figures": [{"style"}, {"paper"}, {"plots"}],
     "classroom": [{"controls", "explorers"}, {"widgets"}],

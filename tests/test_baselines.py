@@ -7,16 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from mpcrl_lite.bounds.baselines import (
-    RuleBasedPolicy,
-    Scenario,
-    clairvoyant,
-    clairvoyant_lp,
-    evaluate_baselines,
-    evaluate_policy,
-    make_scenario,
-    run_baselines_cli,
-)
+from mpcrl_lite.bounds.baselines import evaluate_baselines, run_baselines_cli
+from mpcrl_lite.bounds.clairvoyant import clairvoyant, clairvoyant_lp
+from mpcrl_lite.bounds.rule import RuleBasedPolicy
+from mpcrl_lite.bounds.scenario import Scenario, evaluate_policy, make_scenario
 from mpcrl_lite.config import LearningConfig, MPCConfig, SystemConfig
 from mpcrl_lite.learning.history import History
 from mpcrl_lite.mpc.backends.ipopt import IpoptSolver

@@ -10,13 +10,7 @@ import pytest
 from scipy import integrate
 from scipy.stats import norm
 
-from mpcrl_lite.bounds.baselines import (
-    RuleBasedPolicy,
-    clairvoyant,
-    evaluate_baselines,
-    evaluate_policy,
-    make_scenario,
-)
+from mpcrl_lite.bounds.baselines import evaluate_baselines
 from mpcrl_lite.bounds.causal.dp import MAX_POST_VALUES, causal_optimum, compare_with_optimum
 from mpcrl_lite.bounds.causal.dual import dual_function, lagrangian_bound
 from mpcrl_lite.bounds.causal.grid import (
@@ -33,6 +27,9 @@ from mpcrl_lite.bounds.causal.kernels import (
     greedy3,
     greedy_actions,
 )
+from mpcrl_lite.bounds.clairvoyant import clairvoyant
+from mpcrl_lite.bounds.rule import RuleBasedPolicy
+from mpcrl_lite.bounds.scenario import evaluate_policy, make_scenario
 from mpcrl_lite.config import ConfigWarning, MPCConfig, SystemConfig
 from mpcrl_lite.mpc.backends.registry import make_solver
 from mpcrl_lite.mpc.formulation import MPC

@@ -2,7 +2,7 @@ r"""The one closed loop: a policy acting on the true system, all days advancing 
 
 Every simulation in the package goes through :func:`simulate`: the learning months and
 their evaluations (:func:`run_month`), the baselines on a common scenario
-(:func:`mpcrl_lite.bounds.baselines.evaluate_policy`), the decentralized month, the widgets' days,
+(:func:`mpcrl_lite.bounds.scenario.evaluate_policy`), the decentralized month, the widgets' days,
 the benchmarks and the notebooks. What differs between them is attached to the loop, never
 copied into it:
 

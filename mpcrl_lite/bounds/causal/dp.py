@@ -7,7 +7,7 @@ and bounds every policy from far below; the figure a causal learner can really r
 .. math:: J^\star = \min_{\pi\ \text{causal}} \frac1D \sum_{d=1}^{D}
           \mathbb E\Big[\sum_{k=0}^{H-1} \gamma^k \tilde L(s_k, a_k)\Big],
 
-with ``J`` exactly as the closed loop (:func:`mpcrl_lite.bounds.baselines.evaluate_policy`) measures
+with ``J`` exactly as the closed loop (:func:`mpcrl_lite.bounds.scenario.evaluate_policy`) measures
 it: each day is an episode of ``H = hours_per_day`` hours that starts at ``soc0`` with its own
 prices; hour ``k`` is charged ``gamma^k`` times the penalty of the state *before* the step plus
 the prices of the powers the low-level controller really exchanged; the state after the last
