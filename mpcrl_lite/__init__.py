@@ -12,7 +12,7 @@ The system (:mod:`mpcrl_lite.system`)
     ``step``: one hour of the true batteries (paper eq. 1).
 The MPC (:mod:`mpcrl_lite.mpc`)
     ``MPC``: the paper's MPC (eq. 9) in CasADi; ``make_solver``: a solver back-end for it;
-    ``policy_sensitivity``: d pi / d theta from the KKT conditions (eq. 21).
+    ``policy_sensitivity``: d pi / d theta from the KKT conditions (eq. 20).
 The closed loop (:mod:`mpcrl_lite.sim`)
     ``simulate``: the one closed loop; ``MPCPolicy``: the MPC as a policy; ``run_month``: a
     month in closed loop; ``evaluate_mpc``: a theta on common noise draws; ``Record``: the
@@ -20,7 +20,7 @@ The closed loop (:mod:`mpcrl_lite.sim`)
 Learning (:mod:`mpcrl_lite.learning`, :mod:`mpcrl_lite.decentralized`)
     ``Experiment``: the centralized learner (LSTD critic, DPG actor); ``History``: a run's
     results; ``lstd_q``: the compatible critic's fit; ``policy_gradient``: the DPG estimate
-    (eq. 15); ``DecentralizedExperiment``: one learner per battery.
+    (eq. 13); ``DecentralizedExperiment``: one learner per battery.
 Bounds and studies (:mod:`mpcrl_lite.bounds`, :mod:`mpcrl_lite.studies`)
     ``evaluate_baselines``: the clairvoyant bound, nominal MPC and price rule on one scenario;
     ``causal_optimum``: the best causal policy J* by dynamic programming;

@@ -209,6 +209,9 @@ class _Config:
 class SystemConfig(_Config):
     """The battery system and the MPC's structure; defaults are the paper's Table I.
 
+    A grid bound at or above the batteries' total, ``P_bar >= n * U_bar``, can never bind
+    (paper eq. 8 asks for less): it is legal and warns (:class:`ConfigWarning`).
+
     Prices are in :data:`PRICE_UNIT` (NOK/MWh); powers ``b``, ``s`` and ``Delta`` are in MW
     averaged over one hour, so one unit of power for one hour is one MWh.
     """

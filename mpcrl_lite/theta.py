@@ -3,7 +3,7 @@
 theta has ten parts, each an array of shape ``(n,)`` (one entry per battery):
 
 ======== ================================================================================
-name     role in the MPC (paper eqs. 9 and 14)
+name     role in the MPC (paper eqs. 9 and 23a-23c; theta is eq. 24)
 ======== ================================================================================
 alpha    model gain: ``soc+ = soc + theta_alpha (b - s) + theta_delta``
 delta    model offset (the mean effect of the production-demand noise)
@@ -39,7 +39,8 @@ CONSTANT_PARTS: tuple[str, ...] = ("phi3", "T3")
 
 @dataclass(frozen=True, eq=False)
 class Theta:
-    """MPC parameters, one array of shape ``(n,)`` per part (see the module docstring)."""
+    """MPC parameters (paper eq. 24), one array of shape ``(n,)`` per part (see the module
+    docstring)."""
 
     alpha: np.ndarray
     delta: np.ndarray

@@ -1,7 +1,7 @@
 """The centralized learner: critic, actor, update rules, the month loop and its run files.
 
 - :mod:`~mpcrl_lite.learning.lstd`: value and compatible features, LSTD (the critic);
-- :mod:`~mpcrl_lite.learning.dpg`: the deterministic policy gradient (eq. 15) and the update;
+- :mod:`~mpcrl_lite.learning.dpg`: the deterministic policy gradient (eq. 13) and the update;
 - :mod:`~mpcrl_lite.learning.update_rules`: one class per update rule (SGD, Adam, natural);
 - :mod:`~mpcrl_lite.learning.learner`: the learning step and the month loop both learners
   share, with checkpoints and resume;

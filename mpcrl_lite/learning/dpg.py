@@ -93,7 +93,7 @@ def part_scales(system_alpha: float, price_scale: float = 1.0) -> dict[str, floa
 
 
 def policy_gradient(grad_pi: np.ndarray, w: np.ndarray) -> np.ndarray:
-    r"""Sample estimate of :math:`\nabla_\theta J = \mathbb E[\nabla_\theta\pi\,
+    r"""Sample estimate (paper eq. 13 with the compatible critic) of :math:`\nabla_\theta J = \mathbb E[\nabla_\theta\pi\,
     \nabla_\theta\pi^\top w]`.
 
     Parameters

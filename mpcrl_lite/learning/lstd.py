@@ -89,7 +89,7 @@ __all__ = [
 # -- features ------------------------------------------------------------------------------
 def value_features(soc: np.ndarray) -> np.ndarray:
     r"""The paper's state features :math:`\Phi(s) = [soc_1^2, \dots, soc_n^2, soc_1, \dots,
-    soc_n, 1]`.
+    soc_n, 1]` (paper eq. 22).
 
     Parameters
     ----------
@@ -156,7 +156,8 @@ def state_features(
 
 
 def value_baseline_features(soc: np.ndarray, kind: str = "paper+hour") -> np.ndarray:
-    r"""Features :math:`\Phi` of the critic's value baseline for every state of a period.
+    r"""Features :math:`\Phi` of the critic's value baseline :math:`V_v = \Phi^\top v` (paper
+    eq. 16) for every state of a period.
 
     Parameters
     ----------
@@ -179,7 +180,8 @@ def value_baseline_features(soc: np.ndarray, kind: str = "paper+hour") -> np.nda
 
 
 def compatible_features(grad_pi: np.ndarray, a: np.ndarray, pi: np.ndarray) -> np.ndarray:
-    r"""Compatible features :math:`\psi = \nabla_\theta \pi_\theta(s)\,(a - \pi_\theta(s))`.
+    r"""Compatible features :math:`\psi = \nabla_\theta \pi_\theta(s)\,(a - \pi_\theta(s))`
+    of the critic :math:`Q_w = \psi^\top w + V_v` (paper eq. 15).
 
     Parameters
     ----------
@@ -273,7 +275,9 @@ def lstd_q(
     zero_tol: float = 1e-24,
 ) -> LSTDResult:
     r"""LSTD fit of the compatible action-value function
-    :math:`Q_{w,v}(s, a) = \psi^\top w + \Phi(s)^\top v`.
+    :math:`Q_{w,v}(s, a) = \psi^\top w + \Phi(s)^\top v`: the least-squares problem of paper
+    eq. 17, solved through the Bellman equations of eqs. 14a-14b (paper eq. 14: ``Q = L~ +
+    gamma E[V(s+)]``)
 
     Features :math:`z = [\psi;\ \Phi(s)]`, successor features
     :math:`z^+ = [0;\ \Phi(s^+)]` (at :math:`s^+` the policy's own action is taken, so its
@@ -348,7 +352,8 @@ def lstd_v(
     ridge: float = 0.0,
     zero_tol: float = 1e-24,
 ) -> LSTDResult:
-    r"""LSTD(0) fit of a state-value function :math:`V^v(s) = \Phi(s)^\top v`.
+    r"""LSTD(0) fit of a state-value function :math:`V^v(s) = \Phi(s)^\top v` from the
+    Bellman equation of the policy's value (paper eq. 14b).
 
     Solves :math:`\big(\tfrac1S\sum \Phi(s)(\Phi(s) - \gamma(1-d)\Phi(s^+))^\top + \rho M\big)
     v = \tfrac1S\sum \Phi(s)\tilde L`: the value of the policy that generated the data

@@ -1,7 +1,7 @@
 r"""The learning step of a month: the LSTD critic and the deterministic policy gradient.
 
 From a month of transitions (:class:`~mpcrl_lite.sim.record.MonthRecord`) the critic is the
-compatible action-value function (paper, eqs. 12-13)
+compatible action-value function (paper, eq. 15)
 
 .. math::
    Q_w(s, a) = (a - \pi_\theta(s))^\top \nabla_\theta\pi_\theta(s)^\top w + V_v(s),
@@ -9,7 +9,7 @@ compatible action-value function (paper, eqs. 12-13)
 fitted by LSTD on the samples whose MPC and sensitivity were usable
 (:func:`mpcrl_lite.learning.lstd.lstd_q`; every day is an episode, its last hour does not bootstrap),
 and the policy gradient is :math:`\widehat{\nabla_\theta J} = \frac1M\sum
-\nabla_\theta\pi_\theta(s)\nabla_\theta\pi_\theta(s)^\top w` (eq. 11,
+\nabla_\theta\pi_\theta(s)\nabla_\theta\pi_\theta(s)^\top w` (eq. 13,
 :func:`mpcrl_lite.learning.dpg.policy_gradient`): :func:`lstd_policy_gradient`. The centralized learner
 applies it to all batteries with the stage cost :math:`\tilde L`, the decentralized one to
 each battery with its own cost :math:`\tilde L_i` and its own soc.

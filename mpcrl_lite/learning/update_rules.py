@@ -149,7 +149,7 @@ class UpdateRule:
 
 
 class GradientDescent(UpdateRule):
-    r"""The paper's rule: the direction is the gradient itself,
+    r"""The paper's rule (paper eq. 12): the direction is the gradient itself,
     :math:`\theta \leftarrow \theta - \alpha\nabla_\theta J` (``step_size`` = the paper's
     :math:`\alpha`, 5e-8). No state."""
 

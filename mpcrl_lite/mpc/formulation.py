@@ -11,7 +11,7 @@ of the cost (they are included in the reported cost but cannot change the soluti
 
 Parameters ``p = (soc0 (n), buy (N), sell (N), theta (10 n))`` -- see :mod:`mpcrl_lite.theta`.
 
-Cost (eq. 9a with eq. 14)
+Cost (eq. 9a with the parametrisation of eqs. 23a-23c)
 
 .. math::
    f = \sum_{j=0}^{N-1}\gamma^j \sum_i \big[(\phi_{b,j}+\theta_b^i)\hat b^i_j
@@ -106,7 +106,7 @@ class Plan:
 
 
 class MPC:
-    """The symbolic MPC for one system; build once, reuse for every solve.
+    """The symbolic MPC (paper eq. 9) for one system; build once, reuse for every solve.
 
     Parameters
     ----------
@@ -123,7 +123,7 @@ class MPC:
         self.nin = (8 * n + 2) * N
         self.n_theta = len(PARTS) * n
         self.np = n + 2 * N + self.n_theta
-        self._build()
+        self.build_problem()
 
     # -- layout ---------------------------------------------------------------------------
     def index(self, name: str, stage: int | None = None) -> np.ndarray:
@@ -161,7 +161,8 @@ class MPC:
 
     @cached_property
     def policy_selector(self) -> np.ndarray:
-        """Matrix ``S`` of shape ``(n, nx)`` with ``pi = S x = b_0 - s_0``."""
+        """Matrix ``S`` of shape ``(n, nx)`` with ``pi = S x = b_0 - s_0``: the policy
+        (paper eqs. 10, 11) is the first input ``u_0`` (eq. 21) of the plan."""
         S = np.zeros((self.n, self.nx))
         S[np.arange(self.n), self.index("b", 0)] = 1.0
         S[np.arange(self.n), self.index("s", 0)] = -1.0
@@ -214,7 +215,12 @@ class MPC:
         )
 
     # -- symbolic formulation -------------------------------------------------------------
-    def _build(self) -> None:
+    def build_problem(self) -> None:
+        r"""Build the paper's MPC (eq. 9) symbolically: the cost 9a with the parametrised costs
+        of eqs. 23a-23c, the model 9b, the relaxed soc band 9c-9d, the input bounds 9e, the
+        grid peak limits 9f (eq. 7 for the plan) and the initial state 9g (substituted), in the
+        layout of the module docstring; then the CasADi Functions :attr:`fgh` and
+        :attr:`qp_function` every back-end uses. Called once by the constructor."""
         sysc, n, N = self.system, self.n, self.N
         x = ca.SX.sym("x", self.nx)
         p = ca.SX.sym("p", self.np)
@@ -335,7 +341,7 @@ class MPC:
 
 
 class KKT:
-    r"""KKT conditions of the barrier problem, as CasADi Functions.
+    r"""KKT conditions of the barrier problem (paper eqs. 18, 19), as CasADi Functions.
 
     With ``y = (x, lam, mu)`` of size ``ny = nx + neq + nin``:
 

@@ -1,4 +1,4 @@
-r"""Policy sensitivity d pi / d theta from the KKT conditions of the solved MPC (paper eq. 21).
+r"""Policy sensitivity d pi / d theta from the KKT conditions of the solved MPC (paper eq. 20).
 
 At a solution ``y* = (x*, lam*, mu*)`` of the barrier problem, ``R(y*, p) = 0`` (see
 :class:`mpcrl_lite.mpc.formulation.KKT`). The implicit function theorem gives
@@ -40,7 +40,7 @@ __all__ = ["PolicySensitivity", "policy_sensitivity"]
 
 
 class PolicySensitivity:
-    """KKT sensitivities for one MPC formulation; CasADi Functions built once.
+    """KKT sensitivities for one MPC formulation (paper eq. 20); CasADi Functions built once.
 
     Parameters
     ----------

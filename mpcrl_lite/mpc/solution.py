@@ -8,7 +8,7 @@ This module sits below all back-ends (:mod:`mpcrl_lite.mpc.backends.ipopt`,
   ``pi = b_0 - s_0``;
 * :class:`BatchSolution` -- the solutions of a batch of problems (the days of a month at one
   hour), the same arrays with a leading ``days`` axis;
-* :class:`Sensitivity` -- ``grad_theta pi`` (paper eq. 21) for a batch, with a per-problem
+* :class:`Sensitivity` -- ``grad_theta pi`` (paper eq. 20) for a batch, with a per-problem
   flag and reason where it is unusable;
 * :class:`SolverBackend` -- the interface a back-end offers to the closed loop;
 * :class:`BackendBase` -- that interface's ``solve`` and ``solve_batch`` written once, around

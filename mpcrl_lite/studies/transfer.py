@@ -3,7 +3,7 @@ r"""A learned theta on prices it never saw: the learned and the nominal MPC on K
 Draw ``k`` (``k = 0 .. K-1``) is the noise of ``numpy.random.default_rng(seed + k)``; both
 policies run on the same draws through the one closed loop
 (:func:`mpcrl_lite.sim.closed_loop.evaluate_mpc`), so the differences are paired. For each policy
-the month's cost :math:`J = \sum_{d,k} \ell(s_k, a_k)` (paper, Eq. (6)) is summarised by its
+the month's cost :math:`J = \sum_{d,k} \ell(s_k, a_k)` (paper, eq. 4) is summarised by its
 mean over the draws and a 95 % confidence interval of the mean,
 :math:`\bar J \pm t_{0.975, K-1}\, s / \sqrt{K}` (Student's t; none for ``K = 1``).
 """

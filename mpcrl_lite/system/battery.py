@@ -353,7 +353,8 @@ def unchecked_penalty(soc: np.ndarray, system: SystemConfig) -> np.ndarray:
 def agent_costs(
     soc: Any, b: Any, s: Any, buy_price: Any, sell_price: Any, system: SystemConfig
 ) -> np.ndarray:
-    """Per-agent stage cost ``L~_i = phi_b b_i - phi_s s_i + penalty(soc_i)``.
+    """Per-agent stage cost ``L~_i = phi_b b_i - phi_s s_i + penalty(soc_i)``: the economic
+    cost of paper eq. 2 plus the penalties of eq. 3 (whose sum over batteries is ``L~``).
 
     Parameters
     ----------
@@ -388,7 +389,7 @@ def _agent_costs(
 
 
 def grid_power(b: Any, s: Any) -> np.ndarray:
-    """Power exchanged with the main grid, ``P_k = max(sum_i b_i, sum_i s_i)``.
+    """Power exchanged with the main grid, ``P_k = max(sum_i b_i, sum_i s_i)`` (paper eq. 6).
 
     Parameters
     ----------
@@ -441,7 +442,7 @@ class StepResult:
 def step(
     soc: Any, a: Any, noise: Any, buy_price: Any, sell_price: Any, system: SystemConfig
 ) -> StepResult:
-    """Advance the true system by one hour.
+    """Advance the true system by one hour (paper eq. 1).
 
     ``soc_{k+1} = soc_k + alpha (Delta_k + b_k - s_k)`` with the powers ``b_k``, ``s_k`` of
     the low-level controller (:func:`low_level_control`). The hour is charged
@@ -496,7 +497,8 @@ def _step_checked(
 
 # -- whole days -----------------------------------------------------------------------------
 def discounted_return(stage_costs: Any, gamma: float) -> np.ndarray:
-    """Discounted sum over hours, ``sum_k gamma^k c_k``.
+    """Discounted sum over hours, ``sum_k gamma^k c_k``: a day's J (paper eq. 4) of the stage
+    costs ``L~``, or J^i (eq. 5) of one battery's.
 
     Parameters
     ----------

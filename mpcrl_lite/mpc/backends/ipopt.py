@@ -3,7 +3,7 @@
 IPOPT solves the barrier problem of :mod:`mpcrl_lite.mpc.formulation` with the barrier parameter held at
 ``tau`` (``mu_target = tau``, no scaling, no bound relaxation, no damping). At most a few
 Newton steps on the barrier problem's KKT conditions (:class:`mpcrl_lite.mpc.formulation.KKT`) then make
-the solution exact to machine precision, which the sensitivities (paper eq. 21, computed by
+the solution exact to machine precision, which the sensitivities (paper eq. 20, computed by
 :class:`~mpcrl_lite.mpc.sensitivity.PolicySensitivity`) need.
 
 Failures never raise mid-run: IPOPT errors, non-convergence and a polish that cannot proceed
