@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import ast
 import graphlib
+import re
+from pathlib import Path
 
 import pytest
 from conftest import package_imports, package_modules
@@ -167,3 +169,15 @@ def test_the_check_sees_imports_inside_functions(tmp_path):
     modules = {"probe": probe, "cli": tmp_path / "cli.py"}
     assert package_imports("probe", modules) == {"cli": 2}
     assert package_imports("probe", modules, top_level_only=True) == {}
+
+
+def test_the_readme_lists_every_module():
+    """The README's module table (written by ``tools/update_module_table.py``) has one row
+    per module and subpackage, and no row for anything that does not exist."""
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    start = readme.index("| module | what it holds |")
+    table = readme[start:readme.index("\n\n", start)]
+    rows = set(re.findall(r"^\| `([\w.]+)` \|", table, re.MULTILINE))
+    expected = {"mpcrl_lite" if m == "__init__" else m for m in MODULES} - {"__main__"}
+    assert rows == expected, (f"missing from the README's table: {sorted(expected - rows)}; "
+                              f"not in the package: {sorted(rows - expected)}")
