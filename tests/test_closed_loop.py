@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from mpcrl_lite.config import SystemConfig
-from mpcrl_lite.learning import history
 from mpcrl_lite.mpc.formulation import MPC
 from mpcrl_lite.sim.closed_loop import Decision, MPCPolicy, SensitivityRecorder, rollout, simulate
 from mpcrl_lite.sim.exploration import GaussianExploration, Projection
@@ -308,6 +307,5 @@ def test_record_arrays_round_trip_and_month_record_shares_them():
         np.testing.assert_array_equal(getattr(back, key), getattr(record, key))
     month = MonthRecord.from_record(record, grad_pi=np.zeros(1))
     assert month.soc is record.soc and month.summary() == record.summary()
-    assert history.MonthRecord is MonthRecord and history.MONTH_ARRAYS is RECORD_ARRAYS
     with pytest.raises(ValueError, match="level="):
         record.hours_soc_below([0.1, 0.2])

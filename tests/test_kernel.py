@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 from conftest import convex_theta
 
+from mpcrl_lite._util import jit
 from mpcrl_lite.config import LearningConfig, MPCConfig, SystemConfig
 from mpcrl_lite.learning.experiment import Experiment
 from mpcrl_lite.mpc.backends import kernel_core as _kernel
@@ -267,10 +268,6 @@ def test_single_solve_equals_batch_row(prices):
 def test_shift_and_input_errors():
     mpc = cached_mpc()
     solver = KernelSolver(mpc)
-    x = np.arange(2 * mpc.nx, dtype=float).reshape(2, mpc.nx)
-    np.testing.assert_array_equal(solver.shift(x), mpc.shift(x))
-    with pytest.raises(ValueError, match="nx"):
-        solver.shift(np.zeros(7))
     theta = Theta.nominal(mpc.system)
     buy = np.full((2, mpc.N), 50.0)
     with pytest.raises(ValueError, match="x0"):
@@ -295,7 +292,7 @@ def test_warm_start_is_the_batch_solvers(prices):
     cold = solver.solve_batch(soc_next, buy, sell, theta)
     garbage = np.full_like(first.x, np.nan)
     garbage[:3] = 5.0
-    for x0 in (solver.shift(first.x), garbage):
+    for x0 in (mpc.shift(first.x), garbage):
         warm = solver.solve_batch(soc_next, buy, sell, theta, x0=x0)
         ref = batch.solve_batch(soc_next, buy, sell, theta, x0=x0)
         assert warm.success.all()
@@ -384,12 +381,12 @@ def test_formulation_mismatch_raises_at_construction():
 def test_warm_up_is_cheap_once_compiled_and_the_cache_is_where_it_says():
     assert warm_up() < 5.0
     assert Path(cache_dir()).is_dir()
-    assert any(Path(cache_dir()).glob("_kernel.solve_batch-*.nbi"))
+    assert any(Path(cache_dir()).glob("kernel_core.solve_batch-*.nbi"))
 
 
 def test_compile_notice_is_one_line(caplog):
-    notice = _kernel._CompileNotice()
-    with caplog.at_level(logging.WARNING, logger="mpcrl_lite.mpc.backends.kernel"):
+    notice = jit.CompileNotice("the MPC kernels", _kernel.cache_dir())
+    with caplog.at_level(logging.WARNING, logger="mpcrl_lite.kernels"):
         notice.on_start(None)
         notice.on_start(None)
     assert len(caplog.records) == 1 and "compiling" in caplog.records[0].getMessage()
@@ -402,7 +399,7 @@ def test_cache_falls_back_to_a_temporary_folder():
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
     env["NUMBA_CACHE_LOCATOR_CLASSES"] = "UserProvidedCacheLocator"
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
-    code = ("import json, tempfile; from mpcrl_lite import _kernel; "
+    code = ("import json, tempfile; from mpcrl_lite.mpc.backends import kernel_core as _kernel; "
             "print(json.dumps([_kernel.cache_dir(), tempfile.gettempdir()]))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env,
                          cwd=str(REPO), check=True)

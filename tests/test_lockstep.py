@@ -238,7 +238,7 @@ def test_sweep_in_lockstep_is_the_sweep_run_by_run(tmp_path, monkeypatch):
 
 
 def test_cli_lockstep_flags(tmp_path, monkeypatch, capsys):
-    from mpcrl_lite.cli.main import main as cli
+    from mpcrl_lite.cli import main as cli
 
     parser = cli.build_parser()
     args = parser.parse_args(["sweep", "--grid", "g.yaml", "--out", "o", "--lockstep", "3"])

@@ -252,7 +252,7 @@ def test_editable_install_reads_the_repository_folders(tmp_path):
         capture_output=True, text=True, check=True, env=_clean_env()).stdout.strip())
     deps = {sysconfig.get_paths()["purelib"], sysconfig.get_paths()["platlib"]}
     (purelib / "zz_test_dependencies.pth").write_text("\n".join(sorted(deps)) + "\n")
-    code = ("import json, mpcrl_lite\nfrom mpcrl_lite import prices, report\n"
+    code = ("import json, mpcrl_lite\nfrom mpcrl_lite.system import prices\nfrom mpcrl_lite.publish import report\n"
             "print(json.dumps([mpcrl_lite.__file__, str(prices.DATA_DIR), "
             "str(report.NOTEBOOK_DIR), prices.Prices.default().buy.shape[0]]))")
     run = subprocess.run([str(python), "-c", code], cwd=tmp_path, capture_output=True,
