@@ -21,7 +21,7 @@ Prints progress on stderr and ONE JSON line on stdout:
 * wall and CPU times of each part, and ``matmul_gflops`` measured in the same run (on a
   shared machine the wall clock also measures the other processes; CPU time does not).
 
-Nothing is asserted here; the tests (``tests/test_causal.py``) check the relations.
+Nothing is asserted here; the tests (``tests/bounds/test_causal.py``) check the relations.
 """
 
 from __future__ import annotations

@@ -29,7 +29,7 @@ Bounds and studies (:mod:`mpcrl_lite.bounds`, :mod:`mpcrl_lite.studies`)
 Figures (:mod:`mpcrl_lite.figures`)
     ``plot_day``: one day in closed loop; ``save_paper_figures``: the paper's Figs. 1-7.
 
-The subpackages follow the data flow, one way (``tests/test_architecture.py`` holds the
+The subpackages follow the data flow, one way (``tests/package/test_architecture.py`` holds the
 layers)::
 
     config, theta -> system -> mpc -> sim -> learning -> decentralized, bounds

@@ -1,6 +1,6 @@
 """Reference outputs of the notebooks: execute, sanitize, store, compare (nbval-style).
 
-Used by ``tests/test_notebooks.py`` and ``tools/update_notebook_refs.py``.
+Used by ``tests/notebooks/test_notebooks.py`` and ``tools/update_notebook_refs.py``.
 
 A reference (``tests/notebook_refs/<stem>.json``) holds, for every code cell of the notebook as
 committed, its id, a hash of its source, whether its output is ignored, and its sanitized

@@ -5,7 +5,7 @@ lines (``# key: JSON value``).
 J* depends only on the system and the day's prices (not on any learned theta, seed or noise
 draw), and the paper's month takes about a minute of CPU per system; the notebooks read the
 stored values through :func:`mpcrl_lite.bounds.causal.table.stored_bound` instead of solving the same
-DP on every run. ``tests/test_causal_table.py`` solves some days again and compares.
+DP on every run. ``tests/bounds/test_causal_table.py`` solves some days again and compares.
 
     PYTHONPATH=$PWD python tools/make_causal_table.py            # the notebooks' systems
 """

@@ -10,7 +10,7 @@ NOTEBOOK is a stem such as ``02_mpc_policy`` (default: all of ``notebooks/NN_*.i
 placeholder cells are tagged ``exercise`` and keep the solution cell's position, so the
 numbering of the cells and the exercise texts stay as in the teacher's version. The parameters
 cell, the checks and the summary are unchanged: no cell outside the solutions depends on what a
-solution defines (``tests/test_notebooks.py`` checks this).
+solution defines (``tests/notebooks/test_notebooks.py`` checks this).
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@ one row per module or subpackage, its docstring's first paragraph as the descrip
     python tools/update_module_table.py          # rewrite the table in README.md
     python tools/update_module_table.py --check  # exit 1 if the table is out of date
 
-``tests/test_architecture.py`` checks that the table lists every module.
+``tests/package/test_architecture.py`` checks that the table lists every module.
 """
 
 from __future__ import annotations

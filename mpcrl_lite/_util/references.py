@@ -89,7 +89,7 @@ class Equation(NamedTuple):
 
 #: The paper's numbered equations in their order, each with the object that implements it;
 #: that object's docstring cites the number. Derived from the paper's LaTeX source (the test
-#: ``tests/test_equations.py`` re-derives the numbering from it).
+#: ``tests/package/test_equations.py`` re-derives the numbering from it).
 EQUATIONS: tuple[Equation, ...] = (
     Equation("1", "eq:Dyna0", "battery dynamics with production-demand noise",
              "system.battery.step"),

@@ -52,7 +52,7 @@ Test hooks
 ``i``-th write to a run directory (a file written, renamed, linked or removed, counted from
 1 over the whole process); ``MPCRL_LITE_KILL_MID_WRITE=i`` kills it half-way through the
 ``i``-th write if that write is a file's content. They exist to test that every interruption
-leaves a directory that resumes or is refused (``tests/test_durability.py``).
+leaves a directory that resumes or is refused (``tests/learning/test_durability.py``).
 """
 
 from __future__ import annotations

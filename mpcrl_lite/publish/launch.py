@@ -8,7 +8,7 @@ and the notebooks ship inside the package.
 
 The text of those cells is generated here, from :data:`REPOSITORY` and :data:`BRANCH`, by
 ``python tools/update_launch_cells.py`` (a fork changes the two constants and runs it;
-``tests/test_site.py`` checks that the notebooks match).
+``tests/publish/test_site.py`` checks that the notebooks match).
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ critic relies on (:mod:`mpcrl_lite.learning.lstd`). This module is the one home 
   onto the feasible set).
 
 The arithmetic of :func:`bounded_exploration` runs compiled
-(:mod:`mpcrl_lite.sim.exploration_kernel`); ``tests/test_explore_kernel.py`` holds its numpy
+(:mod:`mpcrl_lite.sim.exploration_kernel`); ``tests/sim/test_explore_kernel.py`` holds its numpy
 statement as the reference.
 """
 

@@ -10,7 +10,7 @@ projection onto the feasible set -- is documented where it is used
 :func:`mpcrl_lite.system.battery.project_action`, whose numpy form is the reference: every operation
 here is taken in the order numpy takes it (sums from the first entry on, ``maximum``,
 ``minimum`` and ``clip`` with numpy's rules), so for a few batteries the results are those of
-the numpy form to the last bit (``tests/test_closed_loop.py`` checks it).
+the numpy form to the last bit (``tests/sim/test_closed_loop.py`` checks it).
 
 Compiled with numba's on-disk cache in the folder of the MPC kernels
 (:mod:`mpcrl_lite.mpc.backends.kernel`; ``python -m mpcrl_lite.mpc.backends.kernel --warm`` fills it).

@@ -35,7 +35,7 @@ vector of a row holds its theta), and every other step of the loop -- exploratio
 system's step, the sensitivities, the warm start -- works row by row; the months are cut
 into contiguous arrays before anything sums over them. So each run's
 :class:`~mpcrl_lite.learning.history.History`, theta, optimizer state and generator state are bit for
-bit those of the run alone (``tests/test_lockstep.py``); only the timings
+bit those of the run alone (``tests/studies/test_lockstep.py``); only the timings
 (``History.wall_time``, ``info['eval_time_s']``) differ: a run of a group is given the
 group's simulation time divided by ``K`` plus its own learning time. A run directory written
 in lockstep resumes alone and the other way round.

@@ -7,7 +7,7 @@ solve the same DP on every run. ``data/causal_j_star.csv`` holds J* of every day
 :meth:`Prices.default` for the systems ``SystemConfig(P_bar=..., noise_var=...)`` (every other
 field at its default) of notebook 07's grid. Its header lines (``# key: JSON value``) record
 how, when and from which commit it was computed (``tools/make_causal_table.py``);
-``tests/test_causal_table.py`` solves days again and compares.
+``tests/bounds/test_causal_table.py`` solves days again and compares.
 
 :func:`causal_bound` returns the stored values when they cover the system, the prices and the
 grid asked for, and solves the DP otherwise, so a caller gets the same :class:`CausalBound`

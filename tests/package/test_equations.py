@@ -21,7 +21,7 @@ from conftest import package_modules
 
 from mpcrl_lite._util.references import EQUATIONS, cited_equations, equation
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PAPER_TEX = ROOT.parent / "shared" / "paper" / "multi-agent-battery-mpc-rl.tex"
 NUMBERS = {eq.number for eq in EQUATIONS}
 

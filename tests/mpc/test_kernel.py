@@ -40,7 +40,7 @@ from mpcrl_lite.theta import CONSTANT_PARTS, Theta
 SEED = 20240703
 TAUS = sorted({MPCConfig().tau, 1e-4})
 METHODS = ("stage", "agent")
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 # -- helpers ----------------------------------------------------------------------------------

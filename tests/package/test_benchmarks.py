@@ -16,7 +16,7 @@ from mpcrl_lite.mpc.backends.kernel import KernelSolver
 from mpcrl_lite.mpc.formulation import MPC
 from mpcrl_lite.system.prices import Prices
 
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 MODULES = sorted(p.stem for p in BENCHMARKS.glob("bench_*.py"))
 
 

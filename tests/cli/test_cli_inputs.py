@@ -31,11 +31,11 @@ from mpcrl_lite.sim.closed_loop import evaluate_mpc
 from mpcrl_lite.studies import transfer
 from mpcrl_lite.theta import Theta
 
-FIXTURES = Path(__file__).resolve().parent / "fixtures"
+FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 RUN = FIXTURES / "run_v0_centralized"
 REAL_EXPORT = Path(os.environ.get(
     "MPCRL_LITE_NORDPOOL_EXPORT",
-    Path(__file__).resolve().parents[2] / "shared/data/nordpool/elspot-prices_2020_hourly_nok.csv",
+    Path(__file__).resolve().parents[3] / "shared/data/nordpool/elspot-prices_2020_hourly_nok.csv",
 ))
 
 

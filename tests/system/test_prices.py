@@ -22,7 +22,7 @@ from mpcrl_lite.system.prices import (
     nordpool_areas,
 )
 
-FIXTURES = Path(__file__).resolve().parent / "fixtures"
+FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 SPRING = FIXTURES / "elspot_spring_dst_2021.csv"  # 27..29.03.2021, clock change on the 28th
 AUTUMN = FIXTURES / "elspot_autumn_dst_2021.csv"  # 30.10..01.11.2021, clock change on the 31st
 NOT_EXPORT = FIXTURES / "not_an_export.csv"
@@ -30,7 +30,7 @@ NOT_EXPORT = FIXTURES / "not_an_export.csv"
 # MPCRL_LITE_NORDPOOL_EXPORT if set, else next to the checkout; its tests skip without it.
 REAL_EXPORT = Path(os.environ.get(
     "MPCRL_LITE_NORDPOOL_EXPORT",
-    Path(__file__).resolve().parents[2] / "shared/data/nordpool/elspot-prices_2020_hourly_nok.csv",
+    Path(__file__).resolve().parents[3] / "shared/data/nordpool/elspot-prices_2020_hourly_nok.csv",
 ))
 
 

@@ -52,7 +52,7 @@ from mpcrl_lite.studies.sweep.api import (
     summarize,
 )
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 # the reference back-end keeps these tests independent of the batch solver's own tests
 GRID = {

@@ -37,7 +37,7 @@ from mpcrl_lite.learning.history import History
 from mpcrl_lite.learning.rundir import RunDirError, RunWriteError
 from mpcrl_lite.sim.record import RECORD_ARRAYS
 
-FIXTURES = Path(__file__).resolve().parent / "fixtures"
+FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 LEGACY = {"": FIXTURES / "run_v0_centralized", "--decentralized": FIXTURES / "run_v0_decentralized"}
 LEARNERS = ["", "--decentralized"]
 SMALL = SystemConfig(N=6)
@@ -527,7 +527,7 @@ def test_runs_of_the_previous_version_load_and_resume(tmp_path, capsys, learner)
         months=2, out=reference, progress=False)
     # The previous version's 'auto' back-end was the numpy interior point (centralized) and
     # the numpy coordination rounds (decentralized); today's are compiled, which agree with
-    # them to rounding (tests/test_kernel.py, tests/test_decentralized_kernel.py), not bit for
+    # them to rounding (tests/mpc/test_kernel.py, tests/decentralized/test_decentralized_kernel.py), not bit for
     # bit: the resumed run equals a fresh one to the tolerance of those tests (1e-8).
     assert_close_run(out, reference, rtol=1e-8)
     assert (out / "manifest.json").exists()
@@ -561,15 +561,15 @@ def strict_json(path: Path):
 
 
 def test_all_solves_failing_writes_valid_json_and_exits_2(tmp_path, capsys, monkeypatch):
-    import mpcrl_lite.cli.main as cli_module
+    import mpcrl_lite.cli.args as cli_module
 
-    real = cli_module._configs
+    real = cli_module.configs
 
     def failing(args, **learning):  # one interior-point iteration: every solve fails
         system, mpc, learn = real(args, **learning)
         return system, mpc.replace(max_iter=1), learn
 
-    monkeypatch.setattr(cli_module, "_configs", failing)
+    monkeypatch.setattr(cli_module, "configs", failing)
     out = tmp_path / "run"
     status, stdout, err = cli(learn_args(out, 1), capsys)
     assert status == 2

@@ -10,7 +10,8 @@ import pandas as pd
 import pytest
 
 from mpcrl_lite.bounds.causal.dp import causal_optimum
-from mpcrl_lite.cli.main import STUDY_TARGETS, main
+from mpcrl_lite.cli.commands.study import STUDY_TARGETS
+from mpcrl_lite.cli.main import main
 from mpcrl_lite.config import SystemConfig
 from mpcrl_lite.learning.history import History
 from mpcrl_lite.studies import study

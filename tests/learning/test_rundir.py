@@ -283,7 +283,7 @@ def test_a_figure_that_fails_half_way_leaves_the_old_one(tmp_path, monkeypatch):
     from mpcrl_lite.figures.paper import PAPER_FIGURES, save_paper_figures
     from mpcrl_lite.learning.history import History
 
-    history = History.load(Path(__file__).resolve().parent / "fixtures" / "run_v0_centralized")
+    history = History.load(Path(__file__).resolve().parents[1] / "fixtures" / "run_v0_centralized")
     save_paper_figures(history, tmp_path)
     before = {name: (tmp_path / name).read_bytes() for name in PAPER_FIGURES}
     assert all(data.startswith(b"\x89PNG") for data in before.values())

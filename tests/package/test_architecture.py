@@ -56,7 +56,8 @@ SUBLAYERS: dict[str, list[set[str]]] = {
     "publish": [{"alt_text", "html_export", "launch"}, {"report"}, {"site"}],
     "studies": [{"transfer", "lockstep"}, {"sweep"}, {"study"}],
     "studies.sweep": [{"grid"}, {"store"}, {"table"}, {"run"}, {"schedule"}, {"api"}],
-    "cli": [{"inputs"}, {"main"}, {"warm"}],
+    "cli": [{"inputs"}, {"args"}, {"commands"}, {"main"}, {"warm"}],
+    "cli.commands": [{"baselines", "evaluate", "learn", "report", "simulate", "study", "sweep"}],
 }
 
 MODULES = package_modules()
@@ -174,10 +175,27 @@ def test_the_check_sees_imports_inside_functions(tmp_path):
 def test_the_readme_lists_every_module():
     """The README's module table (written by ``tools/update_module_table.py``) has one row
     per module and subpackage, and no row for anything that does not exist."""
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
     start = readme.index("| module | what it holds |")
     table = readme[start:readme.index("\n\n", start)]
     rows = set(re.findall(r"^\| `([\w.]+)` \|", table, re.MULTILINE))
     expected = {"mpcrl_lite" if m == "__init__" else m for m in MODULES} - {"__main__"}
     assert rows == expected, (f"missing from the README's table: {sorted(expected - rows)}; "
                               f"not in the package: {sorted(rows - expected)}")
+
+
+#: Test folders that are not a subpackage: the package as a whole, and the notebooks.
+TEST_FOLDERS_BEYOND_THE_PACKAGE = {"package", "notebooks"}
+
+
+def test_the_tests_mirror_the_package_layout():
+    """Every test module sits in ``tests/<subpackage>/`` (or ``tests/package/`` for the package
+    as a whole, ``tests/notebooks/`` for the notebooks); none is left at the top, and every
+    folder names a unit of LAYERS."""
+    tests = Path(__file__).resolve().parents[1]
+    assert not sorted(p.name for p in tests.glob("test_*.py")), "test modules left in tests/"
+    folders = {p.parent.name for p in tests.glob("*/test_*.py")}
+    units = {unit for layer in LAYERS for unit in layer}
+    assert folders - units - TEST_FOLDERS_BEYOND_THE_PACKAGE == set()
+    names = [p.name for p in tests.rglob("test_*.py")]
+    assert len(names) == len(set(names)), "two test modules share a name"

@@ -1,0 +1,188 @@
+"""What the commands share: the parser class with one-line errors, argument types, the
+option groups several commands take, the configs built from the options and the checks made
+before any work (through :mod:`mpcrl_lite.cli.inputs`).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..config import (
+    BACKENDS,
+    FORECASTS,
+    PAPER_TAU,
+    LearningConfig,
+    MPCConfig,
+    SystemConfig,
+)
+from ..learning import rundir
+
+
+class Parser(argparse.ArgumentParser):
+    """argparse with one-line errors."""
+
+    def error(self, message: str) -> None:  # type: ignore[override]
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+class UsageError(Exception):
+    """A bad value found after parsing (reported in one line, exit 2)."""
+
+
+def int_at_least(low: int):
+    """argparse type: an integer >= ``low``."""
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if value < low:
+            raise argparse.ArgumentTypeError(f"{value} must be >= {low}")
+        return value
+
+    return parse
+
+
+positive_int = int_at_least(1)
+nonneg_int = int_at_least(0)
+
+
+def finite_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not np.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return value
+
+
+# Defaults shown in --help are read from the configs, never copied.
+SYSTEM, MPC_DEFAULTS, LEARNING = SystemConfig(), MPCConfig(), LearningConfig()
+
+
+def add_system_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--seed", type=nonneg_int, default=LEARNING.seed,
+                   help=f"random seed (default {LEARNING.seed})")
+    p.add_argument("--p-bar", type=finite_float, default=None,
+                   help=f"grid peak bound P_bar (default {SYSTEM.P_bar:g})")
+    p.add_argument("--noise-var", type=finite_float, default=None,
+                   help=f"variance of the production-demand noise (default {SYSTEM.noise_var:g})")
+    p.add_argument("--n", type=positive_int, default=None,
+                   help=f"number of batteries (default {SYSTEM.n})")
+    p.add_argument("--tau", type=finite_float, default=None,
+                   help=f"MPC barrier parameter in NOK (default {MPC_DEFAULTS.tau:g}; "
+                        f"{PAPER_TAU:g} is the nearly exact MPC)")
+    p.add_argument("--backend", choices=BACKENDS, default=None,
+                   help=f"MPC solver back-end (default {MPC_DEFAULTS.backend})")
+    add_forecast(p)
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def add_forecast(p: argparse.ArgumentParser, help_text: str | None = None) -> None:
+    p.add_argument("--forecast", choices=FORECASTS, default=None,
+                   help=help_text or (
+                       f"the MPC's price forecast (default {MPC_DEFAULTS.forecast}: the paper's, "
+                       "reading on into the next day; until_midnight is an extension beyond "
+                       "the paper whose forecast stops at midnight)"))
+
+
+def add_price_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--prices", type=Path, default=None, metavar="EXPORT.csv",
+                   help="a Nord Pool price export (default: the shipped November 2020 month)")
+    p.add_argument("--area", default=None,
+                   help="area column of --prices (default Tr.heim)")
+    p.add_argument("--month", default=None, metavar="YYYY-MM",
+                   help="month of --prices to use (every hour of every day must have a price)")
+
+
+def add_force(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--force", action="store_true",
+                   help="replace the results found in --out (they are refused otherwise)")
+
+
+# -- configs from arguments ----------------------------------------------------------------
+def configs(args: argparse.Namespace, **learning: Any):
+    system = {}
+    if args.p_bar is not None:
+        system["P_bar"] = args.p_bar
+    if args.noise_var is not None:
+        system["noise_var"] = args.noise_var
+    if args.n is not None:
+        system["n"] = args.n
+    mpc = {}
+    if args.tau is not None:
+        mpc["tau"] = args.tau
+    if args.backend is not None:
+        mpc["backend"] = args.backend
+    if args.forecast is not None:
+        mpc["forecast"] = args.forecast
+    learning = {k: v for k, v in learning.items() if v is not None}
+    try:
+        return (
+            SystemConfig(**system),
+            MPCConfig(**mpc),
+            LearningConfig(seed=args.seed, **learning),
+        )
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+
+
+def write_json(path: Path, data: dict[str, Any]) -> None:
+    """Strict JSON (NaN as null), written atomically."""
+    try:
+        rundir.write_json(path, data)
+    except OSError as err:
+        raise UsageError(str(err)) from None
+
+
+def write_bytes(path: Path, data: bytes) -> None:
+    try:
+        rundir.write_atomic(path, data)
+    except OSError as err:
+        raise UsageError(str(err)) from None
+
+
+def month_prices(args: argparse.Namespace, system: SystemConfig, days: int | None):
+    """The month of ``--prices/--area/--month`` (None without ``--prices``), checked."""
+    from . import inputs as cli_inputs
+
+    if args.prices is None:
+        given = [f for f, v in (("--area", args.area), ("--month", args.month)) if v is not None]
+        if given:
+            raise UsageError(f"{' and '.join(given)} given without --prices; expected "
+                             "--prices EXPORT.csv with them")
+        return None
+    if args.month is None:
+        raise UsageError(f"--prices {args.prices} given without --month; expected --month "
+                         "YYYY-MM (the month of the export to use)")
+    try:
+        area = args.area if args.area is not None else "Tr.heim"
+        return cli_inputs.month_prices(args.prices, area, args.month, system, days)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+
+
+def budget(what: str, n: int, days: int, runs: int = 1, sensitivities: bool = False,
+            horizon: int = SystemConfig().N) -> None:
+    from . import inputs as cli_inputs
+
+    try:
+        cli_inputs.check_budget(what, n, days, runs, sensitivities, horizon)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+
+
+def prepare_out(args: argparse.Namespace, outputs: tuple[str, ...]) -> Path:
+    """--out checked (writable, no finished results unless --force) before any work."""
+    from . import inputs as cli_inputs
+
+    try:
+        return cli_inputs.prepare_out(args.out, outputs, force=args.force)
+    except ValueError as err:
+        raise UsageError(str(err)) from None

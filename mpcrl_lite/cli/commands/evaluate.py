@@ -1,0 +1,86 @@
+"""``python -m mpcrl_lite evaluate``: a learned theta and the nominal MPC on K noise draws of a (new) month."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from ..._util import jsonio
+from ...learning import rundir
+from .. import args as _a
+from ..args import UsageError
+
+NAME = "evaluate"
+HELP = "a learned theta and the nominal MPC on K noise draws"
+
+#: What ``evaluate`` writes.
+EVALUATE_OUTPUTS = (rundir.SUMMARY,)
+
+
+def add_parser(sub) -> argparse.ArgumentParser:
+    """The ``evaluate`` options."""
+    p = sub.add_parser(NAME, help=HELP)
+    p.add_argument("--history", type=Path, required=True,
+                   help="a learn output directory (its final theta, system and MPC are used)")
+    p.add_argument("--out", type=Path, required=True, help="output directory")
+    p.add_argument("--draws", type=_a.positive_int, default=10,
+                   help="K noise draws (draw k uses seed SEED + k; default 10)")
+    p.add_argument("--seed", type=_a.nonneg_int, default=0, help="seed of the first draw (default 0)")
+    p.add_argument("--days", type=_a.positive_int, default=None,
+                   help="days (default the run's days per month, or all of --month)")
+    _a.add_force(p)
+    _a.add_price_args(p)
+    _a.add_forecast(p, "the MPC's price forecast (default: the run's own; until_midnight is an "
+                     "extension beyond the paper whose forecast stops at midnight)")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    """The ``evaluate`` command: the final theta of ``--history`` and the nominal MPC of its
+    system on ``--draws`` noise draws of a month (``--prices`` or the shipped one)."""
+    from ...learning.history import History
+    from ...system.prices import Prices
+
+    try:
+        history = History.load(args.history)
+    except (ValueError, OSError) as err:  # FileNotFoundError, RunDirError
+        raise UsageError(f"--history {args.history}: {err}") from None
+    if not history.theta_final:
+        raise UsageError(f"--history {args.history}: no final theta (no month finished); "
+                         "expected a run with at least one month")
+    system, mpc_config = history.system, history.mpc
+    if args.forecast is not None:
+        mpc_config = mpc_config.replace(forecast=args.forecast)
+    prices = _a.month_prices(args, system, args.days)
+    days = prices.days if prices is not None else (args.days or history.learning.days_per_month)
+    _a.budget(f"--draws {args.draws} --days {days} --n {system.n}", system.n, days,
+            runs=2 * args.draws, horizon=system.N)
+    out = _a.prepare_out(args, EVALUATE_OUTPUTS)
+    from ...studies.transfer import evaluate_thetas
+    from ...theta import Theta
+
+    if prices is None:
+        prices = Prices.month(system, days)
+    result = evaluate_thetas(
+        {"nominal": Theta.nominal(system), "learned": history.final_theta()},
+        system, mpc_config, prices, args.draws, args.seed,
+    )
+    summary = {
+        **result,
+        "history": str(args.history),
+        "months_learned": history.months,
+        "days": days,
+        "prices": prices.source,
+        "theta_learned": history.final_theta().to_dict(),
+        "system": system.to_dict(),
+        "mpc": mpc_config.to_dict(),
+    }
+    _a.write_json(out / rundir.SUMMARY, summary)
+    policies = summary["policies"]
+    print(json.dumps(jsonio.plain({name: policies[name]["J_stats"] for name in policies})))
+    return 0
+
+

@@ -1,0 +1,190 @@
+"""``python -m mpcrl_lite learn``: the learning experiment (months x days, LSTD + DPG); History + summary + figures."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from ..._util import jsonio
+from ...config import OPTIMIZERS, LearningConfig, MPCConfig
+from ...learning import rundir
+from .. import args as _a
+from ..args import UsageError
+
+NAME = "learn"
+HELP = "the learning experiment"
+
+
+def add_parser(sub) -> argparse.ArgumentParser:
+    """The ``learn`` options."""
+    p = sub.add_parser(NAME, help=HELP)
+    p.add_argument("--months", type=_a.positive_int, required=True, help="learning steps (months)")
+    p.add_argument("--out", type=str, required=True,
+                   help="run directory (committed after every month; see mpcrl_lite.learning.rundir)")
+    p.add_argument("--days", type=_a.positive_int, default=None,
+                   help=f"days per month (default {_a.LEARNING.days_per_month})")
+    p.add_argument("--resume", action="store_true", help="continue the run found in --out")
+    p.add_argument("--force", action="store_true",
+                   help="replace the results found in --out (they are refused otherwise)")
+    p.add_argument("--step-size", type=_a.finite_float, default=None, help="DPG step size")
+    p.add_argument("--optimizer", choices=OPTIMIZERS, default=None,
+                   help=f"DPG update rule (default {_a.LEARNING.optimizer}; sgd is the "
+                        "paper's plain gradient step)")
+    p.add_argument("--exploration-std", type=_a.finite_float, default=None)
+    p.add_argument("--eval-draws", type=_a.positive_int, default=None,
+                   help=f"noise draws of each evaluation (default {_a.LEARNING.eval_draws}; "
+                        "runs from before the option were evaluated on 1)")
+    p.add_argument("--decentralized", action="store_true",
+                   help="one MPC and one learner per battery; the MPCs are coordinated on the "
+                        "grid limit by per-stage grid prices found with a decomposed Newton "
+                        "method (the same policy as the centralized MPC)")
+    p.add_argument("--no-figures", action="store_true", help="skip writing the figures")
+    _a.add_price_args(p)
+    _a.add_system_args(p)
+
+    return p
+
+
+def _run_eval_draws(out: Path) -> int | None:
+    """``learning.eval_draws`` of the run in ``out`` (None if there is none to read: the
+    resume then reports what is wrong)."""
+    for name in ("checkpoint.json", "history.json"):
+        try:
+            learning = json.loads((out / name).read_text())["learning"]
+            return LearningConfig.from_dict(learning).eval_draws
+        except (OSError, ValueError, TypeError, KeyError, AttributeError):
+            continue
+    return None
+
+
+#: LearningConfig fields ``learn`` has no flag for: a resumed run keeps the run's own.
+_RUN_FIELDS = ("exploration_bounds", "exploration_margin", "ridge", "value_features",
+               "learn_constants", "grad_clip", "tie_agents", "natural_damping", "step_warmup",
+               "step_decay", "max_policy_change", "average_months", "keep_well_posed",
+               "alpha_min")
+
+
+def _run_learning(out: Path) -> dict[str, Any]:
+    """The fields of ``_RUN_FIELDS`` of the run in ``out`` ({} if there is none to read: the
+    resume then reports what is wrong)."""
+    for name in ("checkpoint.json", "history.json"):
+        try:
+            learning = LearningConfig.from_dict(json.loads((out / name).read_text())["learning"])
+            return {field: getattr(learning, field) for field in _RUN_FIELDS}
+        except (OSError, ValueError, TypeError, KeyError, AttributeError):
+            continue
+    return {}
+
+
+def _run_forecast(out: Path) -> str | None:
+    """``mpc.forecast`` of the run in ``out`` (None if there is none to read: the resume then
+    reports what is wrong)."""
+    for name in ("checkpoint.json", "history.json"):
+        try:
+            return MPCConfig.from_dict(json.loads((out / name).read_text())["mpc"]).forecast
+        except (OSError, ValueError, TypeError, KeyError, AttributeError):
+            continue
+    return None
+
+
+def run(args: argparse.Namespace) -> int:
+    """The ``learn`` command. Everything about ``--out`` is checked before any month runs:
+    a directory holding results (a run, a History, a summary or figures of ``learn``) is
+    continued with ``--resume``, replaced with ``--force`` and refused otherwise; a run that
+    does not verify is refused (one line: what is wrong, how to recover)."""
+    eval_draws = args.eval_draws
+    if args.resume and eval_draws is None:
+        # a resumed run keeps its evaluation draws (1 for runs from before the option)
+        eval_draws = _run_eval_draws(Path(args.out))
+    kept = _run_learning(Path(args.out)) if args.resume else {}  # and its learner's settings
+    if args.resume and args.forecast is None:  # and its MPC's forecast
+        args.forecast = _run_forecast(Path(args.out))
+    system, mpc_config, learning = _a.configs(
+        args, months=args.months, days_per_month=args.days, step_size=args.step_size,
+        optimizer=args.optimizer, exploration_std=args.exploration_std,
+        eval_draws=eval_draws, **kept,
+    )
+    prices = _a.month_prices(args, system, args.days)
+    if prices is not None:  # the month's days
+        system, mpc_config, learning = _a.configs(
+            args, months=args.months, days_per_month=prices.days, step_size=args.step_size,
+            optimizer=args.optimizer, exploration_std=args.exploration_std, **kept,
+        )
+    _a.budget(f"--months {args.months} --days {learning.days_per_month} --n {system.n}",
+            system.n, learning.days_per_month, runs=args.months, sensitivities=True,
+            horizon=system.N)
+
+    if args.resume and args.force:
+        raise UsageError("--resume and --force exclude each other: --resume continues the run "
+                         "in --out, --force replaces it")
+    try:
+        out = rundir.check_output_dir(args.out)
+    except rundir.RunDirError as err:
+        raise UsageError(str(err)) from None
+    from ...figures.paper import PAPER_FIGURES
+    from ...learning.experiment import Experiment
+    from ...learning.learner import MAX_FAILED_SOLVE_SHARE
+
+    outputs = (rundir.SUMMARY, *PAPER_FIGURES)
+    found = rundir.inspect(out, others=outputs)
+    if args.force:
+        rundir.clear(out, others=outputs)
+    elif args.resume and not found.holds_run and found.others:
+        raise UsageError(
+            f"--out {args.out}: nothing to resume (no run) but it holds "
+            f"{', '.join(found.others)}: use --force to replace them or choose another --out")
+    elif args.resume and not found.holds_run:
+        print(f"mpcrl_lite learn: no run in {args.out} to resume: starting a new one",
+              file=sys.stderr)
+    elif not args.resume and found.names:
+        what = "a run" if found.holds_run else "results"
+        raise UsageError(
+            f"--out {args.out} already holds {what} ({', '.join(found.names)}); pass "
+            "--resume to continue it, --force to replace it, or choose another --out")
+    if args.decentralized:
+        from ...decentralized.learner import DecentralizedExperiment
+
+        exp = DecentralizedExperiment(system, mpc_config, learning, prices=prices)
+    else:
+        exp = Experiment(system, mpc_config, learning, prices=prices)
+    try:
+        # a run found in --out is verified before any month runs
+        history = exp.run(months=args.months, out=out, resume=args.resume,
+                          progress=not args.quiet)
+    except (ValueError, OSError) as err:  # RunDirError, RunWriteError
+        raise UsageError(str(err)) from None
+    summary = {**history.summary(), "forecast": history.mpc.forecast}
+    try:
+        rundir.write_json(out / rundir.SUMMARY, summary)
+    except OSError as err:
+        raise UsageError(str(err)) from None
+    if not args.no_figures:
+        from ...figures.paper import save_paper_figures
+
+        save_paper_figures(history, out, prices=exp.prices)
+    print(json.dumps(jsonio.plain({
+        "months": history.months,
+        "J_first": history.J[0],
+        "J_last": history.J[-1],
+        "hours_soc_below_0_1_first": history.hours_soc_below_0_1[0],
+        "hours_soc_below_0_1_last": history.hours_soc_below_0_1[-1],
+        "J_eval_first": history.J_eval[0] if history.J_eval else None,
+        "J_eval_last": history.J_eval[-1] if history.J_eval else None,
+        "max_P_mpc": max(history.max_P_mpc),
+        "max_P_applied": max(history.max_P_applied),
+        "skipped_steps": int(sum(history.skipped_steps)),
+        "wall_time_s": float(sum(history.wall_time_s)),
+    })))
+    share = history.failed_solve_share()
+    if share > MAX_FAILED_SOLVE_SHARE:
+        raise UsageError(
+            f"{100 * share:.0f} % of the MPC solves failed (solver_failures in "
+            f"{out / rundir.SUMMARY}); expected at most {100 * MAX_FAILED_SOLVE_SHARE:.0f} % "
+            "(MAX_FAILED_SOLVE_SHARE): the results are kept but the learning is not "
+            "trustworthy; check --tau, --backend and the system")
+    return 0
+
+

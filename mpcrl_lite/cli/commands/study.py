@@ -1,0 +1,75 @@
+"""``python -m mpcrl_lite study``: one learning run per seed (through sweep); convergence, spread, learning curves."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from .. import args as _a
+from ..args import UsageError
+
+NAME = "study"
+HELP = "one learning run per seed, judged on J_eval"
+
+#: ``study --target`` choices: :data:`mpcrl_lite.studies.study.TARGETS` (not imported here, it loads
+#: the compiled DP; a test checks that they agree).
+STUDY_TARGETS = ("causal", "best_seen")
+
+
+def add_parser(sub) -> argparse.ArgumentParser:
+    """The ``study`` options."""
+    p = sub.add_parser(NAME, help=HELP)
+    p.add_argument("--seeds", type=_a.positive_int, required=True, help="number of seeds")
+    p.add_argument("--months", type=_a.positive_int, required=True, help="months per run")
+    p.add_argument("--out", type=Path, required=True, help="output directory")
+    p.add_argument("--seed-start", type=_a.nonneg_int, default=0, help="first seed (default 0)")
+    p.add_argument("--days", type=_a.positive_int, default=None,
+                   help=f"days per month (default {_a.LEARNING.days_per_month})")
+    p.add_argument("--eval-draws", type=_a.positive_int, default=None,
+                   help=f"evaluation draws (default {_a.LEARNING.eval_draws})")
+    p.add_argument("--j-star", type=_a.finite_float, default=None,
+                   help="J of the best causal policy (default: computed, see --target)")
+    p.add_argument("--target", choices=STUDY_TARGETS, default="causal",
+                   help="without --j-star: causal (default) computes J* for the study's "
+                        "system and month (the causal DP for n <= 3, else the Lagrangian "
+                        "bound), best_seen judges against the best J_eval reached")
+    p.add_argument("--threshold", type=_a.finite_float, default=None,
+                   help="share of the gap nominal -> target a converged seed closes "
+                        "(default 0.9)")
+    _a.add_forecast(p)
+    p.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
+    p.add_argument("--workers", type=_a.nonneg_int, default=None, help="local workers (0: serial)")
+    p.add_argument("--lockstep", type=_a.positive_int, default=None, metavar="K",
+                   help="runs per task, stepped together in one process (default: each "
+                        "worker's share; 1: one run per task)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    from ...studies.study import THRESHOLD, run_study
+
+    base = {}
+    if args.days is not None:
+        base["learning.days_per_month"] = args.days
+    if args.eval_draws is not None:
+        base["learning.eval_draws"] = args.eval_draws
+    if args.forecast is not None:
+        base["mpc.forecast"] = args.forecast
+    try:
+        summary = run_study(
+            args.seeds, args.months, args.out, seed_start=args.seed_start, base=base,
+            workers=args.workers, scheduler=args.scheduler, J_star=args.j_star,
+            threshold=THRESHOLD if args.threshold is None else args.threshold,
+            progress=not args.quiet, lockstep=args.lockstep, target=args.target)
+    except (ValueError, FileNotFoundError) as err:
+        raise UsageError(str(err)) from None
+    keys = ("done", "fraction_converged", "J_eval_final_median", "J_eval_final_iqr",
+            "worst_seed", "largest_late_regression", "J_target", "J_star_method",
+            "regret_median", "regret_iqr", "late_collapse_count")
+    print(json.dumps({**{k: summary[k] for k in keys}, "study": str(args.out / "study.json")},
+                     default=str))
+    return 0
+
+
