@@ -6,7 +6,6 @@ import argparse
 import io
 import json
 import time
-from pathlib import Path
 
 import numpy as np
 
@@ -28,7 +27,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--days", type=_a.positive_int, default=None,
                    help="number of days (batch); required without --prices, else the first "
                         "days of --month (default all)")
-    p.add_argument("--out", type=Path, required=True, help="output directory")
+    p.add_argument("--out", type=_a.out_dir, required=True, help="output directory")
     _a.add_force(p)
     _a.add_price_args(p)
     _a.add_system_args(p)
