@@ -150,7 +150,9 @@ __all__ = [
     "PAPER_EXPLORATION_STD",
     "PAPER_STEP_SIZE",
     "PAPER_TAU",
+    "PRICE_LIMIT",
     "PRICE_UNIT",
+    "RANGES",
     "VALUE_FEATURES",
     "VALUE_FEATURE_SETS",
     "ConfigWarning",
@@ -158,6 +160,7 @@ __all__ = [
     "LearningConfig",
     "MPCConfig",
     "SystemConfig",
+    "check_ranges",
 ]
 
 #: Unit of every price in the project (see the module docstring for why).
@@ -167,6 +170,75 @@ PRICE_UNIT = "NOK/MWh"
 #: most this long, since the price matrices (:class:`mpcrl_lite.system.prices.Prices`) are indexed by
 #: day and clock hour.
 HOURS_PER_DAY = 24
+
+
+#: Prices (buying and selling, after ``price_scale``) must lie within +-PRICE_LIMIT per MWh:
+#: the highest day-ahead prices ever cleared are a few thousand EUR/MWh (some 1e4 NOK/MWh),
+#: so a larger number is a unit or typing mistake, and the MPC's cost is not solvable in
+#: floating point far beyond it (``Prices`` refuses it).
+PRICE_LIMIT = 1e5
+
+#: Where each number of the configurations means something to the model, as
+#: ``{section: {field: (low, high, why)}}`` (closed intervals). Every configuration refuses a
+#: value outside in one line naming the value and the interval, element-wise for a field given
+#: per battery (:func:`check_ranges`); a number inside may still be a poor choice, one outside
+#: is a mistake (an overflow, a denormal, a unit off by powers of ten). ``P_bar`` has in
+#: addition ``P_bar <= 10 * n * U_bar`` (ten times what all batteries together can draw: a
+#: larger bound only means no bound), and the prices :data:`PRICE_LIMIT`.
+RANGES: dict[str, dict[str, tuple[float, float, str]]] = {
+    "system": {
+        "alpha": (1e-6, 10.0, "soc moves by alpha * U_bar per hour at most"),
+        "noise_mean": (-100.0, 100.0, "MW, a production-demand imbalance"),
+        "noise_var": (0.0, 100.0, "MW^2; a std of 10 MW swamps any battery of the model"),
+        "U_bar": (1e-6, 1e3, "MW per battery"),
+        "P_bar": (1e-6, math.inf, "MW; at most 10 * n * U_bar (see above)"),
+        "omega": (0.0, 1e6, "cost per unit of soc slack"),
+        "omega_f": (0.0, 1e6, "cost per unit of terminal soc slack"),
+        "p": (0.0, 1e6, "cost per unit of soc outside the band"),
+        "N": (1, 168, "hours of horizon; a week at most"),
+        "sample_time_h": (1e-3, 24.0, "hours"),
+        "sell_ratio": (0.0, 10.0, "selling / buying price"),
+        "price_scale": (0.0, 100.0, "multiplier on the price series"),
+    },
+    "mpc": {
+        "tau": (1e-12, 1.0, "NOK; below 1e-12 the barrier is lost in rounding"),
+        "tol": (1e-14, 1.0, "below 1e-14 the KKT residual is rounding noise"),
+        "max_iter": (1, 10_000, "interior-point iterations of one solve"),
+        "kkt_cond_max": (1.0, 1e20, "condition estimate"),
+    },
+    "learning": {
+        "step_size": (0.0, 1.0, ("adam: relative move per update (1 = its whole magnitude); "
+                                 "natural: RMS action change in MW; sgd: the gradient's "
+                                 "multiplier (the paper's 5e-8)")),
+        "exploration_std": (0.0, 10.0, "MW"),
+        "exploration_margin": (0.0, 10.0, "MW"),
+        "ridge": (0.0, 1.0, "relative Tikhonov term"),
+        "natural_damping": (0.0, 1e3, "relative damping"),
+        "max_policy_change": (0.0, 10.0, "MW"),
+        "grad_clip": (0.0, 1e12, "norm of one update"),
+        "alpha_min": (1e-9, 1.0, "smallest theta_alpha"),
+    },
+}
+
+
+def check_ranges(section: str, config: Any) -> None:
+    """Refuse a field of ``config`` outside its :data:`RANGES` interval (``ValueError``, one
+    line naming the field, the value and the interval), element by element where a field
+    holds one value per battery (or a pair, like ``omega``). ``None`` (an optional field not
+    set) passes."""
+    import numpy as np
+
+    for name, (low, high, why) in RANGES[section].items():
+        value = getattr(config, name, None)
+        if value is None:
+            continue
+        values = np.asarray(value, dtype=float).ravel()
+        bad = values[~((values >= low) & (values <= high))]
+        if bad.size:
+            shown = f"{name}={value!r}" if values.size == 1 else \
+                f"{name}={show(value)} (entry {float(bad[0])!r})"
+            raise ValueError(f"{shown}: expected a value in [{low:g}, {high:g}] ({why}; "
+                             "config.RANGES)")
 
 
 class ConfigWarning(UserWarning):
@@ -283,10 +355,16 @@ class SystemConfig(_Config):
         set_("sell_ratio", check_real("sell_ratio", self.sell_ratio, 0.0))
         set_("price_scale", check_real("price_scale", self.price_scale, 0.0))
         set_("soc0", check_real("soc0", self.soc0, 0.0, 1.0))
+        check_ranges("system", self)
         try:
             reach = self.n * self.U_bar  # the most all batteries can buy (or sell) at once
         except OverflowError:  # an n beyond the float range
             reach = math.inf
+        if self.P_bar > 10 * reach:
+            raise ValueError(
+                f"P_bar={self.P_bar!r}: expected a value in (0, {10 * reach:g}] (10 * n * "
+                "U_bar: ten times what all batteries can draw together; a larger bound means "
+                "no bound; config.RANGES)")
         if self.P_bar >= reach:
             warnings.warn(
                 f"P_bar={self.P_bar:g} >= n*U_bar={reach:g}: "
@@ -362,6 +440,7 @@ class MPCConfig(_Config):
         set_("warm_start", check_bool("warm_start", self.warm_start))
         set_("kkt_cond_max", check_real("kkt_cond_max", self.kkt_cond_max, 1.0, low_open=True))
         set_("forecast", check_choice("forecast", self.forecast, FORECASTS))
+        check_ranges("mpc", self)
 
     @classmethod
     def paper(cls, **changes: Any) -> MPCConfig:
@@ -540,6 +619,7 @@ class LearningConfig(_Config):
         set_("eval_every", check_int("eval_every", self.eval_every, 0))
         set_("eval_seed", check_int("eval_seed", self.eval_seed, 0))
         set_("eval_draws", check_int("eval_draws", self.eval_draws, 1))
+        check_ranges("learning", self)
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> LearningConfig:

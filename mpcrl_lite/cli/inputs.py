@@ -18,7 +18,7 @@ import re
 from collections.abc import Iterable
 from pathlib import Path
 
-from .._util.budget import (
+from .._util.budget import (  # noqa: F401 (importable from here)
     TIME_LIMIT_ENV,
     TIME_LIMIT_S,
     Budget,
@@ -30,13 +30,9 @@ from ..config import SystemConfig
 from ..learning.rundir import RunDirError, check_output_dir, inspect
 from ..system.prices import Prices, load_nordpool_csv, nordpool_areas
 
+# check_budget, estimate, Budget, available_memory and TIME_LIMIT_S/_ENV live in
+# mpcrl_lite._util.budget and stay importable from here.
 __all__ = [
-    "TIME_LIMIT_ENV",
-    "TIME_LIMIT_S",
-    "Budget",
-    "available_memory",
-    "check_budget",
-    "estimate",
     "month_prices",
     "prepare_out",
     "refuse_finished",

@@ -605,7 +605,7 @@ def test_all_solves_failing_writes_valid_json_and_exits_2(tmp_path, capsys, monk
     assert np.isnan(history.eval_bound_share[0]) and history.failed_solve_share() == 1.0
 
 
-# the optimizer's own diagnostics overflow at noise_var=1e300 (they are stored as null)
+# the optimizer's own diagnostics overflow with gradients of 1e200 (they are stored as null)
 @pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
 def test_grad_norm_does_not_overflow(tmp_path):
     history = History(SMALL, MPCConfig(), LearningConfig(days_per_month=1))
@@ -617,9 +617,12 @@ def test_grad_norm_does_not_overflow(tmp_path):
     small = np.arange(30.0)
     history.append(record, Theta.nominal(SMALL), small, 0, 0.0, {})
     assert history.grad_norm[1] == np.linalg.norm(small)  # unchanged where it was finite
-    # a run with an absurd noise: every figure finite or null, the file strict JSON
+    # an absurd noise is refused (config.RANGES); the largest one accepted runs with every
+    # figure finite or null and the file strict JSON
+    with pytest.raises(ValueError, match=r"noise_var=1e\+300: expected a value in \[0, 100\]"):
+        SMALL.replace(noise_var=1e300)
     learning = LearningConfig(days_per_month=1, months=1)
-    run = Experiment(system=SMALL.replace(noise_var=1e300), learning=learning)
+    run = Experiment(system=SMALL.replace(noise_var=100.0), learning=learning)
     run.run(out=tmp_path, progress=False)
     assert np.isfinite(run.history.grad_norm[0])
     strict_json(tmp_path / "history.json")

@@ -86,7 +86,8 @@ SOLVER_LAYER = {
                            "theta"},
     "mpc.backends.kernel_core": {"_util", "_util.jit"},
     "mpc.backends.kernel": {"mpc.backends.kernel_core", "config", "mpc.formulation",
-                            "mpc.solution", "theta"},
+                            "mpc.solution", "theta",
+                            "_util.validate"},  # ModelInputError
     "mpc.backends.registry": {"mpc.backends.batch", "config", "mpc.backends.ipopt",
                               "mpc.backends.kernel", "mpc.formulation", "mpc.solution", "theta"},
 }
@@ -95,3 +96,47 @@ SOLVER_LAYER = {
 @pytest.mark.parametrize("module", sorted(SOLVER_LAYER))
 def test_solver_layer_imports_only_downwards(module):
     assert_imports_within(module, SOLVER_LAYER[module])
+
+
+# -- inputs a back-end cannot solve -----------------------------------------------------------------
+def test_a_kernel_that_cannot_solve_accepted_input_names_the_input(caplog):
+    from mpcrl_lite.config import SystemConfig
+    from mpcrl_lite.mpc.backends.kernel import KernelInputError
+    from mpcrl_lite.mpc.formulation import MPC
+
+    mpc = MPC(SystemConfig())
+    config = MPCConfig(tau=1e-12, backend="kernel")  # in RANGES, beyond the kernel's reach
+    with pytest.raises(KernelInputError, match=r"cannot solve the MPC of this system and "
+                                               r"config \(max_iter_reached; tau=1e-12") as err:
+        KernelSolver(mpc, config)
+    assert "formulation" not in str(err.value) and "'ipopt'" in str(err.value)
+    with pytest.raises(KernelInputError):
+        make_solver(mpc, config)
+    caplog.set_level(logging.WARNING)
+    solver = make_solver(mpc, config.replace(backend="auto"))  # 'auto' falls back, and says so
+    assert isinstance(solver, IpoptSolver)
+    assert "using 'ipopt' instead" in caplog.text
+
+
+def test_the_cli_reports_it_in_one_line(tmp_path, capsys):
+    from mpcrl_lite.cli.main import main
+
+    capsys.readouterr()
+    assert main(["simulate", "--days", "1", "--tau", "1e-12", "--backend", "kernel",
+                 "--out", str(tmp_path / "s")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "mpcrl_lite simulate: error: the compiled MPC kernel" in err[0]
+
+
+@pytest.mark.parametrize("backend", ["kernel", "batch"])
+def test_an_explicit_convex_only_back_end_with_a_non_convex_theta_uses_ipopt(backend, mpc,
+                                                                            caplog):
+    theta = Theta.nominal(mpc.system)
+    theta = theta.replace(phi1=-0.5 * np.ones(mpc.n))
+    assert not theta.is_convex()
+    caplog.set_level(logging.WARNING)
+    solver = make_solver(mpc, MPCConfig(backend=backend), theta)
+    assert isinstance(solver, IpoptSolver)
+    assert "theta is not convex" in caplog.text and f"the '{backend}' back-end" in caplog.text
+    convex = make_solver(mpc, MPCConfig(backend=backend), Theta.nominal(mpc.system))
+    assert convex.name == backend

@@ -280,6 +280,14 @@ def run_sweep(
     if not serial and scheduler is not None:
         check_scheduler(scheduler, connect_timeout)
 
+    try:
+        grid_text = yaml.safe_dump(sweep.to_dict(), sort_keys=False)
+    except yaml.YAMLError as err:  # e.g. numpy scalars in a grid given as a dict
+        what = " ".join(a if isinstance(a, str) else repr(a) for a in err.args)
+        raise GridError(
+            f"the sweep cannot be saved as grid.yaml ({one_line(what)}); "
+            "give its values as plain numbers, strings and lists"
+        ) from None
     try:  # the lock needs the directory
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
@@ -296,14 +304,6 @@ def run_sweep(
         ]
         if todo and not serial:
             require_dask()
-        try:
-            grid_text = yaml.safe_dump(sweep.to_dict(), sort_keys=False)
-        except yaml.YAMLError as err:  # e.g. numpy scalars in a grid given as a dict
-            what = " ".join(a if isinstance(a, str) else repr(a) for a in err.args)
-            raise GridError(
-                f"the sweep cannot be saved as grid.yaml ({one_line(what)}); "
-                "give its values as plain numbers, strings and lists"
-            ) from None
 
         # the first writes: a failure here (a full disk, a race) is still one line
         try:
