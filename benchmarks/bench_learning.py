@@ -354,8 +354,18 @@ def scaling_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def scaling_figure(rows: list[dict], path: Path = BENCH_DIR / "scaling.png") -> Path:
-    """Log-log figure: ms per step vs n (N = 12) and vs N (n = 3)."""
+#: Where a benchmark run writes its figure: a folder git ignores, so ``make bench`` never
+#: rewrites the tracked ``benchmarks/scaling.png`` (the reference shown in the README; copy
+#: a new figure over it by hand to update it).
+RESULTS_DIR = BENCH_DIR / "results"
+
+
+def scaling_figure(rows: list[dict], path: Path | None = None) -> Path:
+    """Log-log figure: ms per step vs n (N = 12) and vs N (n = 3), written to ``path``
+    (default ``benchmarks/results/scaling.png``, :data:`RESULTS_DIR`)."""
+    if path is None:
+        RESULTS_DIR.mkdir(exist_ok=True)
+        path = RESULTS_DIR / "scaling.png"
     import matplotlib
     import matplotlib.ticker
 

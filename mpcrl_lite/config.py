@@ -129,6 +129,8 @@ import warnings
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
+import numpy as np
+
 # the shared validators, also importable from here (their home is mpcrl_lite._util.validate)
 from ._util.validate import (  # noqa: F401
     InputTypeError,
@@ -160,6 +162,7 @@ __all__ = [
     "LearningConfig",
     "MPCConfig",
     "SystemConfig",
+    "check_grid_bound",
     "check_ranges",
 ]
 
@@ -184,14 +187,15 @@ PRICE_LIMIT = 1e5
 #: per battery (:func:`check_ranges`); a number inside may still be a poor choice, one outside
 #: is a mistake (an overflow, a denormal, a unit off by powers of ten). ``P_bar`` has in
 #: addition ``P_bar <= 10 * n * U_bar`` (ten times what all batteries together can draw: a
-#: larger bound only means no bound), and the prices :data:`PRICE_LIMIT`.
+#: larger bound only means no bound; :func:`check_grid_bound`, where a user's system enters),
+#: and the prices :data:`PRICE_LIMIT`.
 RANGES: dict[str, dict[str, tuple[float, float, str]]] = {
     "system": {
         "alpha": (1e-6, 10.0, "soc moves by alpha * U_bar per hour at most"),
         "noise_mean": (-100.0, 100.0, "MW, a production-demand imbalance"),
         "noise_var": (0.0, 100.0, "MW^2; a std of 10 MW swamps any battery of the model"),
         "U_bar": (1e-6, 1e3, "MW per battery"),
-        "P_bar": (1e-6, math.inf, "MW; at most 10 * n * U_bar (see above)"),
+        "P_bar": (1e-6, 1e12, "MW; for a user's system at most 10 * n * U_bar, see above"),
         "omega": (0.0, 1e6, "cost per unit of soc slack"),
         "omega_f": (0.0, 1e6, "cost per unit of terminal soc slack"),
         "p": (0.0, 1e6, "cost per unit of soc outside the band"),
@@ -226,8 +230,6 @@ def check_ranges(section: str, config: Any) -> None:
     line naming the field, the value and the interval), element by element where a field
     holds one value per battery (or a pair, like ``omega``). ``None`` (an optional field not
     set) passes."""
-    import numpy as np
-
     for name, (low, high, why) in RANGES[section].items():
         value = getattr(config, name, None)
         if value is None:
@@ -239,6 +241,25 @@ def check_ranges(section: str, config: Any) -> None:
                 f"{name}={show(value)} (entry {float(bad[0])!r})"
             raise ValueError(f"{shown}: expected a value in [{low:g}, {high:g}] ({why}; "
                              "config.RANGES)")
+
+
+def check_grid_bound(system: SystemConfig) -> SystemConfig:
+    """``system``, or a ``ValueError`` (one line) if ``P_bar > 10 * n * U_bar``: ten times what
+    all batteries can draw together, a bound that means no bound (a typing or unit mistake).
+    Checked where a user's system enters (the command line, sweep grids, every learner and
+    :func:`~mpcrl_lite.mpc.backends.registry.make_solver` callers through
+    :func:`mpcrl_lite.learning.learner.resolve_setup`), not by :class:`SystemConfig` itself: the
+    per-battery MPCs of :mod:`mpcrl_lite.decentralized` make their grid row inert with a
+    far larger bound on purpose."""
+    U_bar = np.asarray(system.U_bar, dtype=float)  # one value, or one per battery
+    reach = float(np.sum(U_bar)) if U_bar.ndim else float(system.n) * float(U_bar)
+    top = np.max(np.asarray(system.P_bar, dtype=float))
+    if top > 10 * reach:
+        raise ValueError(
+            f"P_bar={system.P_bar!r}: expected a value in (0, {10 * reach:g}] (10 * n * U_bar: "
+            "ten times what all batteries can draw together; a larger bound means no bound; "
+            "config.RANGES)")
+    return system
 
 
 class ConfigWarning(UserWarning):
@@ -360,11 +381,6 @@ class SystemConfig(_Config):
             reach = self.n * self.U_bar  # the most all batteries can buy (or sell) at once
         except OverflowError:  # an n beyond the float range
             reach = math.inf
-        if self.P_bar > 10 * reach:
-            raise ValueError(
-                f"P_bar={self.P_bar!r}: expected a value in (0, {10 * reach:g}] (10 * n * "
-                "U_bar: ten times what all batteries can draw together; a larger bound means "
-                "no bound; config.RANGES)")
         if self.P_bar >= reach:
             warnings.warn(
                 f"P_bar={self.P_bar:g} >= n*U_bar={reach:g}: "

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +20,7 @@ from ..config import (
     LearningConfig,
     MPCConfig,
     SystemConfig,
+    check_grid_bound,
 )
 from ..learning import rundir
 
@@ -164,8 +166,14 @@ def configs(args: argparse.Namespace, **learning: Any):
         mpc["forecast"] = args.forecast
     learning = {k: v for k, v in learning.items() if v is not None}
     try:
+        with warnings.catch_warnings(record=True) as caught:  # a refusal is the one line
+            warnings.simplefilter("always")
+            system_config = check_grid_bound(SystemConfig(**system))
+        for warning in caught:
+            warnings.warn_explicit(warning.message, warning.category, warning.filename,
+                                   warning.lineno)
         return (
-            SystemConfig(**system),
+            system_config,
             MPCConfig(**mpc),
             LearningConfig(seed=args.seed, **learning),
         )

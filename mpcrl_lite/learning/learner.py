@@ -36,7 +36,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
-from ..config import LearningConfig, MPCConfig, SystemConfig
+from ..config import LearningConfig, MPCConfig, SystemConfig, check_grid_bound
 from ..sim.record import MonthRecord
 from ..system.forecast import forecast_of, forecast_prices
 from ..system.prices import Prices
@@ -80,7 +80,7 @@ def resolve_setup(
     of ``MPCConfig.forecast``); prices given already as
     :func:`~mpcrl_lite.system.forecast.until_midnight` set ``forecast='until_midnight'`` in the
     returned config, so that the run records what its MPC saw."""
-    system = system or SystemConfig()
+    system = check_grid_bound(system or SystemConfig())
     mpc_config = mpc_config or MPCConfig()
     learning = learning or LearningConfig()
     if prices is None:

@@ -27,6 +27,7 @@ from mpcrl_lite.config import (
     SystemConfig,
     check_bool,
     check_choice,
+    check_grid_bound,
     check_instance,
     check_int,
     check_real,
@@ -313,9 +314,11 @@ def test_fuzz_a_config_is_valid_or_one_clear_error(config, data):
 
 # -- numbers the model cannot mean (config.RANGES) ------------------------------------------------
 @pytest.mark.parametrize("make, message", [
-    (lambda: SystemConfig(P_bar=1e308), r"P_bar=1e\+308: expected a value in \(0, 30\]"),
-    (lambda: SystemConfig(P_bar=31.0), r"P_bar=31.0: expected a value in \(0, 30\]"),
-    (lambda: SystemConfig(n=1, P_bar=10.5), r"P_bar=10.5: expected a value in \(0, 10\]"),
+    (lambda: SystemConfig(P_bar=1e308), r"P_bar=1e\+308: expected a value in \[1e-06, 1e\+12\]"),
+    (lambda: check_grid_bound(SystemConfig(P_bar=31.0)),
+     r"P_bar=31.0: expected a value in \(0, 30\]"),
+    (lambda: check_grid_bound(SystemConfig(n=1, P_bar=10.5)),
+     r"P_bar=10.5: expected a value in \(0, 10\]"),
     (lambda: SystemConfig(noise_var=1e308), r"noise_var=1e\+308: expected a value in \[0, 100\]"),
     (lambda: SystemConfig(noise_mean=-1e3), r"noise_mean=-1000.0: expected a value in \[-100, 100"),
     (lambda: SystemConfig(U_bar=1e9), r"U_bar=1000000000.0: expected a value in \[1e-06, 1000\]"),
@@ -331,6 +334,7 @@ def test_fuzz_a_config_is_valid_or_one_clear_error(config, data):
     (lambda: LearningConfig(max_policy_change=1e9), r"max_policy_change=1000000000.0: expect"),
 ])
 def test_numbers_the_model_cannot_mean_are_refused_in_one_line(make, message):
+
     with pytest.raises(ValueError, match=message) as err:
         make()
     assert "\n" not in str(err.value) and "config.RANGES" in str(err.value)
@@ -346,7 +350,7 @@ def test_the_ranges_hold_the_defaults_and_the_papers_settings():
     assert RANGES["mpc"]["tau"][0] <= PAPER_TAU and PAPER_STEP_SIZE <= 1.0
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConfigWarning)
-        SystemConfig(P_bar=30.0)  # 10 * n * U_bar: still a bound that means no bound
+        check_grid_bound(SystemConfig(P_bar=30.0))  # 10 * n * U_bar: still accepted
 
 
 def test_the_ranges_apply_to_every_entry_of_a_per_battery_value():

@@ -21,7 +21,7 @@ from typing import Any
 
 import yaml
 
-from ...config import LearningConfig, MPCConfig, SystemConfig
+from ...config import LearningConfig, MPCConfig, SystemConfig, check_grid_bound
 
 __all__ = [
     "SECTIONS",
@@ -373,6 +373,8 @@ def load_grid(grid: Mapping[str, Any] | str | os.PathLike) -> Sweep:
             kwargs = {k[len(prefix):]: v for k, v in overrides.items() if k.startswith(prefix)}
             try:
                 configs[section] = cls(**kwargs)
+                if section == "system":
+                    check_grid_bound(configs[section])
             # ArithmeticError: an integer too large for a float (YAML reads any length)
             except (ValueError, TypeError, ArithmeticError) as err:
                 hints = "".join(_yaml_hint(v) for v in kwargs.values())
