@@ -127,17 +127,19 @@ def run_months(
                 postfix["J_eval"] = f"{history.J_eval[-1]:.1f}"
             bar.set_postfix(postfix, refresh=False)
             bar.update(1)
-            close_month(learner, out)
+            close_month(learner, out, last=learner.history.months >= months)
     return learner.history
 
 
-def close_month(learner: Learner, out: Path | None) -> None:
+def close_month(learner: Learner, out: Path | None, last: bool = True) -> None:
     """What follows every month of :func:`run_months`: the warning on failed solves, the
-    checkpoint in ``out`` and the learner's callbacks."""
+    checkpoint in ``out`` (``last=False`` for a month after which the run goes on: appended,
+    see :meth:`~mpcrl_lite.learning.checkpoint.Checkpointing.save_checkpoint`) and the
+    learner's callbacks."""
     history = learner.history
     _warn_failed_solves(history)
     if out is not None:
-        learner.save_checkpoint(out)
+        learner.save_checkpoint(out, last=last)
     for callback in learner.callbacks:
         callback(history.months - 1, history, learner)
 

@@ -180,7 +180,7 @@ def run_lockstep(
     def alone(i: int) -> None:
         try:
             learners[i].run_one_month()
-            close_month(learners[i], paths[i])
+            close_month(learners[i], paths[i], last=learners[i].history.months >= targets[i])
         except Exception as err:  # noqa: BLE001
             fail(i, err)
 
@@ -206,7 +206,7 @@ def run_lockstep(
         for i, run, part, theta in zip(group, runs, parts, thetas, strict=True):
             try:
                 run.end_month(part, theta, share)
-                close_month(run, paths[i])
+                close_month(run, paths[i], last=run.history.months >= targets[i])
             except Exception as err:  # noqa: BLE001
                 fail(i, err)
 
