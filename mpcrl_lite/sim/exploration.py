@@ -24,7 +24,6 @@ import numpy as np
 from .._util.validate import check_choice, check_real
 from ..config import EXPLORATION_BOUNDS, SystemConfig
 from ..system.battery import project_action
-from .exploration_kernel import ensure_compiled, explore_rows
 
 __all__ = [
     "GaussianExploration",
@@ -192,6 +191,8 @@ def bounded_exploration(
     for name, value in (("pi", pi), ("e", e)):
         if not np.isfinite(value).all():
             raise ValueError(f"{name} has non-finite entries: expected finite values only")
+    from .exploration_kernel import ensure_compiled, explore_rows  # numba on first use
+
     ensure_compiled()
     # compiled (mpcrl_lite.sim.exploration_kernel): per day, pi projected onto the feasible set,
     # the radial step (and the slide along the grid faces), the result projected once more
