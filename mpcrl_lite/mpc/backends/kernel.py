@@ -155,13 +155,8 @@ class KernelSolver(StartSettings, BackendBase):
         self.config = config or MPCConfig()
         sysc = mpc.system
         self.n, self.N = mpc.n, mpc.N
-        n, N = self.n, self.N
-        self._method = K.choose_method(n, N) if method == "auto" else _METHODS[method]
-        #: the factorisation in use, 'stage' or 'agent'
-        self.method = "stage" if self._method == K.STAGE else "agent"
-        #: sensitivities of all columns at once without refinement (many agents, 'agent'
-        #: factorisation), else column by column with iterative refinement
-        self.structured_adjoint = self._method == K.AGENT and n >= _STRUCTURED_MIN_N
+        N = self.N
+        self._method_asked = method
         gam = sysc.gamma ** np.arange(N + 1, dtype=float)
         stage = np.arange(N) < N - 1
         self._stagew = np.ascontiguousarray(np.stack([
@@ -174,6 +169,30 @@ class KernelSolver(StartSettings, BackendBase):
         # the kernels are loaded (or compiled) and checked against the formulation at the
         # first solve (:meth:`_ready`); the coordination kernel by its own first use
         self._checked = False
+
+    @property
+    def _method(self) -> int:
+        """The kernels' code of the factorisation (numba is imported on first use)."""
+        asked = self._method_asked
+        return K.choose_method(self.n, self.N) if asked == "auto" else _METHODS[asked]
+
+    @property
+    def method(self) -> str:
+        """The factorisation in use, 'stage' or 'agent'."""
+        return "stage" if self._method == K.STAGE else "agent"
+
+    @property
+    def structured_adjoint(self) -> bool:
+        """Sensitivities of all columns at once without refinement (many agents, 'agent'
+        factorisation), else column by column with iterative refinement; may be set."""
+        chosen = self.__dict__.get("_structured")
+        if chosen is None:
+            return self._method == K.AGENT and self.n >= _STRUCTURED_MIN_N
+        return chosen
+
+    @structured_adjoint.setter
+    def structured_adjoint(self, value: bool) -> None:
+        self._structured = bool(value)
 
     def _ready(self) -> None:
         """Load the kernels (from numba's cache, or compile them) and check them against the
