@@ -38,12 +38,14 @@ the kernels with its first solve or sensitivity).
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 
 import casadi as ca
 import numpy as np
 
+from ..._util.lazy import lazy_module
 from ...config import MPCConfig
 from ..formulation import MPC
 from ..solution import (
@@ -65,27 +67,19 @@ log = logging.getLogger(__name__)
 
 
 
-class _Core:
-    """:mod:`~mpcrl_lite.mpc.backends.kernel_core`, imported when a :class:`KernelSolver` is
-    first built (numba comes with it): importing this module stays cheap."""
-
-    def __getattr__(self, name: str):
-        global K, _STATUS, _METHODS
-        from . import kernel_core
-
-        K = kernel_core
-        # STATUS_* (those of every interior-point back-end, mpcrl_lite.mpc.solution) stay
-        # importable from here.
-        _STATUS = np.empty(4, dtype=object)  # status strings by the kernels' codes
-        _STATUS[[K.CONVERGED, K.MAX_ITER, K.NON_FINITE, K.BREAKDOWN]] = (
-            STATUS_CONVERGED, STATUS_MAX_ITER, STATUS_NON_FINITE, STATUS_BREAKDOWN)
-        _METHODS = {"stage": K.STAGE, "agent": K.AGENT}
-        return getattr(kernel_core, name)
+#: :mod:`~mpcrl_lite.mpc.backends.kernel_core`, imported when a solver first needs it (numba
+#: comes with it): importing this module and building a :class:`KernelSolver` stay cheap.
+K = lazy_module("mpcrl_lite.mpc.backends.kernel_core")
 
 
-K = _Core()
-_STATUS: np.ndarray
-_METHODS: dict[str, int]
+@functools.cache
+def _status_names() -> np.ndarray:
+    """The status strings by the kernels' codes (STATUS_*, those of every interior-point
+    back-end, :mod:`mpcrl_lite.mpc.solution`, stay importable from here)."""
+    names = np.empty(4, dtype=object)
+    names[[K.CONVERGED, K.MAX_ITER, K.NON_FINITE, K.BREAKDOWN]] = (
+        STATUS_CONVERGED, STATUS_MAX_ITER, STATUS_NON_FINITE, STATUS_BREAKDOWN)
+    return names
 
 _BACKWARD_ERROR_MAX = 1e-6  # of the adjoint solve; above it a sensitivity is flagged
 _KKT_CHECK_TOL = 1e-9  # relative KKT residual of the formulation check at construction
@@ -174,7 +168,9 @@ class KernelSolver(StartSettings, BackendBase):
     def _method(self) -> int:
         """The kernels' code of the factorisation (numba is imported on first use)."""
         asked = self._method_asked
-        return K.choose_method(self.n, self.N) if asked == "auto" else _METHODS[asked]
+        if asked == "auto":
+            return K.choose_method(self.n, self.N)
+        return K.STAGE if asked == "stage" else K.AGENT
 
     @property
     def method(self) -> str:
@@ -273,7 +269,7 @@ class KernelSolver(StartSettings, BackendBase):
         return BatchSolution(
             action=action, x=x, lam=lam, mu=mu, cost=cost,
             success=status == K.CONVERGED,
-            status=tuple(_STATUS[status].tolist()),
+            status=tuple(_status_names()[status].tolist()),
             iterations=iters, p=P,
             solve_time=time.perf_counter() - t_start, backend=self.name,
         )
