@@ -56,6 +56,16 @@ journal left from before. The learners append every month but the first and the 
 call (:meth:`~mpcrl_lite.learning.checkpoint.Checkpointing.save_checkpoint`), so a finished
 run holds no journal and reads as format 1.
 
+Commits in the background
+-------------------------
+The writes of a commit are mostly waits for the disk (fsync, rename): :func:`commit_soon`
+runs :func:`commit` in a thread of its own, with contents the caller has built already, so
+that the next month computes meanwhile. At most one commit per directory is under way; every
+function of this module that reads or writes a directory first waits for it (so a reader in
+the process never sees a commit half-done), and its error, if it failed, is raised by the
+next :meth:`PendingCommit.result` (the learner's next checkpoint). Nothing changes on the
+disk: the same writes in the same order, one commit after the other.
+
 Directories written before the manifest existed (``history.json``, ``history.npz`` and
 ``checkpoint.json`` only) are read as **legacy** runs: there is no checksum, so the readers
 (:class:`~mpcrl_lite.learning.history.History`, :class:`~mpcrl_lite.learning.learner.Learner`) check that the
@@ -83,6 +93,7 @@ import os
 import re
 import signal
 import tempfile
+import threading
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -91,7 +102,7 @@ from typing import Any
 
 from .._util.jsonio import dumps
 
-__all__ = ["APPENDABLE", "CHECKPOINT", "FORMAT", "FORMATS", "FORMAT_APPEND", "HISTORY_JSON", "HISTORY_NPZ", "JOURNAL", "KINDS", "MANIFEST", "RECOVER", "STAGING", "SUMMARY", "Contents", "Run", "RunDirError", "RunDirMissing", "RunWriteError", "atomic_output", "check_output_dir", "clear", "commit", "config_sha256", "inspect", "manifest_of", "read", "write_atomic", "write_json"]
+__all__ = ["APPENDABLE", "CHECKPOINT", "FORMAT", "FORMATS", "FORMAT_APPEND", "HISTORY_JSON", "HISTORY_NPZ", "JOURNAL", "KINDS", "MANIFEST", "RECOVER", "STAGING", "SUMMARY", "Contents", "PendingCommit", "Run", "RunDirError", "RunDirMissing", "RunWriteError", "atomic_output", "check_output_dir", "clear", "commit", "commit_soon", "config_sha256", "inspect", "manifest_of", "read", "write_atomic", "write_json"]
 
 FORMAT = "mpcrl_lite.Run/1"
 #: The manifest's format when it lists an appended file (readers of format 1 refuse it).
@@ -261,6 +272,7 @@ def write_atomic(path: str | os.PathLike, data: bytes) -> None:
     """Replace ``path`` by ``data`` atomically (temporary file, fsync, rename, fsync of the
     directory): a reader sees the old or the new file, never a part of one."""
     path = Path(path)
+    _settle(path.parent)
     tmp = path.with_name(f".{path.name}.tmp")
     try:
         _write_file(tmp, data)
@@ -346,6 +358,7 @@ class Contents:
 
 def inspect(directory: str | os.PathLike, others: Iterable[str] = ()) -> Contents:
     """Which run files (and which of ``others``, e.g. ``summary.json``) ``directory`` holds."""
+    _settle(directory)
     directory = Path(directory)
     found = Contents(directory)
     if not directory.is_dir():
@@ -410,6 +423,75 @@ def check_output_dir(path: str | os.PathLike, flag: str = "--out", create: bool 
     return directory
 
 
+# -- commits in the background -------------------------------------------------------------
+class PendingCommit:
+    """A :func:`commit` under way in a thread (:func:`commit_soon`)."""
+
+    def __init__(self, directory: Path, run: Any) -> None:
+        self.directory = directory
+        self._manifest: dict[str, Any] | None = None
+        self._error: BaseException | None = None
+
+        def work() -> None:
+            try:
+                self._manifest = run()
+            except BaseException as err:  # noqa: BLE001 (raised by result())
+                self._error = err
+
+        self._thread = threading.Thread(target=work, name=f"mpcrl_lite commit {directory.name}")
+        self._thread.start()
+
+    def done(self) -> bool:
+        """Whether the commit has finished (committed or failed)."""
+        return not self._thread.is_alive()
+
+    def wait(self) -> None:
+        """Wait until the commit has finished."""
+        self._thread.join()
+
+    def result(self) -> dict[str, Any]:
+        """The manifest written, once the commit has finished; its error if it failed."""
+        self.wait()
+        if self._error is not None:
+            raise self._error
+        assert self._manifest is not None
+        return self._manifest
+
+
+#: The commit under way in each directory (a key only while its thread runs or until waited).
+_pending: dict[Path, PendingCommit] = {}
+_pending_lock = threading.Lock()
+
+
+def _settle(directory: str | os.PathLike) -> None:
+    """Wait for a commit under way in ``directory`` (its error stays with its owner)."""
+    key = Path(os.path.abspath(directory))
+    with _pending_lock:
+        pending = _pending.get(key)
+    if pending is not None and pending._thread is not threading.current_thread():
+        pending.wait()
+        with _pending_lock:
+            if _pending.get(key) is pending:
+                del _pending[key]
+
+
+def commit_soon(directory: str | os.PathLike, files: Mapping[str, bytes], **options: Any
+                ) -> PendingCommit:
+    """:func:`commit` (same arguments) in a thread: returns at once with a
+    :class:`PendingCommit` (see "Commits in the background" in the module docstring)."""
+    directory = Path(directory)
+    _settle(directory)
+    files = dict(files)
+
+    def run() -> dict[str, Any]:
+        return commit(directory, files, **options)
+
+    key = Path(os.path.abspath(directory))
+    with _pending_lock:
+        pending = _pending[key] = PendingCommit(directory, run)
+    return pending
+
+
 # -- commit -------------------------------------------------------------------------------
 def commit(
     directory: str | os.PathLike,
@@ -435,6 +517,7 @@ def commit(
     among :data:`APPENDABLE` -> bytes) adds bytes after an appended file's committed size
     (or starts the file when ``previous`` does not list it as appended).
     """
+    _settle(directory)
     if kind not in KINDS:
         raise ValueError(f"kind={kind!r}: expected one of {KINDS}")
     if isinstance(months_done, bool) or not isinstance(months_done, int) or months_done < 0:
@@ -568,6 +651,7 @@ def _remove_leftovers(directory: Path, unlisted: Iterable[str] = ()) -> None:
 def clear(directory: str | os.PathLike, others: Iterable[str] = ()) -> None:
     """Remove a run from ``directory`` (and the files ``others``): the manifest first, so
     that an interruption never leaves something that reads as a run of mixed origins."""
+    _settle(directory)
     directory = Path(directory)
     _unlink(directory / MANIFEST)
     _fsync_dir(directory)
@@ -649,6 +733,7 @@ def _load_manifest(directory: Path) -> dict[str, Any]:
 def manifest_of(directory: str | os.PathLike) -> dict[str, Any] | None:
     """The manifest of ``directory`` as it is on disk, or None if there is none or it does
     not verify (a writer checks with it that the directory still holds its last commit)."""
+    _settle(directory)
     try:
         return _load_manifest(Path(directory))
     except RunDirError:
@@ -677,6 +762,7 @@ def read(
     RunDirError
         Anything that does not verify; the message says which file and what to do.
     """
+    _settle(directory)
     directory = Path(directory)
     if not directory.is_dir():
         raise RunDirMissing(f"{directory / names[0]} not found: {directory} is not a directory")

@@ -237,3 +237,56 @@ def test_lockstep_writes_the_files_of_the_runs_alone(tmp_path):
             manifest = [json.loads((d / "manifest.json").read_text()) for d in (s, a)]
             assert manifest[0]["format"] == manifest[1]["format"]
             assert sorted(manifest[0]["files"]) == sorted(manifest[1]["files"])
+
+
+def test_a_background_commit_that_fails_stops_the_run_at_the_next_month(tmp_path,
+                                                                         monkeypatch):
+    """Months between the first and the last are written while the next one computes: a
+    full disk during one of them is raised by the next checkpoint (an OSError, the previous
+    commit intact), and the run resumes to the uninterrupted results."""
+    import errno
+
+    learning = LearningConfig(days_per_month=1, months=4, seed=5)
+    reference = Experiment(SMALL, MPCConfig(), learning)
+    reference.run(out=tmp_path / "reference", progress=False)
+    real = os.fsync
+    outcomes = set()
+    for i in (1, 3, 6, 9):
+        out = tmp_path / f"full{i}"
+        calls = []
+
+        def full(fd, _calls=calls, _i=i):
+            _calls.append(fd)
+            if len(_calls) == _i:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            return real(fd)
+
+        monkeypatch.setattr(os, "fsync", full)
+        exp = Experiment(SMALL, MPCConfig(), learning)
+        try:
+            exp.run(out=out, progress=False)
+            outcomes.add("finished")
+        except rundir.RunWriteError as err:
+            assert "No space left on device" in str(err)
+            outcomes.add("stopped")
+            # the month that failed was committed in the background: the run went on to
+            # compute the next one, and stopped at its checkpoint
+            committed = rundir.read(out, ["history.json"]).months_done if (
+                out / "manifest.json").exists() else 0
+            assert exp.history.months == committed + 2
+        monkeypatch.undo()
+        resumed = Experiment(SMALL, MPCConfig(), learning)
+        resumed.run(out=out, resume=True, progress=False)
+        assert_same_history_but_timings(History.load(out), reference.history)
+    assert "stopped" in outcomes
+
+
+def assert_same_history_but_timings(got: History, want: History) -> None:
+    for key in History.STORED_SERIES:
+        if key not in ("wall_time_s", "update_info"):
+            assert getattr(got, key) == getattr(want, key), key
+    assert got.theta_final == want.theta_final
+    for month in ("first_month", "last_month"):
+        for key in RECORD_ARRAYS:
+            np.testing.assert_array_equal(getattr(getattr(got, month), key),
+                                          getattr(getattr(want, month), key))
