@@ -2,7 +2,9 @@
 
 ``pd = lazy_module("pandas")`` gives an object that imports pandas the first time one of its
 names is read (``pd.read_csv``, ``pd.Series`` in an ``isinstance`` check) and hands every name
-on from then on. Until then ``pandas`` is not in ``sys.modules``: importing the package and
+on from then on (each name is looked up once and kept, so a name the module rebinds later
+keeps its first value here: meant for functions, classes and constants). Until then
+``pandas`` is not in ``sys.modules``: importing the package and
 building an :class:`~mpcrl_lite.learning.experiment.Experiment` pay for a library only where
 it is used (``tests/package/test_imports.py``).
 """
@@ -29,7 +31,11 @@ class LazyModule:
         module = self.__dict__["_module"]
         if module is None:
             module = self.__dict__["_module"] = importlib.import_module(self.__dict__["_name"])
-        return getattr(module, attribute)
+        value = getattr(module, attribute)
+        # kept: the next read of the name is a plain attribute read (hot loops read the
+        # kernels' functions and constants through it)
+        self.__dict__[attribute] = value
+        return value
 
     def __repr__(self) -> str:
         state = "imported" if self.__dict__["_module"] is not None else "not imported yet"
