@@ -37,6 +37,8 @@ def heavy(modules: list[str]) -> list[str]:
     "import mpcrl_lite.learning.experiment",
     "from mpcrl_lite import Experiment, History, LearningConfig, MPCConfig, SystemConfig, Theta",
     "import mpcrl_lite.mpc.backends.registry",
+    # what `learn --no-figures` imports: the figures' names, not matplotlib
+    "import mpcrl_lite.figures.paper\nimport mpcrl_lite.cli.commands.learn",
 ])
 def test_importing_loads_no_heavy_library(code):
     modules = loaded_after(code)
