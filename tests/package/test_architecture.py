@@ -45,7 +45,7 @@ SUBLAYERS: dict[str, list[set[str]]] = {
     "mpc": [{"formulation"}, {"solution"}, {"sensitivity"}, {"backends"}],
     "mpc.backends": [{"batch_linalg", "kernel_core"}, {"batch_kkt"}, {"batch_adjoint"},
                      {"batch", "ipopt", "kernel"}, {"registry"}],
-    "sim": [{"record", "exploration_kernel"}, {"exploration"}, {"closed_loop"}],
+    "sim": [{"record", "exploration_kernel"}, {"exploration"}, {"closed_loop"}, {"candidates"}],
     "learning": [{"lstd", "update_rules", "rundir"}, {"dpg", "history"}, {"step", "checkpoint"},
                  {"learner"}, {"experiment"}],
     "decentralized": [{"local_qp", "coordination_kernel"}, {"coordination"}, {"learner"}],
