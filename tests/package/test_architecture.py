@@ -54,10 +54,11 @@ SUBLAYERS: dict[str, list[set[str]]] = {
     "figures": [{"style"}, {"paper"}, {"plots"}],
     "classroom": [{"controls", "explorers"}, {"widgets"}],
     "publish": [{"alt_text", "html_export", "launch"}, {"report"}, {"site"}],
-    "studies": [{"transfer", "lockstep"}, {"sweep"}, {"study"}],
+    "studies": [{"transfer", "lockstep", "tune"}, {"sweep"}, {"study"}],
     "studies.sweep": [{"grid"}, {"store"}, {"table"}, {"run"}, {"schedule"}, {"api"}],
     "cli": [{"inputs"}, {"args"}, {"commands"}, {"main"}, {"warm"}],
-    "cli.commands": [{"baselines", "evaluate", "learn", "report", "simulate", "study", "sweep"}],
+    "cli.commands": [{"baselines", "evaluate", "learn", "report", "simulate", "study", "sweep",
+                      "tune"}],
 }
 
 MODULES = package_modules()
