@@ -10,7 +10,8 @@ each candidate's block its own theta, and every hour is **one** solver call for 
 j), (H, D, n))``) and is the same for every candidate (common random numbers), so differences
 between candidates are paired. Every computation of the loop is row by row, so each
 candidate's J equals an :func:`~mpcrl_lite.sim.closed_loop.evaluate_mpc` of that candidate alone
-(to the rounding of the sums over days).
+(to the rounding of the sums over hours and days), and it does not depend on which other
+candidates share the call (the sums are taken row by row), bit for bit.
 
 Draws are named by their index, so a search can select on draws ``0 .. M - 1`` and judge its
 result on draws it never saw (e.g. ``M .. M + M' - 1``).
@@ -127,7 +128,13 @@ def evaluate_candidates(
     tiled = _TiledPrices(seen, K * M)
     record = simulate(MPCPolicy(solver, thetas, tiled), tiled.buy[:, :H], tiled.sell[:, :H],
                       system, noise=noise, soc0=soc0)
-    return record.J_per_day().reshape(K, M, D).mean(axis=2)
+    # J_per_day's discounted sum, hour by hour: every day's J is then the same whatever the
+    # number of rows of the call (a matrix-vector product may round differently per width),
+    # so a search gives the same candidates however its generations are split
+    per_day = np.zeros(K * M * D)
+    for k, cost in enumerate(record.stage_cost):
+        per_day += system.gamma**k * cost
+    return per_day.reshape(K, M, D).mean(axis=2)
 
 
 def _candidates(thetas: Sequence[Theta] | np.ndarray, n: int) -> list[Theta]:

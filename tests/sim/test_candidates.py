@@ -86,3 +86,15 @@ def test_bad_candidates(setup):
     with pytest.raises(ValueError, match="another system"):
         evaluate_candidates(thetas, system, None, prices, SEED,
                             solver=make_solver(MPC(SystemConfig()), MPCConfig()))
+
+
+def test_a_candidate_does_not_depend_on_the_others(setup):
+    """Bit for bit: a candidate's J is the same alone and among others (so a search gives
+    the same candidates however its generations are split over workers)."""
+    system, prices, thetas = setup
+    cfg = MPCConfig()
+    solver = make_solver(MPC(system), cfg)
+    together = evaluate_candidates(thetas, system, cfg, prices, SEED, 2, solver=solver)
+    for k, theta in enumerate(thetas):
+        alone = evaluate_candidates([theta], system, cfg, prices, SEED, 2, solver=solver)
+        np.testing.assert_array_equal(together[k], alone[0])
