@@ -312,7 +312,7 @@ def run_baselines_cli(
         reference, source = causal_reference(system, month)
     result = evaluate_baselines(system, mpc_config, learning.days_per_month, learning.seed, thetas,
                                 prices=prices, causal=reference)
-    if causal:
+    if "causal" in result:
         result["causal"]["source"] = source
     if tuned is not None:
         result["class_best"] = {
@@ -320,7 +320,7 @@ def run_baselines_cli(
             "J_best": tuned.get("J_best"), "J_heldout": tuned.get("J_heldout"),
             "evals": tuned.get("evals"),
         }
-        if causal:
+        if "causal" in result:
             policies = result["policies"]
             star = result["causal"]["J_star_per_day"]
             result["causal"]["split"] = regret_split(
