@@ -138,3 +138,27 @@ def test_cli_baselines_prints_j_star_and_the_split(learned, tmp_path, capsys):
                  "--quiet"])
     assert code == 0
     assert "J_star" not in json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+
+
+def test_cli_evaluate_splits_the_regret(learned, tmp_path, capsys):
+    run, _ = learned
+    tune_result(tmp_path / "tune", Theta.nominal(SYSTEM))
+    code = main(["evaluate", "--history", str(run), "--out", str(tmp_path / "e"), "--draws", "2",
+                 "--days", str(DAYS), "--class-best", str(tmp_path / "tune"), "--quiet"])
+    assert code == 0
+    saved = json.loads((tmp_path / "e" / "summary.json").read_text())
+    J = {k: np.asarray(v["J"]) for k, v in saved["policies"].items()}
+    np.testing.assert_array_equal(J["class_best"], J["nominal"])  # theta0, same draws
+    causal = saved["causal"]
+    prices = Prices.month(SYSTEM, DAYS)
+    assert causal["J_star"] == pytest.approx(
+        float(causal_bound(SYSTEM, prices).J_star_for(prices).mean()), rel=1e-12)
+    split = causal["split"]
+    assert split["learner"] == mean_ci(J["learned"] - J["class_best"]).as_dict()
+    assert split["class"]["mean"] == pytest.approx(J["class_best"].mean() - causal["J_star"])
+    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert printed["split"]["regret"] == pytest.approx(J["learned"].mean() - causal["J_star"])
+    tune_result(tmp_path / "other", Theta.nominal(SYSTEM), forecast="until_midnight")
+    code = main(["evaluate", "--history", str(run), "--out", str(tmp_path / "f"), "--draws", "2",
+                 "--class-best", str(tmp_path / "other"), "--quiet"])
+    assert code == 2 and "expected the run's class" in capsys.readouterr().err
