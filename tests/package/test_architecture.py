@@ -45,7 +45,7 @@ SUBLAYERS: dict[str, list[set[str]]] = {
     "mpc": [{"formulation"}, {"solution"}, {"sensitivity"}, {"backends"}],
     "mpc.backends": [{"batch_linalg", "kernel_core"}, {"batch_kkt"}, {"batch_adjoint"},
                      {"batch", "ipopt", "kernel"}, {"registry"}],
-    "sim": [{"record", "exploration_kernel"}, {"exploration"}, {"closed_loop"}],
+    "sim": [{"record", "exploration_kernel"}, {"exploration"}, {"closed_loop"}, {"candidates"}],
     "learning": [{"lstd", "update_rules", "rundir"}, {"dpg", "history"}, {"step", "checkpoint"},
                  {"learner"}, {"experiment"}],
     "decentralized": [{"local_qp", "coordination_kernel"}, {"coordination"}, {"learner"}],
@@ -54,10 +54,11 @@ SUBLAYERS: dict[str, list[set[str]]] = {
     "figures": [{"style"}, {"paper"}, {"plots"}],
     "classroom": [{"controls", "explorers"}, {"widgets"}],
     "publish": [{"alt_text", "html_export", "launch"}, {"report"}, {"site"}],
-    "studies": [{"transfer", "lockstep"}, {"sweep"}, {"study"}],
+    "studies": [{"transfer", "lockstep", "tune"}, {"sweep"}, {"study"}],
     "studies.sweep": [{"grid"}, {"store"}, {"table"}, {"run"}, {"schedule"}, {"api"}],
     "cli": [{"inputs"}, {"args"}, {"commands"}, {"main"}, {"warm"}],
-    "cli.commands": [{"baselines", "evaluate", "learn", "report", "simulate", "study", "sweep"}],
+    "cli.commands": [{"baselines", "evaluate", "learn", "report", "simulate", "study", "sweep",
+                      "tune"}],
 }
 
 MODULES = package_modules()
