@@ -38,6 +38,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="share of the gap nominal -> target a converged seed closes "
                         "(default 0.9)")
     _a.add_forecast(p)
+    _a.add_system_file(p)
     p.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
     p.add_argument("--workers", type=_a.nonneg_int, default=None, help="local workers (0: serial)")
     p.add_argument("--lockstep", type=_a.positive_int, default=None, metavar="K",
@@ -50,7 +51,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     from ...studies.study import THRESHOLD, run_study
 
-    base = {}
+    # the system file's fields are the sweep base's system.* overrides of every run
+    base = {f"system.{name}": value for name, value in _a.system_file(args).items()}
     if args.days is not None:
         base["learning.days_per_month"] = args.days
     if args.eval_draws is not None:
