@@ -18,7 +18,8 @@ A day ``d`` of a month of prices, ``hours_per_day`` steps. At hour ``k`` the age
   (``prices.window(k, N)`` of day ``d``, after the forecast of ``MPCConfig.forecast``),
   ``Box(min, max, (N,))`` with the month's smallest and largest price as bounds;
 
-and commands the net power of every battery, ``Box(-U_bar, U_bar, (n,))``. The command is
+and commands the net power of every battery, ``Box(-U_bar, U_bar, (n,))`` (each battery's own
+``U_bar^i``; every per-battery parameter of the system is each battery's own). The command is
 projected onto the input bounds and the grid limit ``sum_i b_i <= P_bar``,
 ``sum_i s_i <= P_bar`` (:func:`~mpcrl_lite.system.battery.project_action`; a no-op for a
 feasible command such as the MPC's), the noise ``Delta ~ N(noise_mean, noise_var)`` is drawn
@@ -125,11 +126,11 @@ class BatteryEnv(gym.Env):
             "buy": spaces.Box(low, high, (N,), np.float64),
             "sell": spaces.Box(low, high, (N,), np.float64),
         })
-        bound = np.full(n, system.U_bar, dtype=np.float64)
+        bound = np.array(system.battery("U_bar"), dtype=np.float64)  # each battery's own
         self.action_space = spaces.Box(-bound, bound, (n,), np.float64)
         self.day = 0 if self.fixed_day is None else self.fixed_day
         self.hour = 0
-        self.soc = np.full(n, system.soc0, dtype=np.float64)
+        self.soc = np.array(system.battery("soc0"), dtype=np.float64)
         self._noise: np.ndarray | None = None
 
     # -- the interface ---------------------------------------------------------------------
@@ -155,7 +156,7 @@ class BatteryEnv(gym.Env):
                                  f"values of shape (hours, n) = {(H, n)}")
         self._noise = noise
         self.hour = 0
-        self.soc = np.full(n, self.system.soc0, dtype=np.float64)
+        self.soc = np.array(self.system.battery("soc0"), dtype=np.float64)
         return self._observation(), {"day": self.day}
 
     def step(self, action: Any) -> tuple[dict[str, np.ndarray], float, bool, bool, dict]:

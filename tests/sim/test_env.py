@@ -186,3 +186,20 @@ def test_registration_when_gymnasium_came_first():
         print('mpcrl_lite/Batteries-v0' in gymnasium.registry)
     """)
     assert out == "True"
+
+
+def test_a_mixed_site_through_the_environment():
+    system = SystemConfig(alpha=(1 / 24, 1 / 12, 1 / 12), U_bar=(2.0, 1.0, 1.0), P_bar=2.0,
+                          soc0=(0.5, 0.6, 0.6), noise_var=(1.0, 0.5, 0.5))
+    prices = Prices.month(system, 2)
+    env = BatteryEnv(system, MPCConfig(backend="ipopt"), prices)
+    check_env(env, skip_render_check=True)
+    np.testing.assert_array_equal(env.action_space.high, [2.0, 1.0, 1.0])
+    obs, _ = env.reset(seed=0, options={"day": 1})
+    np.testing.assert_array_equal(obs["soc"], [0.5, 0.6, 0.6])
+    theta = Theta.nominal(system)
+    record = run_month(theta, make_solver(MPC(system), MPCConfig(backend="ipopt"), theta),
+                       prices, system, np.random.default_rng(1), sensitivities=False)
+    rewards, _ = _episode(env, MPCAgent(env, theta), options={"day": 1,
+                                                              "noise": record.noise[:, 1]})
+    np.testing.assert_allclose(-rewards, record.stage_cost[:, 1], rtol=1e-7, atol=1e-7)
