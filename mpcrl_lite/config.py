@@ -327,6 +327,16 @@ class SystemConfig(_Config):
         value = getattr(self, name)
         return value if isinstance(value, tuple) else (value,) * self.n
 
+    def common(self, name: str, where: str) -> float:
+        """The one value of the per-battery field ``name`` that ``where`` needs the same for
+        every battery, else a one-line ``ValueError`` naming the field, the values and
+        ``where``."""
+        values = self.battery(name)
+        if len(set(values)) > 1:
+            raise ValueError(f"{name}={list(values)}: {where} expects one value for every "
+                             "battery")
+        return values[0]
+
     def battery_groups(self) -> tuple[int, ...]:
         """The group of every battery: batteries with equal values of every field of
         :data:`PER_BATTERY` share a group, numbered from 0 in order of first appearance

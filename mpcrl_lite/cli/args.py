@@ -148,13 +148,16 @@ def configs(args: argparse.Namespace, **learning: Any):
         mpc["forecast"] = args.forecast
     learning = {k: v for k, v in learning.items() if v is not None}
     try:
-        return (
+        configs = (
             SystemConfig(**system),
             MPCConfig(**mpc),
             LearningConfig(seed=args.seed, **learning),
         )
+        if configs[1].backend in ("batch", "kernel"):  # their formulation has one U_bar
+            configs[0].common("U_bar", f"--backend {configs[1].backend}")
     except ValueError as err:
         raise UsageError(str(err)) from None
+    return configs
 
 
 def write_json(path: Path, data: dict[str, Any]) -> None:

@@ -28,7 +28,6 @@ import numpy as np
 
 from ..config import PER_BATTERY, ConfigWarning, SystemConfig
 from ..mpc.formulation import MPC
-from ..system.battery import common_value
 
 __all__ = ["LocalQP", "local_system"]
 
@@ -41,7 +40,7 @@ def local_system(system: SystemConfig, local_grid_factor: float = 1e4,
     for every battery (a one-line error otherwise)."""
     if not isinstance(system, SystemConfig):
         raise ValueError(f"system={system!r}: expected a SystemConfig")  # noqa: TRY004
-    U = common_value(system, "U_bar", "the decentralized MPCs")
+    U = system.common("U_bar", "the decentralized MPCs")
     own = {name: system.battery(name)[battery] for name in PER_BATTERY if name != "U_bar"}
     own = {name: value for name, value in own.items() if isinstance(getattr(system, name), tuple)}
     with warnings.catch_warnings():

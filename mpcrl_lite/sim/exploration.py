@@ -23,7 +23,7 @@ import numpy as np
 
 from .._util.validate import check_choice, check_real
 from ..config import EXPLORATION_BOUNDS, SystemConfig
-from ..system.battery import common_value, project_action
+from ..system.battery import project_action
 from .exploration_kernel import ensure_compiled, explore_rows
 
 __all__ = [
@@ -91,7 +91,7 @@ class GaussianExploration:
 
 def check_margin(margin: float, system: SystemConfig) -> float:
     """``margin`` as a float in ``[0, min(U_bar, P_bar) / 2]``, else an error naming it."""
-    limit = 0.5 * min(common_value(system, "U_bar", "the exploration"), system.P_bar)
+    limit = 0.5 * min(system.common("U_bar", "the exploration"), system.P_bar)
     return check_real("margin", margin, 0.0, limit)
 
 
@@ -127,7 +127,7 @@ def exploration_center(pi: np.ndarray, system: SystemConfig, margin: float) -> n
     margin = check_margin(margin, system)
     if margin == 0.0:
         return pi
-    inner = common_value(system, "U_bar", "the exploration") - margin
+    inner = system.common("U_bar", "the exploration") - margin
     c = np.clip(pi, -inner, inner)
     room = system.P_bar - margin
     for sign in (1.0, -1.0):
@@ -197,7 +197,7 @@ def bounded_exploration(
     # the radial step (and the slide along the grid faces), the result projected once more
     # as a guard against rounding (base + step is feasible up to ~1e-16)
     return explore_rows(np.ascontiguousarray(pi), np.ascontiguousarray(e),
-                        common_value(system, "U_bar", "the exploration"), system.P_bar,
+                        system.common("U_bar", "the exploration"), system.P_bar,
                         bounds == "symmetric")
 
 

@@ -47,7 +47,6 @@ __all__ = [
     "StepResult",
     "agent_costs",
     "battery_values",
-    "common_value",
     "discounted_return",
     "grid_power",
     "low_level_control",
@@ -143,15 +142,6 @@ def battery_values(system: SystemConfig, name: str) -> float | np.ndarray:
     ``'noise_std'`` gives the standard deviation of the noise."""
     value = system.noise_std if name == "noise_std" else getattr(system, name)
     return np.array(value, dtype=float) if isinstance(value, tuple) else value
-
-
-def common_value(system: SystemConfig, name: str, where: str) -> float:
-    """The one value of a per-battery field that ``where`` needs the same for every battery,
-    else a one-line ``ValueError`` naming the field, the values and ``where``."""
-    values = system.battery(name)
-    if len(set(values)) > 1:
-        raise ValueError(f"{name}={list(values)}: {where} expects one value for every battery")
-    return values[0] if values else float(getattr(system, name))
 
 
 # -- noise and inputs -----------------------------------------------------------------------

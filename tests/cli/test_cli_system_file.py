@@ -93,3 +93,29 @@ def test_study_passes_the_file_as_the_sweeps_base(tmp_path, monkeypatch):
     assert main(["study", "--seeds", "1", "--months", "1", "--out", str(tmp_path / "s"),
                  "--system", str(path)]) == 2
     assert seen == {"system.n": 2, "system.omega": (5, 5)}
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["simulate", "--days", "1", "--backend", "kernel"],
+     "U_bar=[2.0, 1.0, 1.0]: --backend kernel expects one value for every battery"),
+    (["learn", "--months", "1", "--days", "1"],
+     ("U_bar=[2.0, 1.0, 1.0]: the exploration (LearningConfig.exploration_bounds='symmetric') "
+     "expects one value")),
+])
+def test_what_needs_one_input_bound_refuses_a_per_battery_one(tmp_path, capsys, argv, message):
+    path = tmp_path / "u.yaml"
+    path.write_text("U_bar: [2, 1, 1]\nP_bar: 2.0\n")
+    out = tmp_path / "out"
+    assert main([*argv, "--out", str(out), "--system", str(path), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_auto_chooses_ipopt_for_per_battery_input_bounds():
+    from mpcrl_lite.mpc.backends.registry import make_solver
+    from mpcrl_lite.mpc.formulation import MPC
+
+    solver = make_solver(MPC(SystemConfig(U_bar=(2.0, 1.0, 1.0), P_bar=2.0)))
+    assert solver.name == "ipopt"
+    assert make_solver(MPC(SystemConfig())).name == "kernel"

@@ -67,7 +67,6 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from ...system.battery import common_value
 from ...theta import PARTS
 from ..formulation import MPC
 from ..solution import BatchSolution, MPCSolution, check_parameters
@@ -176,7 +175,7 @@ class BatchKKT:
         sysc = mpc.system
         n, N = mpc.n, mpc.N
         self.n, self.N = n, N
-        self.U = float(common_value(sysc, "U_bar", "the batch and kernel back-ends "
+        self.U = float(sysc.common("U_bar", "the batch and kernel back-ends "
                                     "(use backend='ipopt')"))
         self.P = float(sysc.P_bar)
         self.hi, self.lo = float(sysc.soc_high), float(sysc.soc_low)

@@ -44,7 +44,6 @@ import casadi as ca
 import numpy as np
 
 from ...config import MPCConfig
-from ...system.battery import common_value
 from ..formulation import MPC
 from ..solution import (
     STATUS_BREAKDOWN,
@@ -166,7 +165,7 @@ class KernelSolver(StartSettings, BackendBase):
         opts = np.empty(K.N_OPTS)
         opts[K.O_TAU], opts[K.O_TOL] = cfg.tau, cfg.tol
         opts[K.O_MAX_ITER] = cfg.max_iter if max_iter is None else max_iter
-        opts[K.O_U] = common_value(sysc, "U_bar", "the kernel back-end (use backend='ipopt')")
+        opts[K.O_U] = sysc.common("U_bar", "the kernel back-end (use backend='ipopt')")
         opts[K.O_P] = sysc.P_bar
         opts[K.O_HI], opts[K.O_LO] = sysc.soc_high, sysc.soc_low
         opts[K.O_OM_HI], opts[K.O_OM_LO] = sysc.omega
