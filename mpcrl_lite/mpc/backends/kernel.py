@@ -36,7 +36,6 @@ to the first use in a process and about 100 MB of resident memory.
 
 from __future__ import annotations
 
-import argparse
 import logging
 import time
 
@@ -277,20 +276,3 @@ class KernelSolver(StartSettings, BackendBase):
                 reasons.append("")
                 ok[d] = True
         return Sensitivity(grad, ok, cond, tuple(reasons))
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m mpcrl_lite.mpc.backends.kernel --warm``: fill numba's cache."""
-    parser = argparse.ArgumentParser(description="Compile the MPC kernels into numba's cache.")
-    parser.add_argument("--warm", action="store_true", help="compile (or load) every kernel")
-    args = parser.parse_args(argv)
-    if not args.warm:
-        parser.print_help()
-        return 0
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    warm_up(verbose=True)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
