@@ -518,13 +518,17 @@ class LearningConfig(_Config):
     grad_clip: float | None = None
     """If set, rescale each update so that ||step|| <= grad_clip."""
     tie_agents: bool = True
-    """Learn one value of each part of theta for all batteries: the gradient is averaged
-    over the agents before the update, so batteries that start alike stay alike. The
-    batteries of :class:`SystemConfig` are identical, and so is the role of each in the
-    cost, so the best causal policy treats them alike; tying them triples the data behind
-    each parameter and rules out one battery drifting alone into a corner where its policy
-    no longer responds (see the module docstring). False learns every battery's own (the
-    paper's 24 parameters; :meth:`paper`)."""
+    """Learn one value of each part of theta for all *identical* batteries: the gradient is
+    averaged over the agents of each group of identical batteries
+    (:meth:`SystemConfig.battery_groups`: equal values of every per-battery field) before the
+    update, so batteries that start alike stay alike. The batteries of the default
+    :class:`SystemConfig` are identical, and so is the role of each in the cost, so the best
+    causal policy treats them alike; tying them triples the data behind each parameter and
+    rules out one battery drifting alone into a corner where its policy no longer responds
+    (see the module docstring). On a mixed site only equal batteries are tied: with one large
+    and two small batteries the large one learns its own parameters and the two small ones
+    share theirs; batteries that all differ learn each their own. False learns every
+    battery's own (the paper's 24 parameters; :meth:`paper`)."""
     natural_damping: float = 1e-3
     """``optimizer='natural'`` only: relative damping ``lambda`` of the metric,
     ``(F + lambda diag F)^-1 g`` (:func:`mpcrl_lite.learning.update_rules.natural_direction`)."""
