@@ -191,7 +191,7 @@ def fig1_trajectories(
     for i in range(n):
         ax_s, ax_p = flat[2 * i], flat[2 * i + 1]
         soc_reference(ax_s, system, label=(i == 0))
-        u_bar_lines(ax_p, system.U_bar)
+        u_bar_lines(ax_p, max(system.battery("U_bar")))
         for key, (rec, color, label) in months.items():
             t, y = _concat_soc(rec.soc, chosen, i)
             ax_s.plot(t, y, color=color, lw=1.4, gid=f"soc[{i + 1}] {key}",
@@ -200,7 +200,7 @@ def fig1_trajectories(
                       color=color, lw=1.1, alpha=0.85, gid=f"policy[{i + 1}] {key}")
         ax_s.set_ylabel(f"soc$^{i + 1}$ (–)")
         ax_p.set_ylabel(rf"$\pi^{i + 1}$ (MW)")
-        ax_p.set_ylim(-1.15 * system.U_bar, 1.15 * system.U_bar)
+        ax_p.set_ylim(-1.15 * max(system.battery("U_bar")), 1.15 * max(system.battery("U_bar")))
         for ax in (ax_s, ax_p):
             day_axis(ax, len(chosen), H, labels=chosen if i == 0 else None)
     flat[-2].set_xlabel("time (h)")
@@ -443,7 +443,7 @@ def fig5_policy_and_agent_costs(
     # x = hour + agent column + day position: a deterministic spread, days left to right
     spread = (np.arange(D) / max(D - 1, 1) - 0.5) * 0.8 * slot if D > 1 else np.zeros(1)
     centre = 0.5 + (np.arange(n) - (n - 1) / 2) * slot
-    u_bar_lines(ax_pi, system.U_bar)
+    u_bar_lines(ax_pi, max(system.battery("U_bar")))
     x_day = (np.arange(H)[:, None] + spread[None, :]).reshape(-1)  # (H*D,), hour-major
     for i in range(n):
         ax_pi.scatter(x_day + centre[i], rec.policy[:, :, i].reshape(-1), s=6,
@@ -451,7 +451,7 @@ def fig5_policy_and_agent_costs(
                       label=f"agent {i + 1}")
     ax_pi.set_xlim(0, H)
     ax_pi.xaxis.set_major_locator(_ticker.MultipleLocator(max(1, H // 8)))
-    ax_pi.set_ylim(-1.15 * system.U_bar, 1.15 * system.U_bar)
+    ax_pi.set_ylim(-1.15 * max(system.battery("U_bar")), 1.15 * max(system.battery("U_bar")))
     ax_pi.set_xlabel("hour of day (h)")
     ax_pi.set_ylabel(r"policy $\pi^i(s)$ = b − s (MW)")
     ax_pi.set_title(f"Learned policy, last month ({D} days)", loc="left", fontsize=11)

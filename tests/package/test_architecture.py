@@ -40,12 +40,13 @@ LAYERS: list[set[str]] = [
 #: Inside a subpackage, its modules lowest first: a module imports only from a lower entry of
 #: its own subpackage (never from its own entry: modules side by side are independent).
 SUBLAYERS: dict[str, list[set[str]]] = {
-    "_util": [{"jit", "jsonio", "lazy", "resources", "references", "stats", "validate", "version"}],
+    "_util": [{"gym_registration", "jit", "jsonio", "lazy", "resources", "references", "stats",
+               "validate", "version"}],
     "system": [{"prices", "battery"}, {"forecast"}],
     "mpc": [{"formulation"}, {"solution"}, {"sensitivity"}, {"backends"}],
     "mpc.backends": [{"batch_linalg", "kernel_core"}, {"batch_kkt"}, {"batch_adjoint"},
                      {"batch", "ipopt", "kernel"}, {"registry"}],
-    "sim": [{"record", "exploration_kernel"}, {"exploration"}, {"closed_loop"}, {"candidates"}],
+    "sim": [{"record", "exploration_kernel"}, {"exploration"}, {"closed_loop"}, {"candidates", "env"}],
     "learning": [{"lstd", "update_rules", "rundir"}, {"dpg", "history"}, {"step", "checkpoint"},
                  {"learner"}, {"experiment"}],
     "decentralized": [{"local_qp", "coordination_kernel"}, {"coordination"}, {"learner"}],

@@ -41,6 +41,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--class-best", type=Path, default=None, metavar="DIR",
                    help="a tune output directory of the study's class: split each seed's "
                         "regret into the learner's part and the class's part")
+    _a.add_system_file(p)
     p.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
     p.add_argument("--workers", type=_a.nonneg_int, default=None, help="local workers (0: serial)")
     p.add_argument("--lockstep", type=_a.positive_int, default=None, metavar="K",
@@ -53,7 +54,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     from ...studies.study import THRESHOLD, run_study
 
-    base = {}
+    # the system file's fields are the sweep base's system.* overrides of every run
+    base = {f"system.{name}": value for name, value in _a.system_file(args).items()}
     if args.days is not None:
         base["learning.days_per_month"] = args.days
     if args.eval_draws is not None:

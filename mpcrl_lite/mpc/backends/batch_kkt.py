@@ -175,7 +175,9 @@ class BatchKKT:
         sysc = mpc.system
         n, N = mpc.n, mpc.N
         self.n, self.N = n, N
-        self.U, self.P = float(sysc.U_bar), float(sysc.P_bar)
+        self.U = float(sysc.common("U_bar", "the batch and kernel back-ends "
+                                    "(use backend='ipopt')"))
+        self.P = float(sysc.P_bar)
         self.hi, self.lo = float(sysc.soc_high), float(sysc.soc_low)
         self._m_agent = 8 * n * N
         self._m = self._m_agent + 2 * N

@@ -210,7 +210,8 @@ class KernelSolver(StartSettings, BackendBase):
         opts = np.empty(K.N_OPTS)
         opts[K.O_TAU], opts[K.O_TOL] = cfg.tau, cfg.tol
         opts[K.O_MAX_ITER] = cfg.max_iter if max_iter is None else max_iter
-        opts[K.O_U], opts[K.O_P] = sysc.U_bar, sysc.P_bar
+        opts[K.O_U] = sysc.common("U_bar", "the kernel back-end (use backend='ipopt')")
+        opts[K.O_P] = sysc.P_bar
         opts[K.O_HI], opts[K.O_LO] = sysc.soc_high, sysc.soc_low
         opts[K.O_OM_HI], opts[K.O_OM_LO] = sysc.omega
         opts[K.O_U0], opts[K.O_T0_COLD], opts[K.O_T0_WARM] = (
