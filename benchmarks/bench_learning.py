@@ -354,18 +354,9 @@ def scaling_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-#: Where a benchmark run writes its figure: a folder git ignores, so ``make bench`` never
-#: rewrites the tracked ``benchmarks/scaling.png`` (the reference shown in the README; copy
-#: a new figure over it by hand to update it).
-RESULTS_DIR = BENCH_DIR / "results"
-
-
-def scaling_figure(rows: list[dict], path: Path | None = None) -> Path:
-    """Log-log figure: ms per step vs n (N = 12) and vs N (n = 3), written to ``path``
-    (default ``benchmarks/results/scaling.png``, :data:`RESULTS_DIR`)."""
-    if path is None:
-        RESULTS_DIR.mkdir(exist_ok=True)
-        path = RESULTS_DIR / "scaling.png"
+def scaling_figure(rows: list[dict], path: Path = BENCH_DIR / "results" / "scaling.png"
+                   ) -> Path:
+    """Log-log figure: ms per step vs n (N = 12) and vs N (n = 3)."""
     import matplotlib
     import matplotlib.ticker
 
@@ -397,6 +388,7 @@ def scaling_figure(rows: list[dict], path: Path | None = None) -> Path:
         ax.legend(fontsize=8)
     fig.suptitle("mpcrl_lite: MPC solve + policy sensitivity per day-hour "
                  "(30 days per call; wall time, see benchmarks/README.md)")
+    path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path

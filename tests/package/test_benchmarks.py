@@ -44,20 +44,3 @@ def test_kernel_benchmark_times_the_same_closed_loop_for_both_back_ends():
     assert k["action"].shape == (3, 4, 3)
     np.testing.assert_allclose(k["action"], b["action"], atol=1e-9)
     np.testing.assert_array_equal(k["iters"], b["iters"])
-
-
-def test_the_scaling_figure_goes_where_git_ignores_it(tmp_path, monkeypatch):
-    """``make bench`` never rewrites the tracked benchmarks/scaling.png."""
-    import subprocess
-
-    bench_learning = importlib.import_module("bench_learning")
-    monkeypatch.setattr(bench_learning, "RESULTS_DIR", tmp_path / "results")
-    rows = [{"n": n, "N": N, "batch_ms": 0.1 * n * N} for n, N in ((1, 12), (3, 12), (3, 6))]
-    tracked = BENCHMARKS / "scaling.png"
-    before = tracked.read_bytes()
-    path = bench_learning.scaling_figure(rows)
-    assert path == tmp_path / "results" / "scaling.png" and path.stat().st_size > 0
-    assert tracked.read_bytes() == before
-    ignored = subprocess.run(["git", "check-ignore", "-q", "benchmarks/results/scaling.png"],
-                             cwd=BENCHMARKS.parent, check=False)
-    assert ignored.returncode == 0

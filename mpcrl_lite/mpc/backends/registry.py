@@ -55,10 +55,12 @@ REGISTRY: dict[str, Callable[[MPC, MPCConfig], SolverBackend]] = {
 }
 
 
-def _auto_backend(theta: Theta | None) -> str:
-    """The compiled interior point for a convex QP (``phi1, T1 >= 0``), IPOPT otherwise."""
+def _auto_backend(theta: Theta | None, mpc: MPC | None = None) -> str:
+    """The compiled interior point for a convex QP (``phi1, T1 >= 0``) whose batteries share
+    one input bound ``U_bar`` (the compiled back-ends' formulation), IPOPT otherwise."""
     convex = theta is None or theta.is_convex()
-    return "kernel" if convex else "ipopt"
+    shared = mpc is None or len(set(mpc.system.battery("U_bar"))) == 1
+    return "kernel" if convex and shared else "ipopt"
 
 
 def make_solver(
@@ -67,10 +69,11 @@ def make_solver(
     """The back-end named by ``config.backend``, built for ``mpc``.
 
     ``'auto'`` chooses the compiled interior point when the MPC is a convex QP for ``theta``
-    (``phi1, T1 >= 0``; always true with ``LearningConfig.keep_well_posed``) and IPOPT
-    otherwise; the choice is logged at INFO level and readable from ``solver.name``. An
-    explicit ``'kernel'`` or ``'batch'`` (:data:`CONVEX_ONLY`) given a theta that is not
-    convex is replaced by IPOPT too, with a warning.
+    (``phi1, T1 >= 0``; always true with ``LearningConfig.keep_well_posed``) and every battery
+    has the same ``U_bar``, and IPOPT otherwise; the choice is logged at INFO level and
+    readable from ``solver.name``. An explicit ``'kernel'`` or ``'batch'``
+    (:data:`CONVEX_ONLY`) given a theta that is not convex is replaced by IPOPT too, with a
+    warning.
 
     A kernel that cannot solve the MPC of this system and config (:class:`~mpcrl_lite.mpc.
     backends.kernel.KernelInputError`: inputs far from the defaults) is replaced by IPOPT under
@@ -86,7 +89,7 @@ def make_solver(
     config = config or MPCConfig()
     backend = config.backend
     if backend == AUTO:
-        backend = _auto_backend(theta)
+        backend = _auto_backend(theta, mpc)
         log.info("MPC back-end 'auto' chose %r", backend)
     elif backend in CONVEX_ONLY and theta is not None and not theta.is_convex():
         log.warning("theta is not convex (phi1 or T1 < 0): the %r back-end solves convex MPCs "

@@ -30,6 +30,7 @@ __all__ = [
     "Sweep",
     "SweepRun",
     "load_grid",
+    "load_yaml",
     "one_line",
 ]
 
@@ -165,6 +166,13 @@ class _UniqueKeyLoader(yaml.SafeLoader):
         return super().construct_mapping(node, deep=deep)
 
 
+def load_yaml(text: str) -> Any:
+    """``yaml.safe_load`` that refuses a key written twice in one mapping (a
+    ``yaml.YAMLError`` naming the key and both lines): for grids and system files, where a
+    repeated key is a mistake YAML would hide by keeping the last one."""
+    return yaml.load(text, Loader=_UniqueKeyLoader)  # a SafeLoader
+
+
 def _refers_to_itself(value: Any, path: tuple[int, ...] = ()) -> bool:
     # a YAML alias inside its own anchor ('a: &x [*x]') makes a list that contains itself
     if isinstance(value, (list, tuple, dict)):
@@ -195,7 +203,7 @@ def _read_grid_file(path: Path) -> Any:
             f"{where} is not UTF-8 text (byte {raw[err.start]:#04x} at position {err.start})"
         ) from None
     try:
-        data = yaml.load(text, Loader=_UniqueKeyLoader)
+        data = load_yaml(text)
     except yaml.YAMLError as err:
         raise GridError(f"{where}: not valid YAML: {_yaml_problem(err)}") from None
     except RecursionError:
