@@ -30,6 +30,7 @@ from mpcrl_lite.publish import report
 from mpcrl_lite.sim.closed_loop import evaluate_mpc
 from mpcrl_lite.studies import study as study_module
 from mpcrl_lite.studies import transfer
+from mpcrl_lite.studies import tune as tune_module
 from mpcrl_lite.studies.sweep import api as sweep_api
 from mpcrl_lite.theta import Theta
 
@@ -363,6 +364,8 @@ _FLAGS = {
     "--workers": st.sampled_from(["0", "0", "1", "-1", "x"]),
     "--scheduler": st.sampled_from(["garbage", "tcp://127.0.0.1:1", "serial", ""]),
     "--grid": st.sampled_from(["GRID", "GRID", "DUPGRID", "MISSING", "FILE"]),
+    "--system": st.sampled_from(["SYSTEM", "SYSTEM", "DUPSYSTEM", "BADSYSTEM", "MISSING"]),
+    "--evals": _NUMBERS, "--heldout-draws": _NUMBERS, "--popsize": _NUMBERS,
 }
 # What each command needs, drawn first (mostly valid) so that the cases reach the work too.
 _REQUIRED = {
@@ -371,6 +374,7 @@ _REQUIRED = {
     "report": ("--notebooks", "--profile", "--out"),
     "sweep": ("--grid", "--workers", "--out"),
     "study": ("--seeds", "--months", "--days", "--workers", "--out"),
+    "tune": ("--evals", "--draws", "--days", "--out"),
 }
 _COMMANDS = sorted(_REQUIRED)
 
@@ -402,6 +406,7 @@ def stubbed(monkeypatch):
     for name in ("run_serial", "run_dask"):
         monkeypatch.setattr(sweep_api, name, _stub)
     monkeypatch.setattr(study_module, "_study_target", _stub)
+    monkeypatch.setattr(tune_module, "tune", _stub)
 
     def no_scheduler(address, *_args):
         raise sweep_api.SchedulerError(f"no Dask scheduler answered at {address}")
@@ -424,9 +429,14 @@ def test_fuzz_any_arguments_end_in_one_line_or_work(command, data, tmp_path, cap
     (base / "grid.yaml").write_text("base: {learning: {months: 1, days_per_month: 1}}\n"
                                     "grid: {learning.seed: [0, 1]}\n")
     (base / "dup.yaml").write_text("grid:\n  learning.seed: [0]\n  learning.seed: [1]\n")
+    (base / "system.yaml").write_text("P_bar: 1.2\nU_bar: [1.0, 1.0, 0.5]\n")
+    (base / "dupsystem.yaml").write_text("P_bar: 1.2\nP_bar: 1.0\n")
+    (base / "badsystem.yaml").write_text("noise_var: 1.0e+308\n")
     where = {"EXPORT": export, "MISSING": base / "missing", "FRESH": base / "fresh",
              "FILE": base / "file", "DONE": base / "done", "RUN": base / "run",
-             "GRID": base / "grid.yaml", "DUPGRID": base / "dup.yaml"}
+             "GRID": base / "grid.yaml", "DUPGRID": base / "dup.yaml",
+             "SYSTEM": base / "system.yaml", "DUPSYSTEM": base / "dupsystem.yaml",
+             "BADSYSTEM": base / "badsystem.yaml"}
     shutil.copytree(RUN, base / "run")
     args = [str(where.get(a, a)) for a in data.draw(argument_lists(command))]
     capsys.readouterr()

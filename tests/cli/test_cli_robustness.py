@@ -33,6 +33,7 @@ COMMANDS = {
     "sweep": ["sweep", "--grid", "grid.yaml", "--workers", "0"],
     "study": ["study", "--seeds", "1", "--months", "1", "--days", "1", "--workers", "0"],
     "report": ["report", "--notebooks", "01_battery_dynamics", "--profile", "ci"],
+    "tune": ["tune", "--evals", "4", "--draws", "1", "--days", "1"],
 }
 
 
@@ -81,3 +82,13 @@ def test_a_full_disk_while_the_figures_are_written_is_one_line(tmp_path, capsys,
     assert code == 0, err
     assert all((out / name).exists() for name in paper.PAPER_FIGURES)
     assert History.load(out).months == 1
+
+
+def test_a_system_file_with_a_key_written_twice_is_refused(tmp_path, capsys):
+    system = tmp_path / "site.yaml"
+    system.write_text("P_bar: 1.2\nnoise_var: 0.2\nP_bar: 1.0\n")
+    code, err = run_cli(["simulate", "--days", "1", "--system", system, "--out", tmp_path / "s"],
+                        capsys)
+    assert code == 2 and len(err) == 1, err
+    assert "key 'P_bar' is written twice (first at line 1)" in err[0]
+    assert not (tmp_path / "s").exists()

@@ -1,6 +1,6 @@
 """One process at a time per output directory: the lock of
-:func:`mpcrl_lite.learning.rundir.lock_output_dir`, taken by ``learn``, ``study``, ``sweep``
-and ``report`` (and the library functions they call).
+:func:`mpcrl_lite.learning.rundir.lock_output_dir`, taken by ``learn``, ``study``, ``sweep``,
+``report`` and ``tune`` (and the library functions they call).
 
 Two processes on one ``--out``: exactly one runs, the other is refused in one line naming
 the holder's PID, and the directory holds the winner's run, verified. The lock of a killed
@@ -53,7 +53,7 @@ def test_two_learn_processes_on_one_out_one_runs_one_is_refused(tmp_path):
     assert not (out / rundir.LOCK).exists()
 
 
-@pytest.mark.parametrize("command", ["learn", "sweep", "study", "report"])
+@pytest.mark.parametrize("command", ["learn", "sweep", "study", "report", "tune"])
 def test_a_held_lock_refuses_every_command_naming_the_pid(command, tmp_path):
     out = tmp_path / "out"
     out.mkdir()
@@ -67,6 +67,8 @@ def test_a_held_lock_refuses_every_command_naming_the_pid(command, tmp_path):
                   "--target", "best_seen", "--out", str(out), "--quiet"],
         "report": ["report", "--notebooks", "01_battery_dynamics", "--profile", "ci",
                    "--out", str(out)],
+        "tune": ["tune", "--evals", "4", "--draws", "1", "--heldout-draws", "2", "--days", "1",
+                 "--out", str(out), "--quiet"],
     }[command]
     with rundir.lock_output_dir(out, "test"):
         proc = python(*argv, cwd=tmp_path)

@@ -99,26 +99,35 @@ def test_solver_layer_imports_only_downwards(module):
 
 
 # -- inputs a back-end cannot solve -----------------------------------------------------------------
-def test_a_kernel_that_cannot_solve_accepted_input_names_the_input(caplog):
+@pytest.fixture
+def kernel_out_of_reach(monkeypatch):
+    """A kernel that cannot solve the MPC at tau < 1e-11 (one iteration allowed there), as
+    a kernel beyond its reach on accepted input; the default input solves as usual."""
+    real = KernelSolver._opts
+
+    def opts(self, max_iter=None):
+        return real(self, max_iter=1 if self.config.tau < 1e-11 else max_iter)
+
+    monkeypatch.setattr(KernelSolver, "_opts", opts)
+
+
+def test_a_kernel_that_cannot_solve_accepted_input_names_the_input(kernel_out_of_reach):
     from mpcrl_lite.config import SystemConfig
     from mpcrl_lite.mpc.backends.kernel import KernelInputError
     from mpcrl_lite.mpc.formulation import MPC
 
     mpc = MPC(SystemConfig())
-    config = MPCConfig(tau=1e-12, backend="kernel")  # in RANGES, beyond the kernel's reach
-    with pytest.raises(KernelInputError, match=r"cannot solve the MPC of this system and "
-                                               r"config \(max_iter_reached; tau=1e-12") as err:
-        KernelSolver(mpc, config)
-    assert "formulation" not in str(err.value) and "'ipopt'" in str(err.value)
-    with pytest.raises(KernelInputError):
-        make_solver(mpc, config)
-    caplog.set_level(logging.WARNING)
-    solver = make_solver(mpc, config.replace(backend="auto"))  # 'auto' falls back, and says so
-    assert isinstance(solver, IpoptSolver)
-    assert "using 'ipopt' instead" in caplog.text
+    system = mpc.system
+    for config in (MPCConfig(tau=1e-12, backend="kernel"), MPCConfig(tau=1e-12)):  # in RANGES
+        solver = make_solver(mpc, config)
+        with pytest.raises(KernelInputError, match=r"cannot solve the MPC of this system and "
+                                                   r"config \(max_iter_reached; tau=1e-12") as err:
+            solver.solve(0.6 * np.ones(system.n), 300.0 * np.ones(system.N),
+                         150.0 * np.ones(system.N), Theta.nominal(system))
+        assert "formulation" not in str(err.value) and "'ipopt'" in str(err.value)
 
 
-def test_the_cli_reports_it_in_one_line(tmp_path, capsys):
+def test_the_cli_reports_it_in_one_line(tmp_path, capsys, kernel_out_of_reach):
     from mpcrl_lite.cli.main import main
 
     capsys.readouterr()

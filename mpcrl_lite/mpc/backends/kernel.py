@@ -68,8 +68,8 @@ __all__ = ["KernelInputError", "KernelSolver", "cache_dir", "warm_up"]
 class KernelInputError(ModelInputError):
     """The compiled kernel cannot solve the MPC of the system and config it was given (its
     check problem fails there, and passes with the default system and config): the input, not
-    the formulation, is what it cannot handle. ``make_solver`` with ``backend='auto'`` falls
-    back to IPOPT on it."""
+    the formulation, is what it cannot handle (raised at the first solve, where the kernel is
+    checked; the message names the input and the reference back-end)."""
 
 log = logging.getLogger(__name__)
 

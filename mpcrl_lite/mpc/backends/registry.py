@@ -31,7 +31,7 @@ from ..formulation import MPC
 from ..solution import SolverBackend
 from .batch import BatchSolver
 from .ipopt import IpoptSolver
-from .kernel import KernelInputError, KernelSolver
+from .kernel import KernelSolver
 
 # MPCSolution, BatchSolution, FALLBACK and IpoptSolver live in their own modules and stay
 # importable from here.
@@ -75,16 +75,14 @@ def make_solver(
     (:data:`CONVEX_ONLY`) given a theta that is not convex is replaced by IPOPT too, with a
     warning.
 
-    A kernel that cannot solve the MPC of this system and config (:class:`~mpcrl_lite.mpc.
-    backends.kernel.KernelInputError`: inputs far from the defaults) is replaced by IPOPT under
-    ``'auto'``, with a warning.
+    A kernel that cannot solve the MPC of this system and config says so at its first solve
+    (:class:`~mpcrl_lite.mpc.backends.kernel.KernelInputError`, naming the input), never
+    blaming the formulation.
 
     Raises
     ------
     ValueError
-        If ``config.backend`` names no registered back-end;
-        :class:`~mpcrl_lite.mpc.backends.kernel.KernelInputError` for an explicit
-        ``'kernel'`` that cannot solve this MPC.
+        If ``config.backend`` names no registered back-end.
     """
     config = config or MPCConfig()
     backend = config.backend
@@ -99,10 +97,4 @@ def make_solver(
     if backend not in REGISTRY:
         known = tuple(name for name in BACKENDS if name == AUTO or name in REGISTRY)
         raise ValueError(f"MPC back-end {backend!r} is not available; expected one of {known}")
-    if backend == "kernel" and config.backend == AUTO:
-        try:
-            return REGISTRY[backend](mpc, config)
-        except KernelInputError as err:
-            log.warning("MPC back-end 'auto': %s; using 'ipopt' instead", err)
-            return REGISTRY["ipopt"](mpc, config)
     return REGISTRY[backend](mpc, config)
