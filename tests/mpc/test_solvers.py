@@ -135,6 +135,7 @@ def test_the_cli_reports_it_in_one_line(tmp_path, capsys, kernel_out_of_reach):
                  "--out", str(tmp_path / "s")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "mpcrl_lite simulate: error: the compiled MPC kernel" in err[0]
+    assert not (tmp_path / "s").exists()  # no empty --out left behind
 
 
 @pytest.mark.parametrize("backend", ["kernel", "batch"])

@@ -43,7 +43,18 @@ def run(args: argparse.Namespace) -> int:
                          "--prices)")
     days = prices.days if prices is not None else args.days
     _a.budget(f"--days {days} --n {system.n}", system.n, days, horizon=system.N)
+    created = not args.out.exists()
     out = _a.prepare_out(args, SIMULATE_OUTPUTS)
+    try:
+        return _simulate(args, out, system, mpc_config, learning, prices, days)
+    except BaseException:  # a failed solve leaves no empty --out behind
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
+        raise
+
+
+def _simulate(args, out, system, mpc_config, learning, prices, days) -> int:
+    """The ``simulate`` command's work, once --out is checked."""
     from ...figures.plots import plot_day
     from ...mpc.backends.registry import make_solver
     from ...mpc.formulation import MPC
