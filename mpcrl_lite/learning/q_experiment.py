@@ -9,8 +9,9 @@ learning step (:mod:`mpcrl_lite.learning.qlearning`):
    hour's MPC solutions (no extra solve);
 2. at the month's end, :math:`Q_\theta(s_k, a_k)` and its theta gradient (and, for
    ``hessian='full'``, its Hessian) at every applied action, one fixed-first-action MPC per
-   hour and day (:meth:`mpcrl_lite.mpc.value.MPCValue.action_value`, IPOPT warm-started from
-   the policy's solution at the same state);
+   hour and day (:meth:`mpcrl_lite.mpc.value.MPCValue.action_value`, warm-started from the
+   policy's solution at the same state: on the compiled interior point
+   (:mod:`mpcrl_lite.mpc.q_kernel`) when the policy's back-end is the kernel, else IPOPT);
 3. the TD errors, the TD gradient and Hessian and the update
    (:class:`~mpcrl_lite.learning.qlearning.QLearningUpdater`).
 
@@ -56,7 +57,10 @@ class QLearningExperiment(Experiment):
         if learning.learner != "q":
             learning = learning.replace(learner="q")
         super().__init__(system, mpc_config, learning, prices, theta0, callbacks)
-        self.value = MPCValue(self.mpc, self.mpc_config)
+        # the fixed-first-action MPCs on the compiled interior point where the policy's MPC
+        # runs there, else on IPOPT (the reference)
+        self.value = MPCValue(self.mpc, self.mpc_config,
+                              backend="kernel" if self.solver.name == "kernel" else "ipopt")
         self._recorder: ValueRecorder | None = None
         self._theta_month: Theta | None = None
 

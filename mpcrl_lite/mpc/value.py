@@ -50,10 +50,12 @@ from dataclasses import dataclass
 
 import casadi as ca
 import numpy as np
+from scipy.sparse import csr_matrix
 
 from ..config import MPCConfig
 from .backends.ipopt import IpoptSolver, _ipopt_options, newton_polish
 from .formulation import MPC
+from .q_kernel import FixedActionKernel
 from .solution import BatchSolution, MPCSolution
 
 __all__ = ["MPCValue", "ValueDerivatives"]
@@ -81,6 +83,59 @@ class ValueDerivatives:
     ok: np.ndarray
     reason: tuple[str, ...]
     solution: BatchSolution
+
+
+class _Closed:
+    """The barrier value and the theta gradient of the Lagrangian in closed form, for a batch
+    (numpy; the CasADi expressions of :class:`_Problem` are the reference they are tested
+    against). Both problems share them: the first action's rows do not depend on theta."""
+
+    def __init__(self, mpc: MPC) -> None:
+        self.mpc = mpc
+        sysc, N = mpc.system, mpc.N
+        gam = sysc.gamma ** np.arange(N + 1, dtype=float)
+        stage = np.arange(N) < N - 1
+        self.disc = gam[:N]  # price weights of stage j
+        self.wsoc = np.where(stage, gam[1:], 0.0)  # phi(soc_{j+1}) weights
+        self.whi = np.where(stage, gam[1:] * sysc.omega[0], sysc.omega_f[0])
+        self.wlo = np.where(stage, gam[1:] * sysc.omega[1], sysc.omega_f[1])
+        qp = mpc.qp_data(mpc.parameters(np.full(mpc.n, 0.5), np.zeros(N), np.zeros(N),
+                                        np.ones(mpc.n_theta)))
+        self.C, self.d = csr_matrix(qp.C), qp.d  # h = C x - d, independent of the parameters
+        self.index = {k: mpc.index(k) for k in ("b", "s", "soc", "sigma_hi", "sigma_lo")}
+
+    def __call__(self, x: np.ndarray, lam: np.ndarray, P: np.ndarray, tau: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(value, grad, h)`` for rows of x (days, nx), lam (days, >= neq), P (days, np)."""
+        m, sysc = self.mpc, self.mpc.system
+        n, N, days = m.n, m.N, x.shape[0]
+        th = P[:, m.theta_slice].reshape(days, -1, n)
+        tb, ts, p1, p2, p3, t1, t2, t3 = (th[:, k] for k in range(2, 10))
+        soc0, buy, sell = P[:, :n], P[:, n:n + N], P[:, n + N:n + 2 * N]
+        b, s, soc = x[:, self.index["b"]], x[:, self.index["s"]], x[:, self.index["soc"]]
+        shi, slo = x[:, self.index["sigma_hi"]], x[:, self.index["sigma_lo"]]  # (days, N, n)
+        lamg = lam[:, :m.neq].reshape(days, N, n)
+        d, w = self.disc[None, :, None], self.wsoc[None, :, None]
+        socN = soc[:, -1]
+        f = (np.sum(d * ((buy[..., None] + tb[:, None]) * b - (sell[..., None] + ts[:, None]) * s),
+                    axis=(1, 2))
+             + np.sum(w * (p1[:, None] * soc**2 + p2[:, None] * soc + p3[:, None]), axis=(1, 2))
+             + np.sum(self.whi[None, :, None] * shi + self.wlo[None, :, None] * slo, axis=(1, 2))
+             + np.sum(t1 * socN**2 + t2 * socN + t3, axis=1)
+             + np.sum(p1 * soc0**2 + p2 * soc0 + p3, axis=1)
+             + np.sum(sysc.omega[0] * np.maximum(soc0 - sysc.soc_high, 0)
+                      + sysc.omega[1] * np.maximum(sysc.soc_low - soc0, 0), axis=1))
+        h = (self.C @ x.T).T - self.d
+        with np.errstate(invalid="ignore", divide="ignore"):
+            value = f - tau * np.sum(np.log(-h), axis=1)
+        grad = np.concatenate([
+            -np.sum(lamg * (b - s), axis=1), -np.sum(lamg, axis=1),
+            np.sum(d * b, axis=1), -np.sum(d * s, axis=1),
+            soc0**2 + np.sum(w * soc**2, axis=1), soc0 + np.sum(w * soc, axis=1),
+            np.broadcast_to(1.0 + self.wsoc.sum(), (days, n)),
+            socN**2, socN, np.ones((days, n)),
+        ], axis=1)
+        return value, grad, h
 
 
 class _Problem:
@@ -127,13 +182,23 @@ class MPCValue:
     config
         ``tau`` (the barrier parameter of every value), ``tol``, ``max_iter`` for the
         fixed-first-action solves.
+    backend
+        Who solves the fixed-first-action problems: ``'ipopt'`` (the reference) or
+        ``'kernel'`` (:class:`~mpcrl_lite.mpc.q_kernel.FixedActionKernel`, the compiled
+        interior point on the problem's split; ``N >= 2``).
     """
 
-    def __init__(self, mpc: MPC, config: MPCConfig | None = None) -> None:
+    def __init__(self, mpc: MPC, config: MPCConfig | None = None,
+                 backend: str = "ipopt") -> None:
+        if backend not in ("ipopt", "kernel"):
+            raise ValueError(f"backend={backend!r}: expected 'ipopt' or 'kernel'")
         self.mpc = mpc
         self.config = config or MPCConfig()
+        self.backend = backend
+        self._kernel = FixedActionKernel(mpc, self.config) if backend == "kernel" else None
         x, p, _, g, h = mpc.symbols
         theta = p[mpc.theta_slice]
+        self._closed = _Closed(mpc)
         self._v = _Problem(mpc, p, g, theta)
         a = ca.SX.sym("a", mpc.n)
         S = ca.DM(mpc.policy_selector)
@@ -178,11 +243,14 @@ class MPCValue:
             raise ValueError(f"a has shape {a.shape}; expected (days, n) = {(P.shape[0], m.n)}")
         if not np.all(np.isfinite(a)):
             raise ValueError("a contains non-finite values")
-        sols = []
-        for d in range(P.shape[0]):
-            guess = self._ref.default_guess() if x0 is None else np.asarray(x0[d], float)
-            sols.append(self._solve_q(np.concatenate([P[d], a[d]]), guess))
-        batch = BatchSolution.stack(sols, 0.0, "ipopt")
+        if self._kernel is not None:
+            batch = self._kernel.solve(P, a, x0)
+        else:
+            sols = []
+            for d in range(P.shape[0]):
+                guess = self._ref.default_guess() if x0 is None else np.asarray(x0[d], float)
+                sols.append(self._solve_q(np.concatenate([P[d], a[d]]), guess))
+            batch = BatchSolution.stack(sols, 0.0, "ipopt")
         ok = batch.success.copy()
         reasons = ["" if s else f"solver failed: {st}" for s, st in zip(ok, batch.status,
                                                                         strict=True)]
@@ -218,15 +286,16 @@ class MPCValue:
     def _derivatives(self, problem: _Problem, y: np.ndarray, P: np.ndarray, ok: np.ndarray,
                      reasons: list[str], hessian: bool, solution: BatchSolution
                      ) -> ValueDerivatives:
-        days, nt, tau = y.shape[0], self.mpc.n_theta, self.config.tau
+        days, nt, tau, m = y.shape[0], self.mpc.n_theta, self.config.tau, self.mpc
         value = np.full(days, np.nan)
         grad = np.zeros((days, nt))
         hess = np.zeros((days, nt, nt)) if hessian else None
+        x, lam = y[:, :m.nx], y[:, m.nx:m.nx + problem.nlam]
+        v_all, g_all, _ = self._closed(x, lam, P[:, :m.np], tau)
         for d in range(days):
             if not ok[d]:
                 continue
-            v, dL = problem.value(y[d], P[d], tau)
-            v, dL = float(v), np.array(dL).ravel()
+            v, dL = v_all[d], g_all[d]
             if not (np.isfinite(v) and np.all(np.isfinite(dL))):
                 ok[d], reasons[d] = False, "non-finite value (a point outside the barrier's domain)"
                 continue

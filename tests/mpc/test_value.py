@@ -107,3 +107,46 @@ def test_bad_action_shape_is_refused(value, case):
     soc, buy, sell, theta, _ = case
     with pytest.raises(ValueError, match="a has shape"):
         value.action_value(soc, buy, sell, theta, np.zeros((2, 3)))
+
+
+@pytest.fixture(scope="module")
+def kernel_value(mpc):
+    return MPCValue(mpc, MPCConfig(), backend="kernel")
+
+
+def test_q_on_the_kernel_equals_the_reference(value, kernel_value, case, system):
+    soc, buy, sell, theta, sol = case
+    rng = np.random.default_rng(3)
+    a = 0.8 * sol.action + rng.uniform(-0.1, 0.1, sol.action.shape)
+    ref = value.action_value(soc, buy, sell, theta, a, x0=sol.x, hessian=True)
+    fast = kernel_value.action_value(soc, buy, sell, theta, a, x0=sol.x, hessian=True)
+    assert ref.ok.all() and fast.ok.all()
+    np.testing.assert_allclose(fast.value, ref.value, rtol=1e-9)
+    np.testing.assert_allclose(fast.grad, ref.grad, atol=1e-7 * np.abs(ref.grad).max())
+    np.testing.assert_allclose(fast.hess, ref.hess, atol=1e-6 * np.abs(ref.hess).max())
+    np.testing.assert_allclose(fast.solution.x, ref.solution.x, atol=1e-7)
+    # without a warm start, and at the policy's own action: V
+    cold = kernel_value.action_value(soc, buy, sell, theta, sol.action)
+    np.testing.assert_allclose(cold.value, value.state_value(sol).value, rtol=1e-9)
+
+
+def test_kernel_refuses_an_action_on_a_bound(kernel_value, case, system):
+    soc, buy, sell, theta, sol = case
+    a = 0.5 * sol.action
+    a[1] = [system.U_bar, 0.0, 0.0]
+    a[2] = [0.6 * system.P_bar, 0.6 * system.P_bar, 0.0]  # beyond the grid limit
+    Q = kernel_value.action_value(soc, buy, sell, theta, a, x0=sol.x)
+    assert Q.ok.tolist() == [True, False, False]
+    assert Q.reason[1] and np.isnan(Q.value[1:]).all()
+
+
+def test_closed_form_value_and_gradient_equal_casadi(value, case):
+    """The numpy value and theta gradient used for every row against the CasADi
+    expressions of the formulation (V problem)."""
+    sol = case[-1]
+    V = value.state_value(sol)
+    for d in range(len(sol)):
+        y = np.concatenate([sol.x[d], sol.lam[d], sol.mu[d]])
+        v, dL = value._v.value(y, sol.p[d], MPCConfig().tau)
+        np.testing.assert_allclose(V.value[d], float(v), rtol=1e-12)
+        np.testing.assert_allclose(V.grad[d], np.array(dL).ravel(), rtol=1e-10, atol=1e-9)

@@ -42,7 +42,7 @@ LAYERS: list[set[str]] = [
 SUBLAYERS: dict[str, list[set[str]]] = {
     "_util": [{"jit", "jsonio", "resources", "references", "stats", "validate", "version"}],
     "system": [{"prices", "battery"}, {"forecast"}],
-    "mpc": [{"formulation"}, {"solution"}, {"sensitivity"}, {"backends"}, {"value"}],
+    "mpc": [{"formulation"}, {"solution"}, {"sensitivity"}, {"backends"}, {"q_kernel"}, {"value"}],
     "mpc.backends": [{"batch_linalg", "kernel_core"}, {"batch_kkt"}, {"batch_adjoint"},
                      {"batch", "ipopt", "kernel"}, {"registry"}],
     "sim": [{"record", "exploration_kernel"}, {"exploration"}, {"closed_loop"}],
