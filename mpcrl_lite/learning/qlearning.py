@@ -24,7 +24,8 @@ least-squares TD loss :math:`\frac12\,\mathrm{mean}\,\delta^2` with the target h
 
 (:func:`td_gradient`; the Gauss-Newton ``'approx'`` drops the curvature of Q, the ``'full'``
 one keeps it). :class:`QLearningUpdater` takes a first-order step with the configured
-optimizer (``hessian='none'``) or a Newton step :math:`\theta - \alpha H^{-1} g` with ``H``
+optimizer (``hessian='none'``) or a Newton step :math:`\theta - \alpha H^{-1} g`
+(``alpha = newton_step``) with ``H``
 made positive definite by adding a multiple of the identity (:func:`regularised_solve`,
 Nocedal & Wright, *Numerical Optimization*, 2nd ed., Algorithm 3.3), in the coordinates of
 the learnable parameters (tied over the agents with ``tie_agents``), then the DPG's
@@ -50,8 +51,8 @@ from ..config import HESSIANS, LearningConfig, SystemConfig
 from ..mpc.value import MPCValue
 from ..sim.closed_loop import HourStep
 from ..sim.exploration import exploration_center
-from ..theta import PARTS
-from .dpg import DPGUpdater
+from ..theta import CONSTANT_PARTS, PARTS
+from .dpg import DPGUpdater, learnable_mask
 
 __all__ = ["Q_ACTION_MARGIN", "QLearningUpdater", "ValueRecorder", "regularised_solve",
            "td_errors", "td_gradient"]
@@ -171,9 +172,9 @@ class QLearningUpdater:
     """The Q-learning step on theta: first order through :class:`DPGUpdater` with the
     configured optimizer, or a regularised Newton step (see the module docstring).
 
-    The learnable parameters are :func:`~mpcrl_lite.learning.dpg.learnable_mask` with the
-    constants (``phi3``, ``T3`` shift Q's level, which the TD fit needs); with
-    ``tie_agents`` one value per part for all batteries. State, checkpoints and
+    The learned parameters are those of :func:`~mpcrl_lite.learning.dpg.learnable_mask`
+    (with ``tie_agents`` one value per part for all batteries) and the level of Q, which the
+    TD fit needs: ``T3`` shared by all batteries (``phi3`` stays; see :meth:`_make_basis`). State, checkpoints and
     :attr:`last_info` are the inner :class:`DPGUpdater`'s (with, for a Newton step,
     ``newton_shift`` the ``t`` of :func:`regularised_solve`).
     """
@@ -184,7 +185,7 @@ class QLearningUpdater:
         self.second_order = config.hessian != "none"
         inner = config.replace(learn_constants=True)
         if self.second_order:  # the direction is the Newton step itself
-            inner = inner.replace(optimizer="sgd")
+            inner = inner.replace(optimizer="sgd", step_size=config.newton_step)
         self.inner = DPGUpdater.from_configs(inner, system)
         self._basis = self._make_basis()
         self._hessian: np.ndarray | None = None
@@ -198,25 +199,36 @@ class QLearningUpdater:
         return cls(learning, system)
 
     def _make_basis(self) -> np.ndarray:
-        """Columns spanning the learnable parameters: one per learnable entry, or with
-        ``tie_agents`` one per part (ones on its agents)."""
-        mask, n = self.inner.mask, self.n
-        if not self.config.tie_agents:
-            return np.eye(mask.size)[:, mask]
+        """Columns spanning what is learned: one per learnable entry of the non-constant
+        parts (with ``tie_agents`` one per part, ones on its agents), and one column for the
+        level of Q, ``T3`` shared by all batteries (``phi3`` and ``T3`` only add constants to
+        every value: their entries are collinear in the TD fit, so one level is learned)."""
+        n, size = self.n, len(PARTS) * self.n
+        mask = learnable_mask(n, learn_constants=False)
         cols = []
-        for k in range(len(PARTS)):
-            col = np.zeros(mask.size)
-            col[k * n:(k + 1) * n] = mask[k * n:(k + 1) * n]
-            if col.any():
+        for k, part in enumerate(PARTS):
+            entries = np.arange(k * n, (k + 1) * n)
+            if part in CONSTANT_PARTS:
+                if part == "T3":
+                    col = np.zeros(size)
+                    col[entries] = 1.0
+                    cols.append(col)
+                continue
+            if self.config.tie_agents:
+                col = np.zeros(size)
+                col[entries] = mask[entries]
                 cols.append(col)
+            else:
+                cols += [np.eye(size)[i] for i in entries if mask[i]]
         return np.stack(cols, axis=1)
 
     def direction(self, g: np.ndarray, H: np.ndarray | None) -> tuple[np.ndarray, float]:
-        """What the inner updater is given: ``g`` (first order) or the regularised Newton
-        direction in the learnable coordinates, mapped back to theta's (and the shift)."""
-        if H is None:
-            return g, 0.0
+        """What the inner updater is given: ``g`` projected onto the learned parameters
+        (first order) or the regularised Newton direction in their coordinates, mapped back
+        to theta's, and the shift of :func:`regularised_solve`."""
         B = self._basis
+        if H is None:
+            return B @ np.linalg.solve(B.T @ B, B.T @ g), 0.0
         d, shift = regularised_solve(B.T @ H @ B, B.T @ g)
         return B @ d, shift
 
@@ -230,7 +242,7 @@ class QLearningUpdater:
             raise ValueError(f"hessian={self.config.hessian!r}: the step needs the TD Hessian")
         if self.second_order and H is not None and not np.all(np.isfinite(H)):
             raise ValueError("the TD Hessian contains non-finite values (nan or inf)")
-        d, shift = self.direction(g, H) if self.second_order and H is not None else (g, 0.0)
+        d, shift = self.direction(g, H if self.second_order else None)
         new = self.inner.step(theta, d)
         if self.second_order:
             self.inner.last_info["newton_shift"] = float(shift)
