@@ -40,12 +40,13 @@ LAYERS: list[set[str]] = [
 #: Inside a subpackage, its modules lowest first: a module imports only from a lower entry of
 #: its own subpackage (never from its own entry: modules side by side are independent).
 SUBLAYERS: dict[str, list[set[str]]] = {
-    "_util": [{"jit", "jsonio", "resources", "references", "stats", "validate", "version"}],
+    "_util": [{"gym_registration", "jit", "jsonio", "lazy", "resources", "references", "stats",
+               "validate", "version"}],
     "system": [{"prices", "battery"}, {"forecast"}],
     "mpc": [{"formulation"}, {"solution"}, {"sensitivity"}, {"backends"}, {"q_kernel"}, {"value"}],
     "mpc.backends": [{"batch_linalg", "kernel_core"}, {"batch_kkt"}, {"batch_adjoint"},
                      {"batch", "ipopt", "kernel"}, {"registry"}],
-    "sim": [{"record", "exploration_kernel"}, {"exploration"}, {"closed_loop"}],
+    "sim": [{"record", "exploration_kernel"}, {"exploration"}, {"closed_loop"}, {"candidates", "env"}],
     "learning": [{"lstd", "update_rules", "rundir"}, {"dpg", "history"},
                  {"step", "checkpoint", "qlearning"}, {"learner"}, {"experiment"},
                  {"q_experiment"}],
@@ -55,10 +56,11 @@ SUBLAYERS: dict[str, list[set[str]]] = {
     "figures": [{"style"}, {"paper"}, {"plots"}],
     "classroom": [{"controls", "explorers"}, {"widgets"}],
     "publish": [{"alt_text", "html_export", "launch"}, {"report"}, {"site"}],
-    "studies": [{"transfer", "lockstep"}, {"sweep"}, {"study"}],
+    "studies": [{"transfer", "lockstep", "tune"}, {"sweep"}, {"study"}],
     "studies.sweep": [{"grid"}, {"store"}, {"table"}, {"run"}, {"schedule"}, {"api"}],
     "cli": [{"inputs"}, {"args"}, {"commands"}, {"main"}, {"warm"}],
-    "cli.commands": [{"baselines", "evaluate", "learn", "report", "simulate", "study", "sweep"}],
+    "cli.commands": [{"baselines", "evaluate", "learn", "report", "simulate", "study", "sweep",
+                      "tune"}],
 }
 
 MODULES = package_modules()
