@@ -79,7 +79,7 @@ def build_agent(system, mpc_config, theta0, hessian: str, lr: float, batch: int)
     th = {name: mpc.parameter(f"theta_{name}", (n, 1)) for name in parts}
     th["phi3"] = mpc.parameter("theta_phi3", (n, 1))
     t3 = mpc.parameter("theta_T3", (1, 1))
-    rep = lambda v: cs.repmat(v, 1, N)  # noqa: E731
+    rep = lambda v: cs.repmat(v, 1, N)
     mpc.constraint("net", u, "==", b - s)
     mpc.constraint("dynamics", soc[:, 1:], "==",
                    soc[:, :-1] + rep(th["alpha"]) * (b - s) + rep(th["delta"]))
@@ -126,10 +126,11 @@ def build_agent(system, mpc_config, theta0, hessian: str, lr: float, batch: int)
     class RecordingAgent(LstdQLearningAgent):
         """Keeps theta after every update."""
 
-        thetas: list = []
+        thetas: list | None = None
 
         def on_update(self) -> None:
-            self.thetas.append(dict(self.learnable_parameters.value_as_dict))
+            if self.thetas is not None:
+                self.thetas.append(dict(self.learnable_parameters.value_as_dict))
             super().on_update()
 
     return RecordingAgent(
@@ -143,10 +144,10 @@ def build_agent(system, mpc_config, theta0, hessian: str, lr: float, batch: int)
 def our_updates(system, mpc_config, theta0, data, hessian: str, lr: float, batch: int):
     """The same updates with mpcrl_lite: thetas after each batch of transitions."""
     from mpcrl_lite.config import LearningConfig
+    from mpcrl_lite.learning.qlearning import QLearningUpdater, td_gradient
     from mpcrl_lite.mpc.backends.ipopt import IpoptSolver
     from mpcrl_lite.mpc.formulation import MPC
     from mpcrl_lite.mpc.value import MPCValue
-    from mpcrl_lite.learning.qlearning import QLearningUpdater, td_gradient
 
     mpc = MPC(system)
     solver, value = IpoptSolver(mpc, mpc_config), MPCValue(mpc, mpc_config)

@@ -60,6 +60,9 @@ class FixedActionKernel:
             np.where(stage, gam[1:] * sysc.omega[1], sysc.omega_f[1]),
         ])
         self.weights = weights
+        # the kernels' check against the formulation runs with the tail MPC's own weights,
+        # before they are replaced by those of stages 1 .. N-1
+        self.tail._ready()
         self.tail._stagew = np.ascontiguousarray(weights[:, 1:])
         # h = C x - d: C and d do not depend on the parameters
         qp = mpc.qp_data(mpc.parameters(np.full(mpc.n, 0.5), np.zeros(mpc.N),
