@@ -24,13 +24,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import matplotlib.pyplot as plt
 import numpy as np
-from matplotlib.axes import Axes
-from matplotlib.figure import Figure
-from matplotlib.ticker import MultipleLocator
 
+from .._util.lazy import lazy_module
 from .._util.validate import check_instance, check_int
 from ..config import PRICE_UNIT
 from ..learning.history import History
@@ -51,6 +49,15 @@ from .style import (
     steps,
     u_bar_lines,
 )
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+
+#: matplotlib, imported when a figure is first drawn (a run without figures never
+#: loads it)
+plt = lazy_module("matplotlib.pyplot")
+_ticker = lazy_module("matplotlib.ticker")
 
 __all__ = [
     "PAPER_FIGURES",
@@ -138,7 +145,7 @@ def _month_axis(
     ax.grid(True, color=grid, lw=0.6)
     ax.legend(fontsize=legend_size, framealpha=0.9)
     if months <= 12:
-        ax.xaxis.set_major_locator(MultipleLocator(1))
+        ax.xaxis.set_major_locator(_ticker.MultipleLocator(1))
 
 
 def fig1_trajectories(
@@ -443,7 +450,7 @@ def fig5_policy_and_agent_costs(
                       color=agent_color(i), alpha=0.7, lw=0, gid=f"policy[{i + 1}]",
                       label=f"agent {i + 1}")
     ax_pi.set_xlim(0, H)
-    ax_pi.xaxis.set_major_locator(MultipleLocator(max(1, H // 8)))
+    ax_pi.xaxis.set_major_locator(_ticker.MultipleLocator(max(1, H // 8)))
     ax_pi.set_ylim(-1.15 * max(system.battery("U_bar")), 1.15 * max(system.battery("U_bar")))
     ax_pi.set_xlabel("hour of day (h)")
     ax_pi.set_ylabel(r"policy $\pi^i(s)$ = b − s (MW)")
@@ -493,7 +500,7 @@ def fig6_prices(
         ax.plot(hours, prices.buy[d], color=color, lw=1.7, marker="o", ms=3,
                 gid=f"buy day {d + 1}", label=f"day {d + 1}")
     ax.set_xlim(-0.5, hours[-1] + 0.5)
-    ax.xaxis.set_major_locator(MultipleLocator(3))
+    ax.xaxis.set_major_locator(_ticker.MultipleLocator(3))
     ax.set_xlabel("hour of day (h)")
     ax.set_ylabel(rf"buying price $\phi_b$ ({prices.unit})")
     ax.set_title("Buying price", loc="left", fontsize=11)

@@ -21,10 +21,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._util.lazy import lazy_module
 from .._util.validate import check_choice, check_real
 from ..config import EXPLORATION_BOUNDS, SystemConfig
 from ..system.battery import project_action
-from .exploration_kernel import ensure_compiled, explore_rows
+
+#: :mod:`mpcrl_lite.sim.exploration_kernel`, imported at the first compiled exploration (numba
+#: comes with it)
+kernel = lazy_module("mpcrl_lite.sim.exploration_kernel")
 
 __all__ = [
     "GaussianExploration",
@@ -193,13 +197,13 @@ def bounded_exploration(
     for name, value in (("pi", pi), ("e", e)):
         if not np.isfinite(value).all():
             raise ValueError(f"{name} has non-finite entries: expected finite values only")
-    ensure_compiled()
+    kernel.ensure_compiled()
     # compiled (mpcrl_lite.sim.exploration_kernel): per day, pi projected onto the feasible set,
     # the radial step (and the slide along the grid faces), the result projected once more
     # as a guard against rounding (base + step is feasible up to ~1e-16)
     upper = np.array(system.battery("U_bar"), dtype=float)  # each battery's own bound
-    return explore_rows(np.ascontiguousarray(pi), np.ascontiguousarray(e), upper,
-                        system.P_bar, bounds == "symmetric")
+    return kernel.explore_rows(np.ascontiguousarray(pi), np.ascontiguousarray(e), upper,
+                               system.P_bar, bounds == "symmetric")
 
 
 class Projection:
