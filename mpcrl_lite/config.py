@@ -145,7 +145,9 @@ __all__ = [
     "EARLIER_BEHAVIOUR",
     "EXPLORATION_BOUNDS",
     "FORECASTS",
+    "HESSIANS",
     "HOURS_PER_DAY",
+    "LEARNERS",
     "OPTIMIZERS",
     "PAPER_EXPLORATION_STD",
     "PAPER_STEP_SIZE",
@@ -436,6 +438,13 @@ class MPCConfig(_Config):
 
 #: Names of the DPG update rules (:data:`mpcrl_lite.learning.update_rules.UPDATE_RULES`).
 OPTIMIZERS = ("sgd", "adam", "natural")
+#: The learners of the centralized MPC (:attr:`LearningConfig.learner`): ``'dpg'``, the
+#: paper's deterministic policy gradient with the LSTD compatible critic, and ``'q'``, LSTD
+#: Q-learning with the MPC itself as the action-value function (:mod:`mpcrl_lite.learning.qlearning`).
+LEARNERS = ("dpg", "q")
+#: The curvature of a Q-learning update (:attr:`LearningConfig.hessian`): ``'none'`` (a
+#: first-order step with ``optimizer``), ``'approx'`` (Gauss-Newton) or ``'full'``.
+HESSIANS = ("none", "approx", "full")
 #: Feature sets of the critic's value baseline by name, with a short description
 #: (built by :func:`mpcrl_lite.learning.lstd.value_features`).
 VALUE_FEATURE_SETS: dict[str, str] = {
@@ -572,6 +581,29 @@ class LearningConfig(_Config):
     ``History.J_eval`` is the mean of the draws' J and ``J_eval_ci_low``/``_high`` its 95 %
     confidence interval over the draws. Files without the field were written with 1."""
 
+    learner: str = "dpg"
+    """Which learner updates theta (:data:`LEARNERS`): ``'dpg'``, the paper's deterministic
+    policy gradient with the LSTD compatible critic, or ``'q'``, LSTD Q-learning with the
+    MPC as the action-value function (the TD errors of the month's transitions fitted by the
+    MPC's own Q; :mod:`mpcrl_lite.learning.qlearning`). The Q learner also learns the level
+    of Q (``T3``, one value shared by the batteries; ``phi3`` stays), whatever
+    ``learn_constants`` says, and does not support
+    ``optimizer='natural'`` or ``max_policy_change`` (both need the policy's sensitivity)."""
+    hessian: str = "approx"
+    """``learner='q'`` only (:data:`HESSIANS`): ``'none'`` is a first-order step with
+    ``optimizer`` on the TD gradient; ``'approx'`` (the default) and ``'full'`` are Newton
+    steps ``theta - step_size H^-1 g`` with the Gauss-Newton ``H = mean(dQ dQ')`` or the full
+    Hessian of the TD loss ``mean(dQ dQ' - delta d2Q)``, made positive definite by adding a
+    multiple of the identity (Nocedal & Wright, Algorithm 3.3), of the length
+    ``newton_step`` (``step_size`` is the first-order step's). A ``to_dict`` of a DPG
+    config leaves the Q-learning fields out (files of DPG runs read as before they existed)."""
+    newton_step: float = 0.3
+    """``learner='q'`` with ``hessian`` other than ``'none'``: the fraction of the
+    (regularised) Newton step taken per month. Measured on the paper's system over 20 months
+    (seed 0): 0.1 learns steadily but slowly, 0.3 reaches the DPG's level of J_eval, 1.0
+    (the full step) throws theta where the MPC no longer solves; the ``'full'`` Hessian is
+    less stable than Gauss-Newton at the same step."""
+
     def __post_init__(self) -> None:
         set_ = self._set
         set_("step_size", check_real("step_size", self.step_size, 0.0))
@@ -608,6 +640,25 @@ class LearningConfig(_Config):
         set_("eval_every", check_int("eval_every", self.eval_every, 0))
         set_("eval_seed", check_int("eval_seed", self.eval_seed, 0))
         set_("eval_draws", check_int("eval_draws", self.eval_draws, 1))
+        set_("learner", check_choice("learner", self.learner, LEARNERS))
+        set_("hessian", check_choice("hessian", self.hessian, HESSIANS))
+        set_("newton_step", check_real("newton_step", self.newton_step, 0.0, low_open=True))
+        if self.learner == "q" and (self.optimizer == "natural" or self.max_policy_change):
+            raise ValueError(
+                f"learner='q' with optimizer={self.optimizer!r}, max_policy_change="
+                f"{self.max_policy_change!r}: both need the policy sensitivity, which "
+                "Q-learning does not compute; expected optimizer 'adam' or 'sgd' and no "
+                "max_policy_change")
+
+    def to_dict(self) -> dict[str, Any]:
+        """As for every config; a DPG config (``learner='dpg'``, the Q-learning fields at
+        their defaults) leaves out ``learner``, ``hessian`` and ``newton_step``, so its files
+        are those of before the fields."""
+        out = super().to_dict()
+        if self.learner == "dpg" and self.hessian == "approx" and self.newton_step == 0.3:
+            for key in ("learner", "hessian", "newton_step"):
+                out.pop(key)
+        return out
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> LearningConfig:

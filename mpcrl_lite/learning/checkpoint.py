@@ -95,11 +95,13 @@ class Checkpointing:
     FORMATS: ClassVar[dict[str, str]] = {
         "mpcrl_lite.Checkpoint/1": "centralized",
         "mpcrl_lite.DecentralizedCheckpoint/1": "decentralized",
+        "mpcrl_lite.QCheckpoint/1": "q-learning",
     }
     #: How each kind is resumed (for the message when the wrong learner is used).
     RESUME_WITH: ClassVar[dict[str, str]] = {
         "centralized": "Experiment, `learn` without --decentralized",
         "decentralized": "DecentralizedExperiment, `learn --decentralized`",
+        "q-learning": "QLearningExperiment, `learn --learner q`",
     }
 
     system: SystemConfig

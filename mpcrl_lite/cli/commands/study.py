@@ -6,6 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
+from ...config import HESSIANS, LEARNERS
 from .. import args as _a
 from ..args import UsageError
 
@@ -47,6 +48,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--lockstep", type=_a.positive_int, default=None, metavar="K",
                    help="runs per task, stepped together in one process (default: each "
                         "worker's share; 1: one run per task)")
+    p.add_argument("--learner", choices=LEARNERS, default=None,
+                   help="dpg (the policy gradient, default) or q (LSTD Q-learning)")
+    p.add_argument("--hessian", choices=HESSIANS, default=None,
+                   help="--learner q: the curvature of the update (see learn --help)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -62,6 +67,12 @@ def run(args: argparse.Namespace) -> int:
         base["learning.eval_draws"] = args.eval_draws
     if args.forecast is not None:
         base["mpc.forecast"] = args.forecast
+    if args.hessian is not None and args.learner != "q":
+        raise UsageError(f"--hessian {args.hessian} needs --learner q")
+    if args.learner is not None:
+        base["learning.learner"] = args.learner
+    if args.hessian is not None:
+        base["learning.hessian"] = args.hessian
     try:
         summary = run_study(
             args.seeds, args.months, args.out, seed_start=args.seed_start, base=base,

@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from ...learning.experiment import Experiment
+from ...learning.q_experiment import QLearningExperiment
 from ...publish.report import _check_values, execute_notebook, notebook_parameters
 from ..lockstep import run_lockstep
 from .grid import GridError, MissingFileError, Sweep, SweepRun
@@ -106,8 +107,9 @@ def _learn(runs: list[SweepRun], out: Path) -> None:
             for name in ("checkpoint.json", "history.json"):
                 read_json(directory / name)
             fail = _injected_failure(run.run_id)
-            learners.append(Experiment(run.system, run.mpc, run.learning,
-                                       callbacks=[fail] if fail else ()))
+            kind = QLearningExperiment if run.learning.learner == "q" else Experiment
+            learners.append(kind(run.system, run.mpc, run.learning,
+                                 callbacks=[fail] if fail else ()))
         except Exception as err:  # noqa: BLE001 (the sweep goes on; the error is kept next to the run)
             write_json(directory / "error.json", _error(err, time.perf_counter() - t0))
             continue
