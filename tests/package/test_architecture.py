@@ -40,8 +40,8 @@ LAYERS: list[set[str]] = [
 #: Inside a subpackage, its modules lowest first: a module imports only from a lower entry of
 #: its own subpackage (never from its own entry: modules side by side are independent).
 SUBLAYERS: dict[str, list[set[str]]] = {
-    "_util": [{"gym_registration", "jit", "jsonio", "lazy", "resources", "references", "stats",
-               "validate", "version"}],
+    "_util": [{"budget", "gym_registration", "jit", "jsonio", "lazy", "resources", "references",
+               "stats", "validate", "version"}],
     "system": [{"prices", "battery"}, {"forecast"}],
     "mpc": [{"formulation"}, {"solution"}, {"sensitivity"}, {"backends"}, {"q_kernel"}, {"value"}],
     "mpc.backends": [{"batch_linalg", "kernel_core"}, {"batch_kkt"}, {"batch_adjoint"},
