@@ -238,7 +238,9 @@ def test_site_pages_are_offline_described_and_linked(built_site):
     assert "without encryption" not in page
     alts = [image.get("alt") or "" for image in
             _parse(built_site / "notebooks" / f"{STEMS[0]}.html").images]
-    assert "Figure: Buying price." in alts, "figures carry their title as alt text"
+    assert any(alt.startswith("Figure: buying price φ_b (NOK/MWh) against hour") and "series day 1"
+               in alt and "values from" in alt for alt in alts), \
+        f"figures carry their panels, series and data range as alt text: {alts}"
     summary = json.loads((built_site / "summary.json").read_text())
     assert list(summary["notebooks"]) == [STEMS[0]] and summary["profile"] == "ci"
     index = (built_site / "index.html").read_text(encoding="utf-8")
