@@ -192,10 +192,12 @@ def _static_widget_output(view: dict[str, Any], plain: str, models: dict) -> dic
     controls, labels, images = [], [], []
     for model in parts:
         kind, state = model.get("model_name", ""), model.get("state", {})
-        if kind == "ImageModel":
+        if kind == "ImageModel" or (kind == "AnyModel" and "alt" in state):
+            # an ipywidgets Image, or the explorers' picture (classroom.picture.Picture)
             data = _png_of(model)
             if data and state.get("format", "png") == "png":
-                images.append((data, state.get("tooltip") or state.get("description") or ""))
+                images.append((data, state.get("alt") or state.get("tooltip")
+                               or state.get("description") or ""))
         elif kind in ("HTMLModel", "HTMLMathModel", "LabelModel"):
             if state.get("value"):
                 labels.append(state["value"] if kind != "LabelModel"
@@ -228,8 +230,8 @@ def static_widgets(nb):
     """A copy of the executed notebook ``nb`` whose widget outputs are static pictures.
 
     Each output showing a widget view becomes an HTML figure: the PNG of every image the
-    widget contained when the notebook ran (the explorers draw their figure into an
-    ``ipywidgets.Image``), the values of its controls, its text labels and a note that the
+    widget contained when the notebook ran (the explorers draw their figure into a
+    :class:`~mpcrl_lite.classroom.picture.Picture`, whose alt text the picture keeps), the values of its controls, its text labels and a note that the
     controls need a live notebook. The stored widget state is dropped from the copy.
     """
     out = copy.deepcopy(nb)

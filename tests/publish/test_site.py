@@ -140,6 +140,18 @@ def test_static_widgets_replace_explorers_by_their_picture_and_settings():
     assert "J = 12.5 NOK" in page and "Open the notebook" in output["data"]["text/plain"]
 
 
+def test_static_widgets_keep_the_explorer_picture_alt_text():
+    """The explorers draw into a classroom.picture.Picture (an anywidget with ``alt``): its
+    picture and its own alt text reach the page."""
+    nb = _widget_notebook()
+    state = nb.metadata["widgets"][WIDGET_STATE_MIME]["state"]
+    state["image"] = {"model_name": "AnyModel",
+                      "state": {"format": "png", "alt": "Figure: MPC, day 1: J = 12.5 NOK/day."},
+                      "buffers": state["image"]["buffers"]}
+    page = static_widgets(nb).cells[1].outputs[0]["data"]["text/html"]
+    assert page.count("<img ") == 1 and 'alt="Figure: MPC, day 1: J = 12.5 NOK/day."' in page
+
+
 def test_unlink_remote_images_turns_badges_into_links():
     source = unlink_remote_images(_widget_notebook()).cells[0].source
     assert "[Open in Colab](https://colab.example/nb)" in source
