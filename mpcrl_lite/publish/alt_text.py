@@ -21,7 +21,7 @@ from matplotlib.figure import Figure
 
 from ..figures.describe import describe_figure
 
-__all__ = ["IMAGE_MIMES", "describe_figure", "load_ipython_extension"]
+__all__ = ["IMAGE_MIMES", "load_ipython_extension"]  # describe_figure: figures.describe
 
 #: Image outputs that get an ``alt`` entry in their metadata.
 IMAGE_MIMES = ("image/png", "image/jpeg", "image/svg+xml")

@@ -292,6 +292,28 @@ def test_paper_figures_and_study_tables_are_collected(tmp_path):
     assert "study/months=2,days=2/results.csv" in page and "14.0" in page
 
 
+def test_the_site_study_is_the_notebook_own_run(tmp_path):
+    """Rows an exercise added to the study's folder (another seed, a pending run) and other
+    sweeps' folders are not the study: only the finished runs of its own grid are shown."""
+    sweep = tmp_path / "report" / "sweep_runs" / "months=2,days=2"
+    sweep.mkdir(parents=True)
+    (sweep / "results.csv").write_text(
+        "P_bar,noise_var,seed,status,J_last\n"
+        "1.0,0.5,0,done,12.5\n1.0,0.5,1,done,13.0\n2.0,0.5,0,done,14.0\n2.0,0.5,1,done,15.0\n"
+        "1.0,0.5,2,done,99.0\n2.0,0.5,2,pending,\n")
+    other = tmp_path / "report" / "sweep_runs" / "months=9,days=9"
+    other.mkdir(parents=True)
+    (other / "results.csv").write_text("P_bar,noise_var,seed,status,J_last\n1.0,0.5,0,done,1\n")
+    study = {"months": 2, "days": 2, "P_bars": [1.0, 2.0], "noise_vars": [0.5], "seeds": 2}
+    studies = site_module.collect_study(tmp_path / "report", tmp_path / "study", study)
+    assert [s["name"] for s in studies] == ["months=2,days=2"]
+    table = studies[0]["table"]
+    assert table["J_last"].tolist() == [12.5, 13.0, 14.0, 15.0]
+    assert (table["status"] == "done").all() and table["seed"].max() == 1
+    copied = (tmp_path / "study" / "months=2,days=2" / "results.csv").read_text()
+    assert "99.0" not in copied and "pending" not in copied
+
+
 def test_site_command_rejects_a_bad_profile(capsys):
     with pytest.raises(SystemExit) as info:
         site_module.main(["--out", "unused", "--profile", "huge"])
