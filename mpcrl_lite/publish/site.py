@@ -181,7 +181,7 @@ figure { display: inline-block; margin: 0.5rem 1rem 1rem 0; max-width: 29rem; }
 figure img { max-width: 100%; border: 1px solid #ddd; }
 figcaption { font-size: 0.9rem; color: #444; }
 code { background: #f4f4f4; padding: 0 0.2rem; }
-a { color: #0b5cad; }
+a { color: #0b5cad; text-decoration: underline; }
 .small { font-size: 0.9rem; color: #444; }
 """
 

@@ -27,6 +27,8 @@ from mpcrl_lite.publish.alt_text import _with_alt, describe_figure
 from mpcrl_lite.publish.html_export import (
     WIDGET_STATE_MIME,
     WIDGET_VIEW_MIME,
+    copy_mathjax,
+    page_title,
     remote_resources,
     static_widgets,
     to_html,
@@ -150,6 +152,37 @@ def test_static_widgets_keep_the_explorer_picture_alt_text():
                       "buffers": state["image"]["buffers"]}
     page = static_widgets(nb).cells[1].outputs[0]["data"]["text/html"]
     assert page.count("<img ") == 1 and 'alt="Figure: MPC, day 1: J = 12.5 NOK/day."' in page
+
+
+def test_pages_are_titled_after_their_notebook_and_meet_contrast():
+    nb = _widget_notebook()
+    nb.cells[0].source = "# 02 · The *MPC* policy, [$\\tau$](x.md)\n\ntext"
+    assert page_title(nb) == "02 · The MPC policy, tau · mpcrl_lite"
+    page = to_html(nb)
+    assert "<title>02 · The MPC policy, tau · mpcrl_lite</title>" in page
+    # the light theme's comment (#408080) and number (#080) colours fall below 4.5:1 on the
+    # code background; the page replaces them and underlines links in running text
+    assert "--jp-mirror-editor-comment-color: #2f6464" in page
+    assert "--jp-mirror-editor-number-color: #006600" in page
+    assert "--jp-cell-prompt-not-active-opacity: 1" in page
+    assert "text-decoration: underline" in page
+    untitled = nbformat.v4.new_notebook()
+    assert page_title(untitled) == "Notebook · mpcrl_lite"
+
+
+def test_the_offline_mathjax_has_every_font_it_asks_for(tmp_path):
+    """The MathML hidden for screen readers asks for the TeX fonts MathJax_AMS, _Script,
+    _Caligraphic and _Fraktur, which jupyter-server-mathjax does not ship: STIX faces stand in."""
+    folder = copy_mathjax(tmp_path)
+    config = (folder / "config" / "TeX-AMS-MML_HTMLorMML-full.js").read_text()
+    asked = set(re.findall(r"MathJax_[A-Za-z]+-[A-Za-z]+\.otf", config))
+    assert "MathJax_AMS-Regular.otf" in asked
+    for name in asked:
+        font = folder / "fonts" / "HTML-CSS" / "TeX" / "otf" / name
+        assert font.is_file() and font.read_bytes()[:4] == b"wOFF", name
+    (folder / "fonts" / "HTML-CSS" / "TeX" / "otf" / "MathJax_AMS-Regular.otf").unlink()
+    copy_mathjax(tmp_path)  # an older copy gets the missing fonts too
+    assert (folder / "fonts" / "HTML-CSS" / "TeX" / "otf" / "MathJax_AMS-Regular.otf").is_file()
 
 
 def test_unlink_remote_images_turns_badges_into_links():
