@@ -4,7 +4,9 @@ r"""Notebook 06's figures: every policy against the bounds, and two learners on 
   :func:`mpcrl_lite.bounds.baselines.evaluate_baselines` (nominal MPC, price rule, learned
   MPCs, the DP's policy), its mean daily cost :math:`J` on the common draw with the 95 %
   Student-t interval over the days, against the best causal cost :math:`J^\star` and the
-  clairvoyant bound, each policy's regret :math:`J - J^\star` written beside it;
+  clairvoyant bound, each policy's regret :math:`J - J^\star` written beside it (for the
+  learned MPC split into the learner's and the class's part when the baselines hold the
+  regret split of a tuned class, ``causal['split']``);
 * :func:`plot_learning_curves` draws :math:`J` per month of the centralized and the
   decentralized learner of :func:`mpcrl_lite.decentralized.learner.compare_learners` on one
   axes (points only when there are too few months for a line to mean anything).
@@ -85,8 +87,15 @@ def plot_policy_comparison(baselines: Mapping[str, Any], ax: Axes | None = None,
                     else None)
         regret = causal.get("regret", {}).get(name)
         if regret is not None:
-            ax.annotate(f"J − J* = {regret:+.1f}", (high, y), xytext=(6, 0),
-                        textcoords="offset points", va="center", fontsize=9)
+            text = f"J − J* = {regret:+.1f}"
+            split = causal.get("split") or {}
+            if name == "learned" and "learner" in split and "class" in split:
+                # the regret split (bounds.baselines.regret_split): what learning could still
+                # gain within the MPC class, and what the class itself costs
+                text += (f" = learner {split['learner']['mean']:+.1f}"
+                         f" + class {split['class']['mean']:+.1f}")
+            ax.annotate(text, (high, y), xytext=(6, 0), textcoords="offset points",
+                        va="center", fontsize=9)
     if "J_star" in causal:
         j_star = float(causal["J_star"])
         ax.axvline(j_star, color=FIRST_COLOR, lw=1.8,

@@ -48,6 +48,14 @@ def test_policy_comparison_draws_intervals_bounds_and_regrets(baselines):
     texts = {t.get_text() for t in ax.texts}
     assert f"J − J* = {baselines['causal']['regret']['learned']:+.1f}" in texts
     plt.close(fig)
+    # with the regret split of a tuned class, the learned row says how it splits
+    regret = baselines["causal"]["regret"]["learned"]
+    baselines["causal"]["split"] = {"learner": {"mean": regret - 100.0},
+                                    "class": {"mean": 100.0}}
+    fig = plot_policy_comparison(baselines)
+    texts = {t.get_text() for t in fig.axes[0].texts}
+    assert f"J − J* = {regret:+.1f} = learner {regret - 100:+.1f} + class +100.0" in texts
+    plt.close(fig)
 
 
 def test_learning_curves_on_one_axes_points_only_when_few_months():
