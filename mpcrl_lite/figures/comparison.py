@@ -15,11 +15,9 @@ r"""Notebook 06's figures: every policy against the bounds, and two learners on 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from matplotlib.axes import Axes
-from matplotlib.figure import Figure
 
 from .._util.stats import mean_ci
 from .style import (
@@ -30,6 +28,10 @@ from .style import (
     REF_GREY,
     axes_or_new,
 )
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
 
 __all__ = ["POLICY_LABELS", "plot_learning_curves", "plot_policy_comparison"]
 

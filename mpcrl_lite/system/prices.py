@@ -27,11 +27,14 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
+from .._util.lazy import lazy_module
 from .._util.resources import candidate_folders, package_folder
 from .._util.validate import InputTypeError, check_instance, check_int, check_real
 from ..config import HOURS_PER_DAY, PRICE_UNIT, SystemConfig
+
+#: pandas, imported when a CSV file is first read (it reads and parses every price file)
+pd = lazy_module("pandas")
 
 __all__ = ["DATA_DIR", "LOCAL_TZ", "Prices", "daily_matrix", "load_default_profile", "load_nordpool_csv", "nordpool_areas"]
 
