@@ -129,6 +129,8 @@ import warnings
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
+import numpy as np
+
 # the shared validators, also importable from here (their home is mpcrl_lite._util.validate)
 from ._util.validate import (  # noqa: F401
     InputTypeError,
@@ -153,7 +155,9 @@ __all__ = [
     "PAPER_STEP_SIZE",
     "PAPER_TAU",
     "PER_BATTERY",
+    "PRICE_LIMIT",
     "PRICE_UNIT",
+    "RANGES",
     "VALUE_FEATURES",
     "VALUE_FEATURE_SETS",
     "ConfigWarning",
@@ -161,6 +165,8 @@ __all__ = [
     "LearningConfig",
     "MPCConfig",
     "SystemConfig",
+    "check_grid_bound",
+    "check_ranges",
 ]
 
 #: Unit of every price in the project (see the module docstring for why).
@@ -170,6 +176,93 @@ PRICE_UNIT = "NOK/MWh"
 #: most this long, since the price matrices (:class:`mpcrl_lite.system.prices.Prices`) are indexed by
 #: day and clock hour.
 HOURS_PER_DAY = 24
+
+
+#: Prices (buying and selling, after ``price_scale``) must lie within +-PRICE_LIMIT per MWh:
+#: the highest day-ahead prices ever cleared are a few thousand EUR/MWh (some 1e4 NOK/MWh),
+#: so a larger number is a unit or typing mistake, and the MPC's cost is not solvable in
+#: floating point far beyond it (``Prices`` refuses it).
+PRICE_LIMIT = 1e5
+
+#: Where each number of the configurations means something to the model, as
+#: ``{section: {field: (low, high, why)}}`` (closed intervals). Every configuration refuses a
+#: value outside in one line naming the value and the interval, element-wise for a field given
+#: per battery (:func:`check_ranges`); a number inside may still be a poor choice, one outside
+#: is a mistake (an overflow, a denormal, a unit off by powers of ten). ``P_bar`` has in
+#: addition ``P_bar <= 10 * n * U_bar`` (ten times what all batteries together can draw: a
+#: larger bound only means no bound; :func:`check_grid_bound`, where a user's system enters),
+#: and the prices :data:`PRICE_LIMIT`.
+RANGES: dict[str, dict[str, tuple[float, float, str]]] = {
+    "system": {
+        "alpha": (1e-6, 10.0, "soc moves by alpha * U_bar per hour at most"),
+        "noise_mean": (-100.0, 100.0, "MW, a production-demand imbalance"),
+        "noise_var": (0.0, 100.0, "MW^2; a std of 10 MW swamps any battery of the model"),
+        "U_bar": (1e-6, 1e3, "MW per battery"),
+        "P_bar": (1e-6, 1e12, "MW; for a user's system at most 10 * n * U_bar, see above"),
+        "omega": (0.0, 1e6, "cost per unit of soc slack"),
+        "omega_f": (0.0, 1e6, "cost per unit of terminal soc slack"),
+        "p": (0.0, 1e6, "cost per unit of soc outside the band"),
+        "N": (1, 168, "hours of horizon; a week at most"),
+        "sample_time_h": (1e-3, 24.0, "hours"),
+        "sell_ratio": (0.0, 10.0, "selling / buying price"),
+        "price_scale": (0.0, 100.0, "multiplier on the price series"),
+    },
+    "mpc": {
+        "tau": (1e-12, 1.0, "NOK; below 1e-12 the barrier is lost in rounding"),
+        "tol": (1e-14, 1.0, "below 1e-14 the KKT residual is rounding noise"),
+        "max_iter": (1, 10_000, "interior-point iterations of one solve"),
+        "kkt_cond_max": (1.0, 1e20, "condition estimate"),
+    },
+    "learning": {
+        "step_size": (0.0, 1.0, ("adam: relative move per update (1 = its whole magnitude); "
+                                 "natural: RMS action change in MW; sgd: the gradient's "
+                                 "multiplier (the paper's 5e-8)")),
+        "exploration_std": (0.0, 10.0, "MW"),
+        "exploration_margin": (0.0, 10.0, "MW"),
+        "ridge": (0.0, 1.0, "relative Tikhonov term"),
+        "natural_damping": (0.0, 1e3, "relative damping"),
+        "max_policy_change": (0.0, 10.0, "MW"),
+        "grad_clip": (0.0, 1e12, "norm of one update"),
+        "alpha_min": (1e-9, 1.0, "smallest theta_alpha"),
+    },
+}
+
+
+def check_ranges(section: str, config: Any) -> None:
+    """Refuse a field of ``config`` outside its :data:`RANGES` interval (``ValueError``, one
+    line naming the field, the value and the interval), element by element where a field
+    holds one value per battery (or a pair, like ``omega``). ``None`` (an optional field not
+    set) passes."""
+    for name, (low, high, why) in RANGES[section].items():
+        value = getattr(config, name, None)
+        if value is None:
+            continue
+        values = np.asarray(value, dtype=float).ravel()
+        bad = values[~((values >= low) & (values <= high))]
+        if bad.size:
+            shown = f"{name}={value!r}" if values.size == 1 else \
+                f"{name}={show(value)} (entry {float(bad[0])!r})"
+            raise ValueError(f"{shown}: expected a value in [{low:g}, {high:g}] ({why}; "
+                             "config.RANGES)")
+
+
+def check_grid_bound(system: SystemConfig) -> SystemConfig:
+    """``system``, or a ``ValueError`` (one line) if ``P_bar > 10 * n * U_bar``: ten times what
+    all batteries can draw together, a bound that means no bound (a typing or unit mistake).
+    Checked where a user's system enters (the command line, sweep grids, every learner and
+    :func:`~mpcrl_lite.mpc.backends.registry.make_solver` callers through
+    :func:`mpcrl_lite.learning.learner.resolve_setup`), not by :class:`SystemConfig` itself: the
+    per-battery MPCs of :mod:`mpcrl_lite.decentralized` make their grid row inert with a
+    far larger bound on purpose."""
+    U_bar = np.asarray(system.U_bar, dtype=float)  # one value, or one per battery
+    reach = float(np.sum(U_bar)) if U_bar.ndim else float(system.n) * float(U_bar)
+    top = np.max(np.asarray(system.P_bar, dtype=float))
+    if top > 10 * reach:
+        raise ValueError(
+            f"P_bar={system.P_bar!r}: expected a value in (0, {10 * reach:g}] (10 * n * U_bar: "
+            "ten times what all batteries can draw together; a larger bound means no bound; "
+            "config.RANGES)")
+    return system
 
 
 class ConfigWarning(UserWarning):
@@ -296,6 +389,7 @@ class SystemConfig(_Config):
         set_("sell_ratio", check_real("sell_ratio", self.sell_ratio, 0.0))
         set_("price_scale", check_real("price_scale", self.price_scale, 0.0))
         set_("soc0", self._battery_values("soc0", 0.0, 1.0))
+        check_ranges("system", self)
         try:  # the most all batteries can buy (or sell) at once
             reach = (self.n * self.U_bar if isinstance(self.U_bar, float)
                      else math.fsum(self.U_bar))
@@ -428,6 +522,7 @@ class MPCConfig(_Config):
         set_("warm_start", check_bool("warm_start", self.warm_start))
         set_("kkt_cond_max", check_real("kkt_cond_max", self.kkt_cond_max, 1.0, low_open=True))
         set_("forecast", check_choice("forecast", self.forecast, FORECASTS))
+        check_ranges("mpc", self)
 
     @classmethod
     def paper(cls, **changes: Any) -> MPCConfig:
@@ -649,6 +744,7 @@ class LearningConfig(_Config):
                 f"{self.max_policy_change!r}: both need the policy sensitivity, which "
                 "Q-learning does not compute; expected optimizer 'adam' or 'sgd' and no "
                 "max_policy_change")
+        check_ranges("learning", self)
 
     def to_dict(self) -> dict[str, Any]:
         """As for every config; a DPG config (``learner='dpg'``, the Q-learning fields at

@@ -15,7 +15,7 @@ import reprlib
 from collections.abc import Sequence
 from typing import Any
 
-__all__ = ["InputTypeError", "check_bool", "check_choice", "check_instance", "check_int",
+__all__ = ["InputTypeError", "ModelInputError", "check_bool", "check_choice", "check_instance", "check_int",
            "check_real", "show"]
 
 
@@ -27,6 +27,12 @@ class InputTypeError(TypeError, ValueError):
     and what was expected, so one ``except ValueError`` (as in the command line) catches all
     of them.
     """
+
+
+class ModelInputError(ValueError):
+    """Inputs every check accepted, on which a computation still cannot be done (a solver
+    that cannot solve the problem they make); the message names the inputs and what to do.
+    The command line reports it in one line like any bad argument."""
 
 
 _shown = reprlib.Repr()

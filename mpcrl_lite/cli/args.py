@@ -6,6 +6,8 @@ before any work (through :mod:`mpcrl_lite.cli.inputs`).
 from __future__ import annotations
 
 import argparse
+import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -18,15 +20,45 @@ from ..config import (
     LearningConfig,
     MPCConfig,
     SystemConfig,
+    check_grid_bound,
 )
 from ..learning import rundir
 
 
 class Parser(argparse.ArgumentParser):
-    """argparse with one-line errors."""
+    """argparse with one-line errors, and negative numbers that argparse would take for
+    options (``--p-bar -inf``, ``--tau -1e-5``) read as the option's value, so that the
+    value's own check refuses them by value."""
 
     def error(self, message: str) -> None:  # type: ignore[override]
         self.exit(2, f"{self.prog}: error: {message}\n")
+
+    def parse_known_args(self, args=None, namespace=None):  # type: ignore[override]
+        args = list(sys.argv[1:] if args is None else args)
+        return super().parse_known_args(_join_negative_numbers(args), namespace)
+
+
+def _is_negative_number(text: str) -> bool:
+    if not text.startswith("-") or text.startswith("--"):
+        return False
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _join_negative_numbers(args: list[str]) -> list[str]:
+    """``['--p-bar', '-inf']`` -> ``['--p-bar=-inf']`` (argparse reads ``-inf``, ``-1e5``
+    and ``-nan`` as options, not as negative numbers)."""
+    joined: list[str] = []
+    for text in args:
+        last = joined[-1] if joined else ""
+        if _is_negative_number(text) and last.startswith("--") and "=" not in last:
+            joined[-1] = f"{last}={text}"
+        else:
+            joined.append(text)
+    return joined
 
 
 class UsageError(Exception):
@@ -60,6 +92,16 @@ def finite_float(text: str) -> float:
     if not np.isfinite(value):
         raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
     return value
+
+
+def out_dir(text: str) -> Path:
+    """argparse type of ``--out``: a path, not the empty string (``Path('')`` would be the
+    current directory)."""
+    if text == "":
+        raise argparse.ArgumentTypeError(
+            "'': expected a directory path (an empty path would write into the current "
+            "directory; pass '.' to mean it)")
+    return Path(text)
 
 
 # Defaults shown in --help are read from the configs, never copied.
@@ -148,8 +190,14 @@ def configs(args: argparse.Namespace, **learning: Any):
         mpc["forecast"] = args.forecast
     learning = {k: v for k, v in learning.items() if v is not None}
     try:
+        with warnings.catch_warnings(record=True) as caught:  # a refusal is the one line
+            warnings.simplefilter("always")
+            system_config = check_grid_bound(SystemConfig(**system))
+        for warning in caught:
+            warnings.warn_explicit(warning.message, warning.category, warning.filename,
+                                   warning.lineno)
         configs = (
-            SystemConfig(**system),
+            system_config,
             MPCConfig(**mpc),
             LearningConfig(seed=args.seed, **learning),
         )

@@ -6,17 +6,8 @@ was expected; :mod:`mpcrl_lite.cli.main` prints it and exits with status 2.
 
 Resource limits
 ---------------
-Before a command allocates anything, :func:`check_budget` estimates its peak memory and its
-run time from the problem size and refuses
-
-* memory above what the machine has available (``psutil.virtual_memory().available`` when
-  psutil is installed, else ``os.sysconf`` of the available physical pages), and
-* an estimated run time above :data:`TIME_LIMIT_S` seconds (4 hours; the environment
-  variable ``MPCRL_LITE_TIME_LIMIT_S`` sets another limit, e.g. for a long cluster run).
-
-The estimates are deliberately low (measured on a laptop core and rounded down for time, up
-only where memory grows with the data), so a refusal means the work surely does not fit;
-work near the limits is left to run.
+:func:`check_budget` and :func:`estimate` (from :mod:`mpcrl_lite._util.budget`, importable
+from here) refuse work beyond the machine's memory or the time limit.
 """
 
 from __future__ import annotations
@@ -25,44 +16,31 @@ import calendar
 import os
 import re
 from collections.abc import Iterable
-from dataclasses import dataclass
 from pathlib import Path
 
 import yaml
 
+from .._util.budget import (  # noqa: F401 (importable from here)
+    TIME_LIMIT_ENV,
+    TIME_LIMIT_S,
+    Budget,
+    available_memory,
+    check_budget,
+    estimate,
+)
 from ..config import SystemConfig
 from ..learning.rundir import RunDirError, check_output_dir, inspect
+from ..studies.sweep.grid import load_yaml
 from ..system.prices import Prices, load_nordpool_csv, nordpool_areas
 
-try:  # optional: a better figure of the available memory
-    import psutil
-except ImportError:  # pragma: no cover (psutil is present in the project's environments)
-    psutil = None
-
+# check_budget, estimate, Budget, available_memory and TIME_LIMIT_S/_ENV live in
+# mpcrl_lite._util.budget and stay importable from here.
 __all__ = [
-    "TIME_LIMIT_ENV",
-    "TIME_LIMIT_S",
-    "Budget",
-    "available_memory",
-    "check_budget",
-    "estimate",
     "month_prices",
     "prepare_out",
     "read_system_file",
     "refuse_finished",
 ]
-
-#: Default limit of the estimated run time of one command, in seconds.
-TIME_LIMIT_S = 4 * 3600.0
-TIME_LIMIT_ENV = "MPCRL_LITE_TIME_LIMIT_S"
-
-# Measured (simulate, N = 12, tau default): about 23 KiB of arrays per battery-day, 125 KiB of
-# set-up per battery, 3 ms per battery-day of closed loop, and a set-up that grows with n**2
-# (about 2e-5 s * n**2: 170 s at n = 3000). The time constants are rounded down.
-_BYTES_PER_AGENT_DAY = 32 * 1024
-_BYTES_PER_AGENT = 128 * 1024
-_SECONDS_PER_AGENT_DAY = 1e-3
-_SETUP_SECONDS_PER_AGENT2 = 1e-5
 
 _MONTH = re.compile(r"^(\d{4})-(\d{2})$")
 
@@ -159,7 +137,7 @@ def read_system_file(path: str | os.PathLike) -> dict:
     except (OSError, UnicodeDecodeError) as err:
         raise ValueError(_one_line(f"{where}: cannot be read ({err})")) from None
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text)  # a key written twice is refused
     except yaml.YAMLError as err:
         raise ValueError(_one_line(f"{where}: not valid YAML: {_yaml_where(err)}")) from None
     except (RecursionError, ValueError) as err:
@@ -184,70 +162,6 @@ def read_system_file(path: str | os.PathLike) -> dict:
     except (ValueError, TypeError) as err:
         raise ValueError(_one_line(f"{where}: {err}")) from None
     return fields
-
-
-# -- resources ----------------------------------------------------------------------------
-def available_memory() -> int | None:
-    """Bytes of memory available to a new allocation now, or None where it is not known."""
-    if psutil is not None:
-        return int(psutil.virtual_memory().available)
-    try:
-        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):  # pragma: no cover (not POSIX)
-        return None
-
-
-@dataclass(frozen=True)
-class Budget:
-    """Estimated peak memory (bytes) and run time (seconds) of a command."""
-
-    memory: float
-    seconds: float
-
-
-def estimate(n: int, days: int, runs: int = 1, sensitivities: bool = False,
-             horizon: int = SystemConfig().N) -> Budget:
-    """Lower estimates of the peak memory and run time of ``runs`` closed-loop months of
-    ``days`` days with ``n`` batteries (``sensitivities``: a learning month, twice the cost)."""
-    scale = max(1.0, (horizon / 12) ** 2)
-    factor = 2.0 if sensitivities else 1.0
-    memory = factor * scale * float(n) * float(days) * _BYTES_PER_AGENT_DAY \
-        + float(n) * _BYTES_PER_AGENT
-    seconds = factor * float(runs) * float(n) * float(days) * _SECONDS_PER_AGENT_DAY \
-        + _SETUP_SECONDS_PER_AGENT2 * float(n) ** 2
-    return Budget(memory, seconds)
-
-
-def _time_limit() -> float:
-    text = os.environ.get(TIME_LIMIT_ENV)
-    if not text:
-        return TIME_LIMIT_S
-    try:
-        value = float(text)
-    except ValueError:
-        raise ValueError(f"{TIME_LIMIT_ENV}={text!r}: expected a number of seconds") from None
-    if not value > 0:
-        raise ValueError(f"{TIME_LIMIT_ENV}={text!r}: expected a positive number of seconds")
-    return value
-
-
-def check_budget(what: str, n: int, days: int, runs: int = 1, sensitivities: bool = False,
-                 horizon: int = SystemConfig().N) -> Budget:
-    """:func:`estimate`, refused (``ValueError``, one line) above the available memory or the
-    time limit. ``what`` names the values in the message, e.g. ``'--days 1000000000 --n 3'``."""
-    budget = estimate(n, days, runs, sensitivities, horizon)
-    memory = available_memory()
-    if memory is not None and budget.memory > memory:
-        raise ValueError(
-            f"{what}: needs about {budget.memory / 2**30:.3g} GiB of memory; expected at most "
-            f"the {memory / 2**30:.3g} GiB available (use fewer days or batteries)")
-    limit = _time_limit()
-    if budget.seconds > limit:
-        raise ValueError(
-            f"{what}: would run for about {budget.seconds / 3600:.3g} hours or more; expected "
-            f"at most the time limit of {limit / 3600:.3g} hours (set {TIME_LIMIT_ENV} to "
-            "raise it)")
-    return budget
 
 
 # -- output directory ---------------------------------------------------------------------

@@ -33,6 +33,7 @@ import argparse
 import logging
 import sys
 
+from .._util.validate import ModelInputError
 from .args import Parser, UsageError
 from .commands import COMMANDS
 
@@ -59,8 +60,9 @@ def main(argv: list[str] | None = None) -> int:
     run = {command.NAME: command.run for command in COMMANDS}[args.command]
     try:
         return run(args)
-    except UsageError as err:
-        print(f"mpcrl_lite {args.command}: error: {err}", file=sys.stderr)
+    except (UsageError, ModelInputError) as err:
+        print(f"mpcrl_lite {args.command}: error: {' '.join(str(err).split())}",
+              file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"mpcrl_lite {args.command}: interrupted (checkpoints, if any, are kept)",

@@ -272,12 +272,13 @@ def plot_plan(
         ax_a.plot(j, steps(plan.b[:, i] - plan.s[:, i]), drawstyle="steps-post",
                   color=agent_color(i), lw=1.5 + 0.8 * (n - 1 - i), gid=f"net_power[{i + 1}]")
     ax_a.set_ylabel("planned b − s (MW)")
-    p_bar_line(ax_p, system.P_bar)
+    # the sold sum often sits exactly at P_bar: wide lines under thin dashes show both
+    p_bar_line(ax_p, system.P_bar, lw=1.0)
     sum_b, sum_s = plan.b.sum(axis=1), plan.s.sum(axis=1)
-    ax_p.plot(j, steps(sum_b), drawstyle="steps-post", color=FIRST_COLOR, lw=1.5, gid="sum_b",
-              label=r"$\sum_i b^i_j$ (bought)")
-    ax_p.plot(j, steps(sum_s), drawstyle="steps-post", color=LAST_COLOR, lw=1.5, gid="sum_s",
-              label=r"$\sum_i s^i_j$ (sold)")
+    ax_p.plot(j, steps(sum_b), drawstyle="steps-post", color=FIRST_COLOR, lw=3.0, gid="sum_b",
+              alpha=0.85, label=r"$\sum_i b^i_j$ (bought)")
+    ax_p.plot(j, steps(sum_s), drawstyle="steps-post", color=LAST_COLOR, lw=3.0, gid="sum_s",
+              alpha=0.85, label=r"$\sum_i s^i_j$ (sold)")
     headroom(ax_p, system.P_bar, sum_b.max(), sum_s.max())
     ax_p.set_ylabel("grid (MW)")
     legend_beside(ax_p)

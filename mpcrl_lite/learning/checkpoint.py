@@ -55,9 +55,11 @@ def prices_fingerprint(prices: Prices) -> dict[str, Any]:
 
 
 def open_run(learner: Checkpointing, months: int | None, out: str | Path | None, resume: bool,
-             force: bool) -> int:
+             force: bool, adopt: bool = False) -> int:
     """Check the arguments of :func:`run_months` and prepare ``out`` (resume, replace or
-    refuse); returns the number of months to reach."""
+    refuse); returns the number of months to reach. A run without ``manifest.json`` (written
+    before the manifest format: nothing verifies that its files are the ones the run wrote)
+    is resumed only with ``adopt``, with a warning; it is then committed in today's format."""
     months = learner.learning.months if months is None else months
     if isinstance(months, bool) or not isinstance(months, int) or months < 1:
         raise ValueError(f"months={months!r}: expected an integer >= 1")
@@ -68,7 +70,15 @@ def open_run(learner: Checkpointing, months: int | None, out: str | Path | None,
         raise ValueError("resume=True needs out=DIR (where the checkpoint is)")
     if out is not None:
         found = rundir.inspect(out)
+        if resume and found.holds_run and not found.manifest and not adopt:
+            raise RunDirError(
+                f"{out} holds a run without {rundir.MANIFEST} (written before the manifest "
+                "format: its files cannot be verified); pass --adopt (adopt=True) to resume "
+                "it as it is, or --force (force=True) to start over")
         if resume and found.holds_run:
+            if not found.manifest:
+                log.warning("adopting %s: a run without %s, resumed unverified (its files "
+                            "are only checked against each other)", out, rundir.MANIFEST)
             learner.load_checkpoint(out)
             if not found.manifest:  # a run of the previous format: committed in this one
                 learner.save_checkpoint(out)
@@ -127,8 +137,15 @@ class Checkpointing:
 
     def configs_hash(self) -> str:
         """sha256 of the configurations, ``learning.months`` left out (a resume may extend
-        the run)."""
-        return rundir.config_sha256(_plain_configs(self.configs()))
+        the run); computed once per set of configuration objects (they are frozen)."""
+        configs = self.configs()
+        key = tuple((name, id(cfg)) for name, cfg in configs.items())
+        known = getattr(self, "_configs_hash", None)
+        if known is None or known[0] != key:
+            # the objects are kept with their hash, so that their ids stay theirs
+            known = self._configs_hash = (key, rundir.config_sha256(_plain_configs(configs)),
+                                          tuple(configs.values()))
+        return known[1]
 
     def checkpoint_state(self) -> dict[str, Any]:
         """The content of ``checkpoint.json``."""

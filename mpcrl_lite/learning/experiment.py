@@ -163,10 +163,16 @@ class Experiment(Learner):
         return every > 0 and (month % every == 0 or month == self.learning.months - 1)
 
     def _check_solver(self, theta: Theta) -> None:
-        if self.mpc_config.backend == "auto" and not theta.is_convex() and self.solver.name != "ipopt":
+        if theta.is_convex() or self.solver.name == "ipopt" or self.mpc_config.backend == "ipopt":
+            return
+        if self.mpc_config.backend == "auto":
             log.info("theta is no longer convex: switching the MPC back-end to IPOPT")
-            self.solver = make_solver(self.mpc, self.mpc_config.replace(backend="ipopt"))
-            self.history.backend = self.solver.name
+        else:  # the compiled and numpy interior points solve convex MPCs only
+            log.warning("theta is no longer convex (phi1 or T1 < 0): the %r back-end cannot "
+                        "solve it; switching the MPC back-end to IPOPT",
+                        self.mpc_config.backend)
+        self.solver = make_solver(self.mpc, self.mpc_config.replace(backend="ipopt"))
+        self.history.backend = self.solver.name
 
     def month_options(self) -> dict[str, Any]:
         """The keyword arguments of :func:`~mpcrl_lite.sim.closed_loop.run_month` besides theta,
@@ -230,7 +236,7 @@ class Experiment(Learner):
         def apply() -> None:
             self.theta = theta
             self.updater.load_state_dict(updater.state_dict())
-            if self.history.backend == "ipopt" and self.mpc_config.backend == "auto":
+            if self.history.backend == "ipopt" and self.mpc_config.backend != "ipopt":
                 # the run had switched to IPOPT (a non-convex theta): it stays there
                 self.solver = make_solver(self.mpc, self.mpc_config.replace(backend="ipopt"))
             self._check_solver(self.theta)

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -35,11 +36,12 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
-from ..config import LearningConfig, MPCConfig, SystemConfig
+from ..config import LearningConfig, MPCConfig, SystemConfig, check_grid_bound
 from ..sim.record import MonthRecord
 from ..system.forecast import forecast_of, forecast_prices
 from ..system.prices import Prices
 from ..theta import Theta
+from . import rundir
 from .checkpoint import Checkpointing, open_run
 from .history import History
 
@@ -79,7 +81,7 @@ def resolve_setup(
     of ``MPCConfig.forecast``); prices given already as
     :func:`~mpcrl_lite.system.forecast.until_midnight` set ``forecast='until_midnight'`` in the
     returned config, so that the run records what its MPC saw."""
-    system = system or SystemConfig()
+    system = check_grid_bound(system or SystemConfig())
     mpc_config = mpc_config or MPCConfig()
     learning = learning or LearningConfig()
     if prices is None:
@@ -105,16 +107,27 @@ def run_months(
     progress: bool,
     desc: str = "learning",
     force: bool = False,
+    adopt: bool = False,
 ) -> History:
     """The month loop of every learner.
 
     Runs until ``months`` months are recorded (default ``learning.months``). With ``out``
-    every month is committed to that run directory; a directory that already holds a run
-    is continued with ``resume`` (verified first, see :meth:`Learner.load_checkpoint`),
-    replaced with ``force``, and refused otherwise. ``resume`` in a directory without a run
-    starts one.
+    every month is committed to that run directory, locked for the loop
+    (:func:`~mpcrl_lite.learning.rundir.lock_output_dir`: another process there is refused);
+    a directory that already holds a run is continued with ``resume`` (verified first, see
+    :meth:`Learner.load_checkpoint`; a directory from before the manifest format only with
+    ``adopt``), replaced with ``force``, and refused otherwise. ``resume`` in a directory
+    without a run starts one.
     """
-    months = open_run(learner, months, out, resume, force)
+    with ExitStack() as stack:
+        if out is not None:
+            Path(out).mkdir(parents=True, exist_ok=True)
+            stack.enter_context(rundir.lock_output_dir(out, "learn"))
+        return _run_months(learner, months, out, resume, progress, desc, force, adopt)
+
+
+def _run_months(learner, months, out, resume, progress, desc, force, adopt) -> History:
+    months = open_run(learner, months, out, resume, force, adopt)
     out = Path(out) if out is not None else None
     history = learner.history
     bar = tqdm(total=months, initial=min(history.months, months), desc=desc, unit="month",
@@ -218,11 +231,14 @@ class Learner(Checkpointing):
         resume: bool = False,
         progress: bool = True,
         force: bool = False,
+        adopt: bool = False,
     ) -> History:
         """Run until ``months`` months are recorded (default ``learning.months``).
 
         With ``out`` each month is committed to that run directory; ``resume`` continues the
         run found there (same results as an uninterrupted run) and ``force`` replaces it;
-        without either, a directory that holds a run is refused.
+        without either, a directory that holds a run is refused. A run directory from before
+        the manifest format (no checksums) is resumed only with ``adopt`` (and a warning).
         """
-        return run_months(self, months, out, resume, progress, desc=self.DESC, force=force)
+        return run_months(self, months, out, resume, progress, desc=self.DESC, force=force,
+                          adopt=adopt)

@@ -75,6 +75,14 @@ Every problem with a directory is a :class:`RunDirError` (a ``ValueError``) whos
 one line saying what is wrong and how to recover; a failed write is a :class:`RunWriteError`
 (an ``OSError``) after which the last commit is intact.
 
+One process per directory (:func:`lock_output_dir`)
+---------------------------------------------------
+Every command that writes a directory (``learn``, ``study``, ``sweep``, ``report``, ``tune``)
+holds an OS file lock on ``D/.mpcrl_lite.lock`` (``fcntl.flock``) while it works; the file
+names the holder's PID and command. A second process on the same directory is refused in one
+line (:class:`RunDirLocked`) naming that PID; the lock dies with its process, so the lock file
+of a killed process is simply taken over, and the file is removed when the holder ends.
+
 Test hooks
 ----------
 ``MPCRL_LITE_KILL_AFTER_WRITE=i`` makes the process kill itself (SIGKILL) right after its
@@ -94,6 +102,7 @@ import re
 import signal
 import tempfile
 import threading
+import time
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -102,7 +111,12 @@ from typing import Any
 
 from .._util.jsonio import dumps
 
-__all__ = ["APPENDABLE", "CHECKPOINT", "FORMAT", "FORMATS", "FORMAT_APPEND", "HISTORY_JSON", "HISTORY_NPZ", "JOURNAL", "KINDS", "MANIFEST", "RECOVER", "STAGING", "SUMMARY", "Contents", "PendingCommit", "Run", "RunDirError", "RunDirMissing", "RunWriteError", "atomic_output", "check_output_dir", "clear", "commit", "commit_soon", "config_sha256", "inspect", "manifest_of", "read", "write_atomic", "write_json"]
+try:  # POSIX file locks; elsewhere a directory is not locked
+    import fcntl
+except ImportError:  # pragma: no cover (Windows)
+    fcntl = None  # type: ignore[assignment]
+
+__all__ = ["APPENDABLE", "CHECKPOINT", "FORMAT", "FORMATS", "FORMAT_APPEND", "HISTORY_JSON", "HISTORY_NPZ", "JOURNAL", "KINDS", "LOCK", "MANIFEST", "RECOVER", "STAGING", "SUMMARY", "Contents", "PendingCommit", "Run", "RunDirError", "RunDirLocked", "RunDirMissing", "RunWriteError", "atomic_output", "check_output_dir", "clear", "commit", "commit_soon", "config_sha256", "inspect", "lock_output_dir", "manifest_of", "read", "refuse_empty", "write_atomic", "write_json"]
 
 FORMAT = "mpcrl_lite.Run/1"
 #: The manifest's format when it lists an appended file (readers of format 1 refuse it).
@@ -117,6 +131,8 @@ JOURNAL = "history.jsonl"
 #: The files a commit may append to instead of writing them anew.
 APPENDABLE = (JOURNAL,)
 SUMMARY = "summary.json"
+#: The lock file of a directory in use (:func:`lock_output_dir`).
+LOCK = ".mpcrl_lite.lock"
 #: Where a commit's new files are written before the manifest names them.
 STAGING = ".run"
 #: What a run directory holds: a learner's run or a History on its own.
@@ -139,6 +155,10 @@ class RunDirError(ValueError):
 
 class RunDirMissing(RunDirError, FileNotFoundError):
     """No run (or no History) where one was expected."""
+
+
+class RunDirLocked(RunDirError):
+    """The directory is in use by another process (:func:`lock_output_dir`)."""
 
 
 class RunWriteError(OSError):
@@ -375,6 +395,16 @@ def _existing_ancestor(path: Path) -> Path:
     return path
 
 
+def refuse_empty(path: str | os.PathLike, flag: str = "--out") -> str:
+    """``path`` as a string, or a :class:`RunDirError` if it is empty (``Path('')`` is the
+    current directory: an empty ``--out`` must not quietly write there)."""
+    text = os.fspath(path)
+    if text == "":
+        raise RunDirError(f"{flag} '': expected a directory path (an empty path would "
+                          "write into the current directory; pass '.' to mean it)")
+    return text
+
+
 def check_output_dir(path: str | os.PathLike, flag: str = "--out", create: bool = True) -> Path:
     """An output directory that exists (created if needed) and can be written, or a
     :class:`RunDirError` naming the problem; called before any work starts.
@@ -383,10 +413,7 @@ def check_output_dir(path: str | os.PathLike, flag: str = "--out", create: bool 
     its nearest existing parent (it must be a directory this process can write to). The one
     check of every command's output directory (runs, sweeps, studies, reports).
     """
-    text = os.fspath(path)
-    if text == "":
-        raise RunDirError(f"{flag} '': expected a directory path (an empty path would "
-                          "write into the current directory; pass '.' to mean it)")
+    text = refuse_empty(path, flag)
     directory = Path(text)
     if not create:
         try:
@@ -421,6 +448,94 @@ def check_output_dir(path: str | os.PathLike, flag: str = "--out", create: bool 
             f"{flag} {text}: cannot write there ({_reason(err)}); expected a writable directory"
         ) from None
     return directory
+
+
+# -- one process per directory ----------------------------------------------------------------
+#: Locks this process holds: real path -> [file descriptor, depth] (a lock is re-entrant in
+#: its process: a command and the library function it calls may both take it).
+_held: dict[str, list[int]] = {}
+
+
+def _holder(path: Path) -> str:
+    """'PID 1234, learn' as the lock file says (read a few times: the holder writes it just
+    after taking the lock)."""
+    for _ in range(20):
+        try:
+            text = path.read_text().split()
+        except OSError:
+            text = []
+        if text:
+            return f"PID {text[0]}" + (f", {' '.join(text[1:])}" if len(text) > 1 else "")
+        time.sleep(0.01)
+    return "PID unknown"
+
+
+@contextmanager
+def lock_output_dir(path: str | os.PathLike, command: str, flag: str = "--out") -> Iterator[Path]:
+    """Hold the lock of the directory ``path`` (which must exist) for the block: one process
+    at a time writes a directory.
+
+    The lock is ``fcntl.flock`` on ``path/.mpcrl_lite.lock`` (:data:`LOCK`), which holds the
+    PID and ``command``; the OS releases it when the process ends, however it ends, so the
+    file of a killed process is taken over. It is re-entrant within a process (a command and
+    the library function it calls may both take it) and released, its file removed, when the
+    outermost block ends. Where ``fcntl`` does not exist (Windows) nothing is locked.
+
+    Raises
+    ------
+    RunDirLocked
+        (a :class:`RunDirError`) at once, one line naming the holder's PID, if another
+        process holds the lock.
+    """
+    directory = Path(path)
+    key = os.path.realpath(directory)
+    if fcntl is None or key in _held:
+        if key in _held:
+            _held[key][1] += 1
+        try:
+            yield directory
+        finally:
+            if key in _held:
+                _held[key][1] -= 1
+        return
+    lock = directory / LOCK
+    while True:
+        try:
+            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as err:
+            raise RunDirError(f"{flag} {os.fspath(path)}: cannot create its lock file "
+                              f"({_reason(err)}); expected a writable directory") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            raise RunDirLocked(
+                f"{flag} {os.fspath(path)} is in use by another process ({_holder(lock)}); "
+                f"wait for it to end or choose another {flag}") from None
+        try:  # the file may have been removed by a holder that ended meanwhile: lock anew
+            same = os.fstat(fd).st_ino == os.stat(lock).st_ino
+        except OSError:
+            same = False
+        if same:
+            break
+        os.close(fd)
+    try:
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()} {command}\n".encode())
+    except OSError:  # a full disk: the lock holds without its note
+        pass
+    _held[key] = [fd, 1]
+    try:
+        yield directory
+    finally:
+        _held[key][1] -= 1
+        if _held[key][1] == 0:
+            del _held[key]
+            try:
+                lock.unlink()  # while locked: a waiting process then locks a new file
+            except OSError:
+                pass
+            os.close(fd)
 
 
 # -- commits in the background -------------------------------------------------------------

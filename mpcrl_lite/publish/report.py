@@ -35,6 +35,7 @@ from .._util.jsonio import plain
 from .._util.resources import package_folder
 from .._util.validate import InputTypeError, check_choice
 from ..learning import rundir
+from .claims import check_claims
 from .html_export import copy_mathjax, write_html
 
 __all__ = [
@@ -43,6 +44,7 @@ __all__ = [
     "KERNEL_EXTENSIONS",
     "NOTEBOOK_DIR",
     "PROFILES",
+    "ClaimError",
     "check_parameters",
     "execute_notebook",
     "notebook_parameters",
@@ -232,11 +234,16 @@ def profile_parameters(profile: str) -> dict[str, dict[str, Any]]:
 
 def _kernel_options(socket_dir: str) -> dict[str, Any]:
     """papermill/nbclient options for a local kernel: IPC sockets inside ``socket_dir`` (where
-    the platform has them) and the :data:`KERNEL_EXTENSIONS`."""
+    the platform has them), the :data:`KERNEL_EXTENSIONS`, and the kernel's own log silenced
+    below CRITICAL: when a notebook is done the kernel manager interrupts the kernel (SIGINT)
+    before shutting it down, and a kernel caught in a message handler then logs
+    ``[IPKernelApp] ERROR | KeyboardInterrupt caught in kernel`` on our stderr; a failing cell
+    is reported by papermill, not by that log."""
     from traitlets.config import Config
 
     options: dict[str, Any] = {
-        "extra_arguments": [f"--IPKernelApp.extensions={name}" for name in KERNEL_EXTENSIONS],
+        "extra_arguments": [*(f"--IPKernelApp.extensions={name}" for name in KERNEL_EXTENSIONS),
+                            "--IPKernelApp.log_level=CRITICAL"],
     }
     if os.name == "posix":
         options["config"] = Config(
@@ -272,29 +279,44 @@ def run_report(
 ) -> dict[str, Any]:
     """Execute the notebooks into ``out`` (``.ipynb`` + offline ``.html``, MathJax in
     ``out/mathjax``) and write ``out/summary.json`` with each notebook's key numbers,
-    parameters and run time."""
-    out = Path(out)
+    parameters and run time, and the check of the prose's claims for ``profile``
+    (:mod:`mpcrl_lite.publish.claims`): a claim that does not hold raises :class:`ClaimError`
+    once everything is written."""
+    out = Path(rundir.refuse_empty(out))
     params = profile_parameters(profile)
     paths = notebook_paths(notebooks)
     # check every notebook's parameters before executing any of them (or creating ``out``)
     for path in paths:
         _check_values(path.name, params.get(path.stem, {}), notebook_parameters(path))
     out = rundir.check_output_dir(out)
-    copy_mathjax(out)  # before any work: fails at once if the MathJax files are missing
-    summary: dict[str, Any] = {"profile": profile, "notebooks": {}}
-    for path in paths:
-        t0 = time.perf_counter()
-        # papermill saves the notebook after every cell: written aside, renamed when done
-        with rundir.atomic_output(out / path.name,
-                                  failed=out / f"{path.stem}.failed.ipynb") as partial:
-            nb = execute_notebook(path, partial, params.get(path.stem, {}), cwd=out)
-        seconds = time.perf_counter() - t0
-        with rundir.atomic_output(out / f"{path.stem}.html") as partial:
-            write_html(nb, partial)
-        summary["notebooks"][path.stem] = {
-            "seconds": round(seconds, 1),
-            "parameters": params.get(path.stem, {}),
-            "results": read_summary(nb),
-        }
+    with rundir.lock_output_dir(out, "report"):  # one process at a time in out
+        copy_mathjax(out)  # before any work: fails at once if the MathJax files are missing
+        summary: dict[str, Any] = {"profile": profile, "notebooks": {}}
+        for path in paths:
+            t0 = time.perf_counter()
+            # papermill saves the notebook after every cell: written aside, renamed when done
+            with rundir.atomic_output(out / path.name,
+                                      failed=out / f"{path.stem}.failed.ipynb") as partial:
+                nb = execute_notebook(path, partial, params.get(path.stem, {}), cwd=out)
+            seconds = time.perf_counter() - t0
+            with rundir.atomic_output(out / f"{path.stem}.html") as partial:
+                write_html(nb, partial)
+            summary["notebooks"][path.stem] = {
+                "seconds": round(seconds, 1),
+                "parameters": params.get(path.stem, {}),
+                "results": read_summary(nb),
+            }
+            rundir.write_json(out / "summary.json", summary)
+        # what the prose claims about these runs (notebooks/claims.yaml), checked last
+        summary["claims"] = check_claims(
+            {stem: entry["results"] for stem, entry in summary["notebooks"].items()}, profile)
         rundir.write_json(out / "summary.json", summary)
-    return summary
+        if summary["claims"]["failed"]:
+            raise ClaimError(f"{len(summary['claims']['failed'])} claim(s) of the notebooks' prose "
+                             "do not hold for this run (notebooks/claims.yaml): "
+                             + "; ".join(summary["claims"]["failed"]))
+        return summary
+
+
+class ClaimError(ValueError):
+    """A sentence of a notebook states a number that its run does not give."""

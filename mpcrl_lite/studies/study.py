@@ -58,6 +58,7 @@ import numpy as np
 import pandas as pd
 
 from .._util import jsonio
+from .._util.budget import Budget, check_estimate, learning_estimate
 from .._util.stats import mean_ci
 from ..bounds.baselines import load_class_best
 from ..bounds.causal.dual import lagrangian_bound
@@ -337,6 +338,23 @@ def plot_curves(curves: pd.DataFrame, J_target: float | None = None,
     return fig
 
 
+def _check_study_budget(seeds: int, months: int, seed_start: int, base: Mapping[str, Any],
+                        workers: int | None, scheduler: str | None) -> None:
+    """The study's runs against the machine before the seed list is even built
+    (:func:`mpcrl_lite.studies.sweep.api.check_sweep_budget` for one seed, times the seeds)."""
+    one = load_grid({"base": {**base, "learning.months": int(months)},
+                     "grid": {"learning.seed": [int(seed_start)]}})
+    run = one.runs[0]
+    budget = learning_estimate(run.system.n, run.learning.days_per_month, int(months),
+                               run.learning.eval_draws, run.learning.eval_every, run.system.N)
+    remote = scheduler not in (None, "serial") and workers is None
+    slots = 1 if scheduler == "serial" or workers == 0 else (workers or 2)
+    seconds = 0.0 if remote else budget.seconds * int(seeds) / slots
+    check_estimate(f"seeds={seeds}, months={months} (days_per_month "
+                   f"{run.learning.days_per_month}, n {run.system.n})",
+                   Budget(budget.memory, seconds))
+
+
 def run_study(
     seeds: int,
     months: int,
@@ -397,60 +415,63 @@ def run_study(
     clash = [k for k in base if k in ("learning.seed", "learning.months")]
     if clash:
         raise ValueError(f"base sets {clash}: the study sets the seeds and the months itself")
+    _check_study_budget(seeds, months, seed_start, base, workers, scheduler)
     seed_list = list(range(int(seed_start), int(seed_start) + int(seeds)))
     grid = {"base": {**base, "learning.months": int(months)}, "grid": {"learning.seed": seed_list}}
     # the convergence rule is checked before any run starts
     summarize(pd.DataFrame({"seed": [], "status": []}), J_star, threshold)
-    out = Path(out)
+    out = Path(rundir.refuse_empty(out))
     method, note = "given", ""
     check_out_dir(out)  # before the DP writes its result there
-    if J_star is None and target == "causal":
-        # every run shares the system and the month (only the seed varies)
-        run = load_grid(grid).runs[0]
-        found = _study_target(out, run.system,
-                              Prices.month(run.system, run.learning.days_per_month))
-        J_star, method, note = found["J_star"], found["method"], found["note"]
-    elif J_star is None:
-        note = "target='best_seen': judged against the best J_eval reached"
-    tuned = None
-    if class_best is not None:  # checked before the runs start
-        tuned = load_class_best(class_best)
-        run = load_grid(grid).runs[0]
-        if tuned.get("system") != json.loads(jsonio.dumps(run.system.to_dict())) or \
-                tuned.get("forecast") != run.mpc.forecast:
-            raise ValueError(f"--class-best {class_best}: searched for another class (system "
-                             f"or forecast {tuned.get('forecast')!r}) than the study's "
-                             f"(forecast {run.mpc.forecast!r}); expected a tune result of the "
-                             "study's system and forecast")
-    table = run_sweep(grid, out, scheduler=scheduler, workers=workers, progress=progress,
-                      lockstep=lockstep)
-    rows, histories = [], {}
-    for seed, (_, result) in zip(seed_list, table.iterrows()):
-        row: dict[str, Any] = {"seed": seed, "run_id": result["run_id"],
-                               "status": result["status"], "error": result["error"]}
-        if result["status"] == "done":
-            history = History.load(out / result["run_dir"])
-            histories[seed] = history
-            row.update(seed_row(history))
-        rows.append(row)
-    seed_table, summary = summarize(pd.DataFrame(rows), J_star, threshold,
-                                    J_star_method=method or "given", J_star_note=note)
-    if tuned is not None:
-        summary["class_split"] = class_split(seed_table, tuned, summary["J_star"])
-        summary["class_split"]["source"] = str(class_best)
-    seed_table = seed_table.reindex(columns=list(SEED_COLUMNS))
-    curves = curves_table(histories)
-    seed_table.to_csv(out / "study.csv", index=False)
-    curves.to_csv(out / "study_curves.csv", index=False)
-    summary = {"months": int(months), "eval_draws": _eval_draws(histories), **summary}
-    rundir.write_json(out / "study.json", summary)
-    fig = plot_curves(curves, summary["J_target"])
-    try:
-        with rundir.atomic_output(out / "study_curves.png") as tmp:
-            fig.savefig(tmp, dpi=120, bbox_inches="tight")
-    finally:
-        plt.close(fig)
-    return summary
+    out.mkdir(parents=True, exist_ok=True)
+    with rundir.lock_output_dir(out, "study"):  # one process at a time in out
+        if J_star is None and target == "causal":
+            # every run shares the system and the month (only the seed varies)
+            run = load_grid(grid).runs[0]
+            found = _study_target(out, run.system,
+                                  Prices.month(run.system, run.learning.days_per_month))
+            J_star, method, note = found["J_star"], found["method"], found["note"]
+        elif J_star is None:
+            note = "target='best_seen': judged against the best J_eval reached"
+        tuned = None
+        if class_best is not None:  # checked before the runs start
+            tuned = load_class_best(class_best)
+            run = load_grid(grid).runs[0]
+            if tuned.get("system") != json.loads(jsonio.dumps(run.system.to_dict())) or \
+                    tuned.get("forecast") != run.mpc.forecast:
+                raise ValueError(f"--class-best {class_best}: searched for another class (system "
+                                 f"or forecast {tuned.get('forecast')!r}) than the study's "
+                                 f"(forecast {run.mpc.forecast!r}); expected a tune result of the "
+                                 "study's system and forecast")
+        table = run_sweep(grid, out, scheduler=scheduler, workers=workers, progress=progress,
+                          lockstep=lockstep)
+        rows, histories = [], {}
+        for seed, (_, result) in zip(seed_list, table.iterrows()):
+            row: dict[str, Any] = {"seed": seed, "run_id": result["run_id"],
+                                   "status": result["status"], "error": result["error"]}
+            if result["status"] == "done":
+                history = History.load(out / result["run_dir"])
+                histories[seed] = history
+                row.update(seed_row(history))
+            rows.append(row)
+        seed_table, summary = summarize(pd.DataFrame(rows), J_star, threshold,
+                                        J_star_method=method or "given", J_star_note=note)
+        if tuned is not None:
+            summary["class_split"] = class_split(seed_table, tuned, summary["J_star"])
+            summary["class_split"]["source"] = str(class_best)
+        seed_table = seed_table.reindex(columns=list(SEED_COLUMNS))
+        curves = curves_table(histories)
+        seed_table.to_csv(out / "study.csv", index=False)
+        curves.to_csv(out / "study_curves.csv", index=False)
+        summary = {"months": int(months), "eval_draws": _eval_draws(histories), **summary}
+        rundir.write_json(out / "study.json", summary)
+        fig = plot_curves(curves, summary["J_target"])
+        try:
+            with rundir.atomic_output(out / "study_curves.png") as tmp:
+                fig.savefig(tmp, dpi=120, bbox_inches="tight")
+        finally:
+            plt.close(fig)
+        return summary
 
 
 def class_split(table: pd.DataFrame, tuned: Mapping[str, Any],

@@ -300,97 +300,98 @@ def tune(
     if theta0.n != system.n:
         raise ValueError(f"theta0 has n={theta0.n}; expected n={system.n}")
     workers = check_int("workers", workers, 1)
-    out = rundir.check_output_dir(out)
-    space = Space(theta0, settings.tied)
-    key = _key(settings, system, mpc_config, prices, theta0)
-    state_path = out / _STATE
-    train = list(range(settings.draws))
-    heldout_seed = LearningConfig().eval_seed
-    heldout = list(range(settings.heldout_draws))
+    out = rundir.check_output_dir(rundir.refuse_empty(out))
+    with rundir.lock_output_dir(out, "tune"):  # one process at a time in out
+        space = Space(theta0, settings.tied)
+        key = _key(settings, system, mpc_config, prices, theta0)
+        state_path = out / _STATE
+        train = list(range(settings.draws))
+        heldout_seed = LearningConfig().eval_seed
+        heldout = list(range(settings.heldout_draws))
 
-    state: dict[str, Any] | None = None
-    if resume and state_path.exists():
+        state: dict[str, Any] | None = None
+        if resume and state_path.exists():
+            try:
+                state = pickle.loads(state_path.read_bytes())
+            except Exception as err:  # noqa: BLE001 - any unreadable state is one message
+                raise ValueError(f"{state_path}: not a readable tune state ({err}); use another "
+                                 "--out or start anew without --resume") from None
+            why = _mismatch(state.get("key", {}), key)
+            if why:
+                raise ValueError(f"cannot resume the search in {out}: {why}; use the same settings "
+                                 "or another --out")
+            np.random.set_state(state["np_random"])
+            es = state["es"]
+        else:
+            opts = {"seed": settings.seed + 1, "verbose": -9,
+                    "bounds": [list(space.lower), None], "CMA_diagonal": False}
+            if settings.popsize is not None:
+                opts["popsize"] = settings.popsize
+            es = cma.CMAEvolutionStrategy(space.z0, settings.sigma0, opts)
+            state = {"key": key, "log": [], "best_J": math.inf, "best_z": None,
+                     "evals": 0, "wall": 0.0, "cpu": 0.0, "worker_cpu": 0.0}
+
+        evaluate = _Evaluator(system, mpc_config, prices, workers)
+        bar = tqdm(total=settings.evals, initial=min(state["evals"], settings.evals),
+                   desc="tune", unit="eval", disable=not progress)
         try:
-            state = pickle.loads(state_path.read_bytes())
-        except Exception as err:  # noqa: BLE001 - any unreadable state is one message
-            raise ValueError(f"{state_path}: not a readable tune state ({err}); use another "
-                             "--out or start anew without --resume") from None
-        why = _mismatch(state.get("key", {}), key)
-        if why:
-            raise ValueError(f"cannot resume the search in {out}: {why}; use the same settings "
-                             "or another --out")
-        np.random.set_state(state["np_random"])
-        es = state["es"]
-    else:
-        opts = {"seed": settings.seed + 1, "verbose": -9,
-                "bounds": [list(space.lower), None], "CMA_diagonal": False}
-        if settings.popsize is not None:
-            opts["popsize"] = settings.popsize
-        es = cma.CMAEvolutionStrategy(space.z0, settings.sigma0, opts)
-        state = {"key": key, "log": [], "best_J": math.inf, "best_z": None,
-                 "evals": 0, "wall": 0.0, "cpu": 0.0, "worker_cpu": 0.0}
-
-    evaluate = _Evaluator(system, mpc_config, prices, workers)
-    bar = tqdm(total=settings.evals, initial=min(state["evals"], settings.evals),
-               desc="tune", unit="eval", disable=not progress)
-    try:
-        while state["evals"] < settings.evals:
+            while state["evals"] < settings.evals:
+                t_wall, t_cpu, w_cpu = time.perf_counter(), time.process_time(), evaluate.worker_cpu
+                Z = es.ask()
+                J = evaluate(space.thetas(Z), settings.seed, train).mean(axis=1)
+                es.tell(Z, J.tolist())
+                i = int(np.argmin(J))
+                if J[i] < state["best_J"]:
+                    state["best_J"], state["best_z"] = float(J[i]), np.asarray(Z[i], float).copy()
+                state["evals"] += len(Z)
+                state["log"].append({"generation": len(state["log"]) + 1, "evals": state["evals"],
+                                     "J_min": float(J.min()), "J_median": float(np.median(J)),
+                                     "J_best": state["best_J"], "sigma": float(es.sigma)})
+                state["wall"] += time.perf_counter() - t_wall
+                state["cpu"] += time.process_time() - t_cpu
+                state["worker_cpu"] += evaluate.worker_cpu - w_cpu
+                state["es"], state["np_random"] = es, np.random.get_state()
+                rundir.write_atomic(state_path, pickle.dumps(state))
+                bar.set_postfix(J_best=f"{state['best_J']:.1f}", refresh=False)
+                bar.update(min(len(Z), settings.evals - bar.n))
+            bar.close()
+            theta_best = space.theta(state["best_z"])
             t_wall, t_cpu, w_cpu = time.perf_counter(), time.process_time(), evaluate.worker_cpu
-            Z = es.ask()
-            J = evaluate(space.thetas(Z), settings.seed, train).mean(axis=1)
-            es.tell(Z, J.tolist())
-            i = int(np.argmin(J))
-            if J[i] < state["best_J"]:
-                state["best_J"], state["best_z"] = float(J[i]), np.asarray(Z[i], float).copy()
-            state["evals"] += len(Z)
-            state["log"].append({"generation": len(state["log"]) + 1, "evals": state["evals"],
-                                 "J_min": float(J.min()), "J_median": float(np.median(J)),
-                                 "J_best": state["best_J"], "sigma": float(es.sigma)})
-            state["wall"] += time.perf_counter() - t_wall
-            state["cpu"] += time.process_time() - t_cpu
-            state["worker_cpu"] += evaluate.worker_cpu - w_cpu
-            state["es"], state["np_random"] = es, np.random.get_state()
-            rundir.write_atomic(state_path, pickle.dumps(state))
-            bar.set_postfix(J_best=f"{state['best_J']:.1f}", refresh=False)
-            bar.update(min(len(Z), settings.evals - bar.n))
-        bar.close()
-        theta_best = space.theta(state["best_z"])
-        t_wall, t_cpu, w_cpu = time.perf_counter(), time.process_time(), evaluate.worker_cpu
-        J_held = evaluate([theta_best, theta0], heldout_seed, heldout)
-        held_wall = time.perf_counter() - t_wall
-        held_cpu = time.process_time() - t_cpu + evaluate.worker_cpu - w_cpu
-    finally:
-        evaluate.close()
+            J_held = evaluate([theta_best, theta0], heldout_seed, heldout)
+            held_wall = time.perf_counter() - t_wall
+            held_cpu = time.process_time() - t_cpu + evaluate.worker_cpu - w_cpu
+        finally:
+            evaluate.close()
 
-    best_ci, nominal_ci = mean_ci(J_held[0]), mean_ci(J_held[1])
-    result = {
-        "J_best": state["best_J"],
-        "J_heldout": best_ci.as_dict(),
-        "J_nominal_heldout": nominal_ci.as_dict(),
-        "theta_best": theta_best.to_dict(),
-        "evals": state["evals"],
-        "generations": len(state["log"]),
-        "popsize": int(es.popsize),
-        "dim": space.dim,
-        "train": {"seed": settings.seed, "draws": train},
-        "heldout": {"seed": heldout_seed, "draws": heldout},
-        "settings": asdict(settings),
-        "system": system.to_dict(),
-        "mpc": mpc_config.to_dict(),
-        "forecast": mpc_config.forecast,
-        "prices": prices.source,
-        "days": prices.days,
-        "workers": workers,
-        "search_wall_time_s": state["wall"],
-        "search_cpu_time_s": state["cpu"] + state["worker_cpu"],
-        "heldout_wall_time_s": held_wall,
-        "heldout_cpu_time_s": held_cpu,
-        "log": state["log"],
-    }
-    rundir.write_json(out / "tune.json", result)
-    if figure:
-        plot_convergence(result, out / "tune.png")
-    return result
+        best_ci, nominal_ci = mean_ci(J_held[0]), mean_ci(J_held[1])
+        result = {
+            "J_best": state["best_J"],
+            "J_heldout": best_ci.as_dict(),
+            "J_nominal_heldout": nominal_ci.as_dict(),
+            "theta_best": theta_best.to_dict(),
+            "evals": state["evals"],
+            "generations": len(state["log"]),
+            "popsize": int(es.popsize),
+            "dim": space.dim,
+            "train": {"seed": settings.seed, "draws": train},
+            "heldout": {"seed": heldout_seed, "draws": heldout},
+            "settings": asdict(settings),
+            "system": system.to_dict(),
+            "mpc": mpc_config.to_dict(),
+            "forecast": mpc_config.forecast,
+            "prices": prices.source,
+            "days": prices.days,
+            "workers": workers,
+            "search_wall_time_s": state["wall"],
+            "search_cpu_time_s": state["cpu"] + state["worker_cpu"],
+            "heldout_wall_time_s": held_wall,
+            "heldout_cpu_time_s": held_cpu,
+            "log": state["log"],
+        }
+        rundir.write_json(out / "tune.json", result)
+        if figure:
+            plot_convergence(result, out / "tune.png")
+        return result
 
 
 def plot_convergence(result: dict[str, Any], path: str | os.PathLike) -> Path:

@@ -31,7 +31,7 @@ import numpy as np
 from .._util.lazy import lazy_module
 from .._util.resources import candidate_folders, package_folder
 from .._util.validate import InputTypeError, check_instance, check_int, check_real
-from ..config import HOURS_PER_DAY, PRICE_UNIT, SystemConfig
+from ..config import HOURS_PER_DAY, PRICE_LIMIT, PRICE_UNIT, SystemConfig
 
 #: pandas, imported when a CSV file is first read (it reads and parses every price file)
 pd = lazy_module("pandas")
@@ -505,6 +505,11 @@ class Prices:
         if not np.isfinite(buy).all():
             d, h = np.argwhere(~np.isfinite(buy))[0]
             raise ValueError(f"buy: expected finite prices, got {buy[d, h]} at day {d}, hour {h}")
+        outside = np.abs(buy) > PRICE_LIMIT
+        if outside.any():
+            d, h = np.argwhere(outside)[0]
+            raise ValueError(f"buy: price {buy[d, h]:g} at day {d}, hour {h}: expected prices "
+                             f"within +-{PRICE_LIMIT:g} per MWh (config.PRICE_LIMIT)")
         buy.setflags(write=False)
         object.__setattr__(self, "buy", buy)
         object.__setattr__(self, "sell_ratio", check_real("sell_ratio", self.sell_ratio, 0.0))

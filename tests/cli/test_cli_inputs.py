@@ -28,7 +28,10 @@ from mpcrl_lite.mpc.backends import registry as solvers
 from mpcrl_lite.mpc.formulation import MPC
 from mpcrl_lite.publish import report
 from mpcrl_lite.sim.closed_loop import evaluate_mpc
+from mpcrl_lite.studies import study as study_module
 from mpcrl_lite.studies import transfer
+from mpcrl_lite.studies import tune as tune_module
+from mpcrl_lite.studies.sweep import api as sweep_api
 from mpcrl_lite.theta import Theta
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
@@ -344,7 +347,8 @@ def _stub_init(self, *_args, **_kwargs):
 
 _GOOD = st.sampled_from(["1", "2", "3"])
 _NUMBERS = st.one_of(_GOOD, st.sampled_from(["0", "-1", "3.5", "nan", "inf", "1e9", "1000000000",
-                                             "abc", "", "100000"]))
+                                             "abc", "", "100000", "-inf", "1e308", "1e-320",
+                                             "-1e5", "1e300"]))
 _MONTHS = st.sampled_from(["2021-02", "2021-02", "2021-03", "2021-2", "1999-13", "x"])
 _AREAS = st.sampled_from(["Tr.heim", "Oslo", "Bergen", "", "tr.heim"])
 _OUTS = st.sampled_from(["FRESH", "FRESH", "FRESH", "FILE", "DONE", ""])
@@ -356,12 +360,21 @@ _FLAGS = {
     "--backend": st.sampled_from(["batch", "x"]), "--profile": st.sampled_from(["ci", "nope"]),
     "--notebooks": st.sampled_from(["01_battery_dynamics", "99_none"]),
     "--force": st.none(), "--resume": st.none(), "--quiet": st.none(), "--bogus": st.none(),
+    "--adopt": st.none(), "--step-size": _NUMBERS, "--seeds": _NUMBERS, "--lockstep": _NUMBERS,
+    "--workers": st.sampled_from(["0", "0", "1", "-1", "x"]),
+    "--scheduler": st.sampled_from(["garbage", "tcp://127.0.0.1:1", "serial", ""]),
+    "--grid": st.sampled_from(["GRID", "GRID", "DUPGRID", "MISSING", "FILE"]),
+    "--system": st.sampled_from(["SYSTEM", "SYSTEM", "DUPSYSTEM", "BADSYSTEM", "MISSING"]),
+    "--evals": _NUMBERS, "--heldout-draws": _NUMBERS, "--popsize": _NUMBERS,
 }
 # What each command needs, drawn first (mostly valid) so that the cases reach the work too.
 _REQUIRED = {
     "simulate": ("--days", "--out"), "learn": ("--months", "--days", "--out"),
     "baselines": ("--days", "--out"), "evaluate": ("--history", "--draws", "--days", "--out"),
     "report": ("--notebooks", "--profile", "--out"),
+    "sweep": ("--grid", "--workers", "--out"),
+    "study": ("--seeds", "--months", "--days", "--workers", "--out"),
+    "tune": ("--evals", "--draws", "--days", "--out"),
 }
 _COMMANDS = sorted(_REQUIRED)
 
@@ -389,6 +402,16 @@ def stubbed(monkeypatch):
                          (experiment, "make_solver")):
         monkeypatch.setattr(module, name, _stub)
     monkeypatch.setattr(decentralized.DecentralizedExperiment, "__init__", _stub_init)
+    # sweeps and studies: the runs, the causal target and the scheduler's answer
+    for name in ("run_serial", "run_dask"):
+        monkeypatch.setattr(sweep_api, name, _stub)
+    monkeypatch.setattr(study_module, "_study_target", _stub)
+    monkeypatch.setattr(tune_module, "tune", _stub)
+
+    def no_scheduler(address, *_args):
+        raise sweep_api.SchedulerError(f"no Dask scheduler answered at {address}")
+
+    monkeypatch.setattr(sweep_api, "check_scheduler", no_scheduler)
 
 
 @pytest.mark.parametrize("command", _COMMANDS)
@@ -403,8 +426,17 @@ def test_fuzz_any_arguments_end_in_one_line_or_work(command, data, tmp_path, cap
     (base / "done").mkdir()
     (base / "done" / "summary.json").write_text("{}")
     (base / "done" / "baselines.json").write_text("{}")
+    (base / "grid.yaml").write_text("base: {learning: {months: 1, days_per_month: 1}}\n"
+                                    "grid: {learning.seed: [0, 1]}\n")
+    (base / "dup.yaml").write_text("grid:\n  learning.seed: [0]\n  learning.seed: [1]\n")
+    (base / "system.yaml").write_text("P_bar: 1.2\nU_bar: [1.0, 1.0, 0.5]\n")
+    (base / "dupsystem.yaml").write_text("P_bar: 1.2\nP_bar: 1.0\n")
+    (base / "badsystem.yaml").write_text("noise_var: 1.0e+308\n")
     where = {"EXPORT": export, "MISSING": base / "missing", "FRESH": base / "fresh",
-             "FILE": base / "file", "DONE": base / "done", "RUN": base / "run"}
+             "FILE": base / "file", "DONE": base / "done", "RUN": base / "run",
+             "GRID": base / "grid.yaml", "DUPGRID": base / "dup.yaml",
+             "SYSTEM": base / "system.yaml", "DUPSYSTEM": base / "dupsystem.yaml",
+             "BADSYSTEM": base / "badsystem.yaml"}
     shutil.copytree(RUN, base / "run")
     args = [str(where.get(a, a)) for a in data.draw(argument_lists(command))]
     capsys.readouterr()

@@ -280,11 +280,11 @@ def test_history_and_checkpoint_a_month_apart_are_refused(tmp_path, capsys):
     """The state an interrupted write of the previous version left: history.json has two
     months, checkpoint.json one."""
     later = legacy_copy(tmp_path, name="later")
-    assert cli(learn_args(later, 2, "", "--resume"), capsys)[0] == 0
+    assert cli(learn_args(later, 2, "", "--resume", "--adopt"), capsys)[0] == 0
     apart = legacy_copy(tmp_path, name="apart")
     for name in ("history.json", "history.npz"):
         shutil.copy(later / name, apart / name)
-    status, _, err = cli(learn_args(apart, 3, "", "--resume"), capsys)
+    status, _, err = cli(learn_args(apart, 3, "", "--resume", "--adopt"), capsys)
     assert status == 2
     assert "records months_done=1 but history.json 2 months" in one_line(err)
     assert History.load(apart).months == 2  # untouched
@@ -341,12 +341,12 @@ def _shorten(key):
 def test_inconsistent_runs_are_refused(tmp_path, capsys, where, change, message, layout):
     out = legacy_copy(tmp_path)
     if layout == "committed":  # resume once to the new format (still one month)
-        assert cli(learn_args(out, 1, "", "--resume"), capsys)[0] == 0
+        assert cli(learn_args(out, 1, "", "--resume", "--adopt"), capsys)[0] == 0
         recommit(out, **{f"change_{where}": change})
     else:
         edit_json(out / f"{where}.json", change)
     before = {p.name: p.read_bytes() for p in out.iterdir()}
-    status, _, err = cli(learn_args(out, 2, "", "--resume"), capsys)
+    status, _, err = cli(learn_args(out, 2, "", "--resume", "--adopt"), capsys)
     assert status == 2
     assert message in one_line(err)
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
@@ -354,11 +354,11 @@ def test_inconsistent_runs_are_refused(tmp_path, capsys, where, change, message,
 
 def test_a_longer_history_in_the_manifest_is_refused(tmp_path, capsys):
     out = legacy_copy(tmp_path)
-    assert cli(learn_args(out, 1, "", "--resume"), capsys)[0] == 0
+    assert cli(learn_args(out, 1, "", "--resume", "--adopt"), capsys)[0] == 0
     run = rundir.read(out, ["history.json", "history.npz", "checkpoint.json"])
     rundir.commit(out, run.files, kind="centralized", months_done=5,
                   configs_hash=run.manifest["config_sha256"])
-    status, _, err = cli(learn_args(out, 2, "", "--resume"), capsys)
+    status, _, err = cli(learn_args(out, 2, "", "--resume", "--adopt"), capsys)
     assert status == 2 and "manifest.json 5" in one_line(err)
     with pytest.raises(RunDirError, match="records 5 months but history.json 1"):
         History.load(out)
@@ -376,7 +376,7 @@ def test_a_history_without_checkpoint_is_never_replaced(tmp_path, capsys):
         before = {p.name: p.read_bytes() for p in out.iterdir()}
         status, _, err = cli(learn_args(out, 2), capsys)
         assert status == 2 and "already holds a run" in one_line(err)
-        status, _, err = cli(learn_args(out, 2, "", "--resume"), capsys)
+        status, _, err = cli(learn_args(out, 2, "", "--resume", "--adopt"), capsys)
         assert status == 2
         assert "holds a History without checkpoint.json: it cannot be resumed" in one_line(err)
         assert {p.name: p.read_bytes() for p in out.iterdir()} == before
@@ -420,9 +420,9 @@ def test_force_replaces_and_resume_extends(tmp_path, capsys):
 def test_a_missing_npz_is_refused(tmp_path, capsys, layout):
     out = legacy_copy(tmp_path)
     if layout == "committed":
-        assert cli(learn_args(out, 1, "", "--resume"), capsys)[0] == 0
+        assert cli(learn_args(out, 1, "", "--resume", "--adopt"), capsys)[0] == 0
     (out / "history.npz").unlink()
-    status, _, err = cli(learn_args(out, 2, "", "--resume"), capsys)
+    status, _, err = cli(learn_args(out, 2, "", "--resume", "--adopt"), capsys)
     assert status == 2 and "history.npz is missing" in one_line(err)
     with pytest.raises(RunDirError, match="history.npz is missing"):
         History.load(out)
@@ -458,11 +458,11 @@ def test_damaged_runs_are_refused_in_one_line(tmp_path, capsys, damage):
     name, apply, message = DAMAGES[damage]
     legacy = legacy_copy(tmp_path, name="legacy")
     committed = legacy_copy(tmp_path, name="committed")
-    assert cli(learn_args(committed, 1, "", "--resume"), capsys)[0] == 0
+    assert cli(learn_args(committed, 1, "", "--resume", "--adopt"), capsys)[0] == 0
     for out in (legacy, committed):
         apply(out / name)
         before = {p.name: p.read_bytes() for p in out.iterdir()}
-        status, _, err = cli(learn_args(out, 2, "", "--resume"), capsys)
+        status, _, err = cli(learn_args(out, 2, "", "--resume", "--adopt"), capsys)
         assert status == 2
         line = one_line(err)
         # a legacy directory is checked field by field, a committed one by its checksums
@@ -486,7 +486,7 @@ def test_baselines_refuse_a_damaged_history_in_one_line(tmp_path, capsys, damage
 
 def test_baselines_read_runs_of_both_formats(tmp_path, capsys):
     committed = legacy_copy(tmp_path, name="committed")
-    assert cli(learn_args(committed, 1, "", "--resume"), capsys)[0] == 0
+    assert cli(learn_args(committed, 1, "", "--resume", "--adopt"), capsys)[0] == 0
     results = []
     for run in (LEGACY[""], committed):
         out = tmp_path / f"b-{run.name}"
@@ -504,18 +504,40 @@ def test_the_wrong_learner_is_named(tmp_path, capsys):
         out = legacy_copy(tmp_path, learner, name=f"{name}")
         for layout in ("legacy", "committed"):
             if layout == "committed":
-                assert cli(learn_args(out, 1, learner, "--resume"), capsys)[0] == 0
-            status, _, err = cli(learn_args(out, 2, other, "--resume"), capsys)
+                assert cli(learn_args(out, 1, learner, "--resume", "--adopt"), capsys)[0] == 0
+            status, _, err = cli(learn_args(out, 2, other, "--resume", "--adopt"), capsys)
             assert status == 2 and f"holds a {name} run" in one_line(err)
 
 
 # -- runs of the previous version ----------------------------------------------------------------
+def test_a_run_without_manifest_is_resumed_only_when_adopted(tmp_path, capsys, caplog):
+    """A committed run whose manifest was deleted and whose theta was changed by 1e-4
+    (relative): nothing can verify it, so --resume refuses it; --adopt resumes it as it is,
+    with a warning."""
+    out = legacy_copy(tmp_path)
+    assert cli(learn_args(out, 1, "", "--resume", "--adopt"), capsys)[0] == 0
+    (out / "manifest.json").unlink()
+    edit_json(out / "checkpoint.json",
+              lambda d: {**d, "theta": [t * (1 + 1e-4) for t in d["theta"]]})
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    status, _, err = cli(learn_args(out, 2, "", "--resume"), capsys)
+    assert status == 2 and "without manifest.json" in one_line(err)
+    assert "--adopt" in one_line(err) and "--force" in one_line(err)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    status, _, err = cli(learn_args(out, 2, "", "--adopt"), capsys)
+    assert status == 2 and "--adopt without --resume" in one_line(err)
+    caplog.clear()
+    assert cli(learn_args(out, 2, "", "--resume", "--adopt"), capsys)[0] == 0
+    assert "adopting" in caplog.text and "resumed unverified" in caplog.text
+    assert (out / "manifest.json").exists() and History.load(out).months == 2
+
+
 @pytest.mark.parametrize("learner", LEARNERS)
 def test_runs_of_the_previous_version_load_and_resume(tmp_path, capsys, learner):
     old = History.load(LEGACY[learner])
     assert old.months == 1 and old.first_month is not None
     out = legacy_copy(tmp_path, learner)
-    assert cli(learn_args(out, 2, learner, "--resume"), capsys)[0] == 0
+    assert cli(learn_args(out, 2, learner, "--resume", "--adopt"), capsys)[0] == 0
     reference = tmp_path / "reference"
     # the previous version evaluated on one noise draw, explored with a projection and learned
     # one parameter set per battery; the resumed run keeps all that (LearningConfig.from_dict)
@@ -583,7 +605,7 @@ def test_all_solves_failing_writes_valid_json_and_exits_2(tmp_path, capsys, monk
     assert np.isnan(history.eval_bound_share[0]) and history.failed_solve_share() == 1.0
 
 
-# the optimizer's own diagnostics overflow at noise_var=1e300 (they are stored as null)
+# the optimizer's own diagnostics overflow with gradients of 1e200 (they are stored as null)
 @pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
 def test_grad_norm_does_not_overflow(tmp_path):
     history = History(SMALL, MPCConfig(), LearningConfig(days_per_month=1))
@@ -595,9 +617,12 @@ def test_grad_norm_does_not_overflow(tmp_path):
     small = np.arange(30.0)
     history.append(record, Theta.nominal(SMALL), small, 0, 0.0, {})
     assert history.grad_norm[1] == np.linalg.norm(small)  # unchanged where it was finite
-    # a run with an absurd noise: every figure finite or null, the file strict JSON
+    # an absurd noise is refused (config.RANGES); the largest one accepted runs with every
+    # figure finite or null and the file strict JSON
+    with pytest.raises(ValueError, match=r"noise_var=1e\+300: expected a value in \[0, 100\]"):
+        SMALL.replace(noise_var=1e300)
     learning = LearningConfig(days_per_month=1, months=1)
-    run = Experiment(system=SMALL.replace(noise_var=1e300), learning=learning)
+    run = Experiment(system=SMALL.replace(noise_var=100.0), learning=learning)
     run.run(out=tmp_path, progress=False)
     assert np.isfinite(run.history.grad_norm[0])
     strict_json(tmp_path / "history.json")

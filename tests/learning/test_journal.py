@@ -290,3 +290,36 @@ def assert_same_history_but_timings(got: History, want: History) -> None:
         for key in RECORD_ARRAYS:
             np.testing.assert_array_equal(getattr(getattr(got, month), key),
                                           getattr(getattr(want, month), key))
+
+
+def test_the_run_directory_appends_and_keeps(tmp_path):
+    """rundir.commit with keep/append: the kept entry stays as it was, the journal is the
+    concatenation of the appends, bytes after its committed size are not part of it, and a
+    whole commit drops the journal."""
+    base = {"history.json": b'{"a": 1}', "history.npz": b"npz", "checkpoint.json": b"{}"}
+    options = {"kind": "centralized", "configs_hash": "0" * 64}
+    first = rundir.commit(tmp_path, base, months_done=1, **options)
+    manifest = first
+    for month, line in ((2, b"one\n"), (3, b"two\n")):
+        manifest = rundir.commit(tmp_path, {"checkpoint.json": b"{%d}" % month},
+                                 months_done=month, previous=manifest, keep=["history.json"],
+                                 append={rundir.JOURNAL: line}, **options)
+    assert manifest["format"] == rundir.FORMAT_APPEND
+    assert manifest["files"]["history.json"] == first["files"]["history.json"]
+    assert "history.npz" not in manifest["files"]
+    run = rundir.read(tmp_path, ["history.json", rundir.JOURNAL, "checkpoint.json"])
+    assert run.files == {"history.json": b'{"a": 1}', rundir.JOURNAL: b"one\ntwo\n",
+                         "checkpoint.json": b"{3}"}
+    with open(tmp_path / rundir.JOURNAL, "ab") as f:
+        f.write(b"thr")  # an append that never reached its commit
+    assert rundir.read(tmp_path, [rundir.JOURNAL]).files[rundir.JOURNAL] == b"one\ntwo\n"
+    again = rundir.commit(tmp_path, {"checkpoint.json": b"{4}"}, months_done=4,
+                          previous=manifest, keep=["history.json"],
+                          append={rundir.JOURNAL: b"four\n"}, **options)
+    assert (tmp_path / rundir.JOURNAL).read_bytes() == b"one\ntwo\nfour\n"
+    with pytest.raises(ValueError, match="keep"):
+        rundir.commit(tmp_path, {}, months_done=5, previous=again, keep=["history.npz"],
+                      **options)
+    rundir.commit(tmp_path, base, months_done=5, **options)
+    assert not (tmp_path / rundir.JOURNAL).exists()
+    assert json.loads((tmp_path / "manifest.json").read_text())["format"] == rundir.FORMAT

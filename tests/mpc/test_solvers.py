@@ -86,7 +86,8 @@ SOLVER_LAYER = {
                            "theta"},
     "mpc.backends.kernel_core": {"_util", "_util.jit"},
     "mpc.backends.kernel": {"mpc.backends.kernel_core", "config", "mpc.formulation",
-                            "mpc.solution", "theta", "_util.lazy"},
+                            "mpc.solution", "theta", "_util.lazy",
+                            "_util.validate"},  # ModelInputError
     "mpc.backends.registry": {"mpc.backends.batch", "config", "mpc.backends.ipopt",
                               "mpc.backends.kernel", "mpc.formulation", "mpc.solution", "theta"},
 }
@@ -95,3 +96,57 @@ SOLVER_LAYER = {
 @pytest.mark.parametrize("module", sorted(SOLVER_LAYER))
 def test_solver_layer_imports_only_downwards(module):
     assert_imports_within(module, SOLVER_LAYER[module])
+
+
+# -- inputs a back-end cannot solve -----------------------------------------------------------------
+@pytest.fixture
+def kernel_out_of_reach(monkeypatch):
+    """A kernel that cannot solve the MPC at tau < 1e-11 (one iteration allowed there), as
+    a kernel beyond its reach on accepted input; the default input solves as usual."""
+    real = KernelSolver._opts
+
+    def opts(self, max_iter=None):
+        return real(self, max_iter=1 if self.config.tau < 1e-11 else max_iter)
+
+    monkeypatch.setattr(KernelSolver, "_opts", opts)
+
+
+def test_a_kernel_that_cannot_solve_accepted_input_names_the_input(kernel_out_of_reach):
+    from mpcrl_lite.config import SystemConfig
+    from mpcrl_lite.mpc.backends.kernel import KernelInputError
+    from mpcrl_lite.mpc.formulation import MPC
+
+    mpc = MPC(SystemConfig())
+    system = mpc.system
+    for config in (MPCConfig(tau=1e-12, backend="kernel"), MPCConfig(tau=1e-12)):  # in RANGES
+        solver = make_solver(mpc, config)
+        with pytest.raises(KernelInputError, match=r"cannot solve the MPC of this system and "
+                                                   r"config \(max_iter_reached; tau=1e-12") as err:
+            solver.solve(0.6 * np.ones(system.n), 300.0 * np.ones(system.N),
+                         150.0 * np.ones(system.N), Theta.nominal(system))
+        assert "formulation" not in str(err.value) and "'ipopt'" in str(err.value)
+
+
+def test_the_cli_reports_it_in_one_line(tmp_path, capsys, kernel_out_of_reach):
+    from mpcrl_lite.cli.main import main
+
+    capsys.readouterr()
+    assert main(["simulate", "--days", "1", "--tau", "1e-12", "--backend", "kernel",
+                 "--out", str(tmp_path / "s")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "mpcrl_lite simulate: error: the compiled MPC kernel" in err[0]
+    assert not (tmp_path / "s").exists()  # no empty --out left behind
+
+
+@pytest.mark.parametrize("backend", ["kernel", "batch"])
+def test_an_explicit_convex_only_back_end_with_a_non_convex_theta_uses_ipopt(backend, mpc,
+                                                                            caplog):
+    theta = Theta.nominal(mpc.system)
+    theta = theta.replace(phi1=-0.5 * np.ones(mpc.n))
+    assert not theta.is_convex()
+    caplog.set_level(logging.WARNING)
+    solver = make_solver(mpc, MPCConfig(backend=backend), theta)
+    assert isinstance(solver, IpoptSolver)
+    assert "theta is not convex" in caplog.text and f"the '{backend}' back-end" in caplog.text
+    convex = make_solver(mpc, MPCConfig(backend=backend), Theta.nominal(mpc.system))
+    assert convex.name == backend

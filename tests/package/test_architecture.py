@@ -40,8 +40,8 @@ LAYERS: list[set[str]] = [
 #: Inside a subpackage, its modules lowest first: a module imports only from a lower entry of
 #: its own subpackage (never from its own entry: modules side by side are independent).
 SUBLAYERS: dict[str, list[set[str]]] = {
-    "_util": [{"gym_registration", "jit", "jsonio", "lazy", "resources", "references", "stats",
-               "validate", "version"}],
+    "_util": [{"budget", "gym_registration", "jit", "jsonio", "lazy", "resources", "references",
+               "stats", "validate", "version"}],
     "system": [{"prices", "battery"}, {"forecast"}],
     "mpc": [{"formulation"}, {"solution"}, {"sensitivity"}, {"backends"}, {"q_kernel"}, {"value"}],
     "mpc.backends": [{"batch_linalg", "kernel_core"}, {"batch_kkt"}, {"batch_adjoint"},
@@ -53,9 +53,9 @@ SUBLAYERS: dict[str, list[set[str]]] = {
     "decentralized": [{"local_qp", "coordination_kernel"}, {"coordination"}, {"learner"}],
     "bounds": [{"causal", "scenario"}, {"rule", "clairvoyant"}, {"baselines"}],
     "bounds.causal": [{"kernels"}, {"grid"}, {"dp", "dual"}, {"table"}],
-    "figures": [{"style"}, {"paper"}, {"plots"}],
-    "classroom": [{"controls", "explorers"}, {"widgets"}],
-    "publish": [{"alt_text", "html_export", "launch"}, {"report"}, {"site"}],
+    "figures": [{"style", "describe"}, {"paper", "comparison"}, {"plots"}],
+    "classroom": [{"controls", "explorers", "picture"}, {"widgets"}],
+    "publish": [{"alt_text", "claims", "html_export", "launch", "run_times"}, {"report"}, {"site"}],
     "studies": [{"transfer", "lockstep", "tune"}, {"sweep"}, {"study"}],
     "studies.sweep": [{"grid"}, {"store"}, {"table"}, {"run"}, {"schedule"}, {"api"}],
     "cli": [{"inputs"}, {"args"}, {"commands"}, {"main"}, {"warm"}],

@@ -27,6 +27,7 @@ from mpcrl_lite.config import (
     SystemConfig,
     check_bool,
     check_choice,
+    check_grid_bound,
     check_instance,
     check_int,
     check_real,
@@ -312,3 +313,72 @@ def test_fuzz_a_config_is_valid_or_one_clear_error(config, data):
         assert all(_plain(getattr(made, n)) for n in names), made
         again = config.from_dict(json.loads(json.dumps(made.to_dict())))
     assert again == made
+
+
+# -- numbers the model cannot mean (config.RANGES) ------------------------------------------------
+@pytest.mark.parametrize("make, message", [
+    (lambda: SystemConfig(P_bar=1e308), r"P_bar=1e\+308: expected a value in \[1e-06, 1e\+12\]"),
+    (lambda: check_grid_bound(SystemConfig(P_bar=31.0)),
+     r"P_bar=31.0: expected a value in \(0, 30\]"),
+    (lambda: check_grid_bound(SystemConfig(n=1, P_bar=10.5)),
+     r"P_bar=10.5: expected a value in \(0, 10\]"),
+    (lambda: SystemConfig(noise_var=1e308), r"noise_var=1e\+308: expected a value in \[0, 100\]"),
+    (lambda: SystemConfig(noise_mean=-1e3), r"noise_mean=-1000.0: expected a value in \[-100, 100"),
+    (lambda: SystemConfig(U_bar=1e9), r"U_bar=1000000000.0: expected a value in \[1e-06, 1000\]"),
+    (lambda: SystemConfig(alpha=1e-300), r"alpha=1e-300: expected a value in \[1e-06, 10\]"),
+    (lambda: SystemConfig(omega=(20.0, 1e300)), r"omega=\(20.0, 1e\+300\) \(entry 1e\+300\)"),
+    (lambda: SystemConfig(N=1000), r"N=1000: expected a value in \[1, 168\]"),
+    (lambda: SystemConfig(price_scale=1e6), r"price_scale=1000000.0: expected"),
+    (lambda: MPCConfig(tau=1e-320), r"tau=1e-320: expected a value in \[1e-12, 1\]"),
+    (lambda: MPCConfig(tol=1e-300), r"tol=1e-300: expected a value in \[1e-14, 1\]"),
+    (lambda: MPCConfig(max_iter=10**9), r"max_iter=1000000000: expected"),
+    (lambda: LearningConfig(step_size=1e300), r"step_size=1e\+300: expected a value in \[0, 1\]"),
+    (lambda: LearningConfig(exploration_std=1e3), r"exploration_std=1000.0: expected"),
+    (lambda: LearningConfig(max_policy_change=1e9), r"max_policy_change=1000000000.0: expect"),
+])
+def test_numbers_the_model_cannot_mean_are_refused_in_one_line(make, message):
+
+    with pytest.raises(ValueError, match=message) as err:
+        make()
+    assert "\n" not in str(err.value) and "config.RANGES" in str(err.value)
+
+
+def test_the_ranges_hold_the_defaults_and_the_papers_settings():
+    from mpcrl_lite.config import PAPER_STEP_SIZE, PAPER_TAU, RANGES, check_ranges
+
+    for section, config in (("system", SystemConfig()), ("mpc", MPCConfig.paper()),
+                            ("learning", LearningConfig.paper())):
+        check_ranges(section, config)
+        assert set(RANGES[section]) <= {f.name for f in dataclasses.fields(config)}
+    assert RANGES["mpc"]["tau"][0] <= PAPER_TAU and PAPER_STEP_SIZE <= 1.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConfigWarning)
+        check_grid_bound(SystemConfig(P_bar=30.0))  # 10 * n * U_bar: still accepted
+
+
+def test_the_ranges_apply_to_every_entry_of_a_per_battery_value():
+    from mpcrl_lite.config import check_ranges
+
+    class PerBattery:  # a field given per battery, as an array
+        noise_var = np.array([0.5, 0.5, 101.0])
+
+    with pytest.raises(ValueError, match=r"noise_var=.* \(entry 101.0\): expected a value in "
+                                         r"\[0, 100\]"):
+        check_ranges("system", PerBattery())
+    PerBattery.noise_var = np.array([0.5, 0.2, 100.0])
+    check_ranges("system", PerBattery())
+
+
+def test_prices_the_model_cannot_mean_are_refused():
+    from mpcrl_lite.config import PRICE_LIMIT
+    from mpcrl_lite.system.prices import Prices
+
+    buy = np.full((2, 24), 300.0)
+    buy[1, 5] = 1e308
+    with pytest.raises(ValueError, match=r"buy: price 1e\+308 at day 1, hour 5: expected "
+                                         r"prices within \+-100000 per MWh"):
+        Prices(buy)
+    buy[1, 5] = -PRICE_LIMIT  # the limit itself, and negative prices, are prices
+    Prices(buy)
+    with pytest.raises(ValueError, match="within"):
+        Prices(np.full((1, 24), 2e4)).scaled(10.0)

@@ -63,3 +63,24 @@ def test_plain_turns_nonfinite_into_none_unless_kept():
     assert plain(value) == {"x": None, "y": [None, 1.0]}
     kept = plain(value, keep_nonfinite=True)
     assert np.isnan(kept["x"]) and kept["y"] == [np.inf, 1.0]
+
+
+def test_the_kernels_own_log_stays_off_stderr(tmp_path, capfd):
+    """The kernel manager interrupts a kernel before shutting it down; a kernel caught in a
+    handler then logs ``[IPKernelApp] ERROR | KeyboardInterrupt caught in kernel`` on the
+    report's stderr. That log (here written by a cell, deterministically) is silenced."""
+    import nbformat
+
+    from mpcrl_lite.publish.report import execute_notebook
+
+    nb = nbformat.v4.new_notebook()
+    nb.cells = [nbformat.v4.new_code_cell(
+        "from ipykernel.kernelapp import IPKernelApp\n"
+        "IPKernelApp.instance().log.error('KeyboardInterrupt caught in kernel')\n"
+        "print('ran')")]
+    path = tmp_path / "logs.ipynb"
+    nbformat.write(nb, path)
+    capfd.readouterr()
+    done = execute_notebook(path, tmp_path / "out.ipynb", cwd=tmp_path)
+    assert done.cells[0].outputs[0]["text"].strip() == "ran"
+    assert "KeyboardInterrupt caught in kernel" not in capfd.readouterr().err

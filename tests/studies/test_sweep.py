@@ -352,7 +352,9 @@ SWEEP_LAYER = {
                           "studies.sweep.grid", "studies.sweep.store", "studies.sweep.table"},
     "studies.sweep.schedule": {"studies.sweep.grid", "studies.sweep.run", "studies.sweep.store",
                                "studies.sweep.table"},
-    "studies.sweep.api": {"publish.report", "studies.sweep.grid", "studies.sweep.run",
+    # rundir: the lock of out; budget: the size of the work
+    "studies.sweep.api": {"_util.budget", "learning.rundir", "publish.report",
+                          "studies.sweep.grid", "studies.sweep.run",
                           "studies.sweep.schedule", "studies.sweep.store", "studies.sweep.table"},
 }
 

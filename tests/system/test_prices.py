@@ -518,7 +518,7 @@ def malformed_exports(draw):
             cells[area_col] = ""
         elif m == "bad_date":
             cells[0] = draw(st.sampled_from(["31.02.2021", "2021-01-04", "", "04.13.2021", "x"]))
-        elif m == "bad_hour":
+        elif m == "bad_hour" and len(cells) > 1:
             cells[1] = draw(st.sampled_from(["24 - 01", "1-3", "", "03 - 05", "x"]))
         elif m == "noise":  # a random line anywhere, e.g. in place of the header
             i = draw(st.integers(0, len(lines) - 1))

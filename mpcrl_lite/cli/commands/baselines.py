@@ -18,7 +18,7 @@ HELP = "baseline policies on the same draws"
 def add_parser(sub) -> argparse.ArgumentParser:
     """The ``baselines`` options."""
     p = sub.add_parser(NAME, help=HELP)
-    p.add_argument("--out", type=Path, required=True, help="output directory")
+    p.add_argument("--out", type=_a.out_dir, required=True, help="output directory")
     p.add_argument("--history", type=Path, default=None,
                    help="a learn output directory whose final theta is evaluated too")
     p.add_argument("--days", type=_a.positive_int, default=None,

@@ -23,7 +23,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser(NAME, help=HELP)
     p.add_argument("--history", type=Path, required=True,
                    help="a learn output directory (its final theta, system and MPC are used)")
-    p.add_argument("--out", type=Path, required=True, help="output directory")
+    p.add_argument("--out", type=_a.out_dir, required=True, help="output directory")
     p.add_argument("--draws", type=_a.positive_int, default=10,
                    help="K noise draws (draw k uses seed SEED + k; default 10)")
     p.add_argument("--seed", type=_a.nonneg_int, default=0, help="seed of the first draw (default 0)")

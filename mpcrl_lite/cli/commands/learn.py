@@ -29,6 +29,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue the run found in --out")
     p.add_argument("--force", action="store_true",
                    help="replace the results found in --out (they are refused otherwise)")
+    p.add_argument("--adopt", action="store_true",
+                   help="with --resume: continue a run written before the manifest format "
+                        "(no manifest.json, so its files cannot be verified; a warning says so)")
     p.add_argument("--step-size", type=_a.finite_float, default=None, help="DPG step size")
     p.add_argument("--optimizer", choices=OPTIMIZERS, default=None,
                    help=f"DPG update rule (default {_a.LEARNING.optimizer}; sgd is the "
@@ -151,23 +154,26 @@ def run(args: argparse.Namespace) -> int:
             args, months=args.months, days_per_month=prices.days, step_size=args.step_size,
             optimizer=args.optimizer, exploration_std=args.exploration_std, **kept,
         )
-    if learning.exploration_std > 0 and learning.exploration_bounds != "project":
-        try:  # the zero-mean exploration's compiled kernel has one input bound
-            system.common("U_bar", "the exploration (LearningConfig.exploration_bounds="
-                          f"{learning.exploration_bounds!r})")
-        except ValueError as err:
-            raise UsageError(str(err)) from None
     _a.budget(f"--months {args.months} --days {learning.days_per_month} --n {system.n}",
             system.n, learning.days_per_month, runs=args.months, sensitivities=True,
             horizon=system.N)
 
+    if args.adopt and not args.resume:
+        raise UsageError("--adopt without --resume: --adopt continues a run written before "
+                         "the manifest format; expected --resume --adopt")
     if args.resume and args.force:
         raise UsageError("--resume and --force exclude each other: --resume continues the run "
                          "in --out, --force replaces it")
     try:
         out = rundir.check_output_dir(args.out)
+        with rundir.lock_output_dir(out, NAME):  # one process at a time in --out
+            return _learn(args, out, system, mpc_config, learning, prices)
     except rundir.RunDirError as err:
         raise UsageError(str(err)) from None
+
+
+def _learn(args, out, system, mpc_config, learning, prices) -> int:
+    """The ``learn`` command once --out is checked and locked."""
     from ...figures.paper import PAPER_FIGURES
     from ...learning.experiment import Experiment
     from ...learning.learner import MAX_FAILED_SOLVE_SHARE
@@ -201,7 +207,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         # a run found in --out is verified before any month runs
         history = exp.run(months=args.months, out=out, resume=args.resume,
-                          progress=not args.quiet)
+                          progress=not args.quiet, adopt=args.adopt)
     except (ValueError, OSError) as err:  # RunDirError, RunWriteError
         raise UsageError(str(err)) from None
     summary = {**history.summary(), "forecast": history.mpc.forecast}
@@ -212,7 +218,13 @@ def run(args: argparse.Namespace) -> int:
     if not args.no_figures:
         from ...figures.paper import save_paper_figures
 
-        save_paper_figures(history, out, prices=exp.prices)
+        try:
+            save_paper_figures(history, out, prices=exp.prices)
+        except OSError as err:  # a full disk: the run is committed all the same
+            raise UsageError(
+                f"the run is committed in {out} ({history.months} months) but its figures "
+                f"could not be written ({err.strerror or err}); free the space and run the "
+                "same command with --resume to write them") from None
     print(json.dumps(jsonio.plain({
         "months": history.months,
         "J_first": history.J[0],

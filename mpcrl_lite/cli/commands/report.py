@@ -18,7 +18,7 @@ HELP = "execute every notebook into a report directory"
 def add_parser(sub) -> argparse.ArgumentParser:
     """The ``report`` options."""
     p = sub.add_parser(NAME, help=HELP)
-    p.add_argument("--out", type=Path, default=Path("reports"), help="report directory")
+    p.add_argument("--out", type=_a.out_dir, default=Path("reports"), help="report directory")
     p.add_argument("--profile", choices=PROFILES, default="full",
                    help="parameters: the notebooks' defaults (full), the small CI profile or "
                         "the lesson-sized classroom profile")

@@ -6,7 +6,6 @@ import argparse
 import io
 import json
 import time
-from pathlib import Path
 
 import numpy as np
 
@@ -28,7 +27,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--days", type=_a.positive_int, default=None,
                    help="number of days (batch); required without --prices, else the first "
                         "days of --month (default all)")
-    p.add_argument("--out", type=Path, required=True, help="output directory")
+    p.add_argument("--out", type=_a.out_dir, required=True, help="output directory")
     _a.add_force(p)
     _a.add_price_args(p)
     _a.add_system_args(p)
@@ -44,7 +43,18 @@ def run(args: argparse.Namespace) -> int:
                          "--prices)")
     days = prices.days if prices is not None else args.days
     _a.budget(f"--days {days} --n {system.n}", system.n, days, horizon=system.N)
+    created = not args.out.exists()
     out = _a.prepare_out(args, SIMULATE_OUTPUTS)
+    try:
+        return _simulate(args, out, system, mpc_config, learning, prices, days)
+    except BaseException:  # a failed solve leaves no empty --out behind
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
+        raise
+
+
+def _simulate(args, out, system, mpc_config, learning, prices, days) -> int:
+    """The ``simulate`` command's work, once --out is checked."""
     from ...figures.plots import plot_day
     from ...mpc.backends.registry import make_solver
     from ...mpc.formulation import MPC

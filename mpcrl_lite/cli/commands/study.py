@@ -23,7 +23,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p = sub.add_parser(NAME, help=HELP)
     p.add_argument("--seeds", type=_a.positive_int, required=True, help="number of seeds")
     p.add_argument("--months", type=_a.positive_int, required=True, help="months per run")
-    p.add_argument("--out", type=Path, required=True, help="output directory")
+    p.add_argument("--out", type=_a.out_dir, required=True, help="output directory")
     p.add_argument("--seed-start", type=_a.nonneg_int, default=0, help="first seed (default 0)")
     p.add_argument("--days", type=_a.positive_int, default=None,
                    help=f"days per month (default {_a.LEARNING.days_per_month})")
@@ -80,8 +80,8 @@ def run(args: argparse.Namespace) -> int:
             threshold=THRESHOLD if args.threshold is None else args.threshold,
             progress=not args.quiet, lockstep=args.lockstep, target=args.target,
             class_best=args.class_best)
-    except (ValueError, FileNotFoundError) as err:
-        raise UsageError(str(err)) from None
+    except (ValueError, OSError) as err:  # GridError, RunDirLocked, a full disk
+        raise UsageError(" ".join(str(err).split())) from None
     keys = ("done", "fraction_converged", "J_eval_final_median", "J_eval_final_iqr",
             "worst_seed", "largest_late_regression", "J_target", "J_star_method",
             "regret_median", "regret_iqr", "late_collapse_count")

@@ -17,7 +17,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     """The ``sweep`` options."""
     p = sub.add_parser(NAME, help=HELP)
     p.add_argument("--grid", type=Path, required=True, help="YAML file with the grid")
-    p.add_argument("--out", type=Path, required=True, help="output directory")
+    p.add_argument("--out", type=_a.out_dir, required=True, help="output directory")
     p.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
     p.add_argument("--workers", type=_a.nonneg_int, default=None, help="local workers (0: serial)")
     p.add_argument("--only", action="append", default=None, metavar="ID",
@@ -39,8 +39,8 @@ def run(args: argparse.Namespace) -> int:
         table = run_sweep_cli(args.grid, args.out, scheduler=args.scheduler, workers=args.workers,
                               notebooks=args.notebooks, progress=not args.quiet, only=args.only,
                               lockstep=args.lockstep)
-    except (ValueError, FileNotFoundError) as err:
-        raise UsageError(str(err)) from None
+    except (ValueError, OSError) as err:  # GridError, RunDirLocked, a full disk
+        raise UsageError(" ".join(str(err).split())) from None
     print(json.dumps({"runs": len(table), "failed": int((table["status"] == "failed").sum()),
                       "table": str(args.out / "results.csv")}))
     return 0

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import json
-from pathlib import Path
 
 from ..._util import jsonio
 from .. import args as _a
@@ -21,7 +20,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
     d = TuneSettings()
     p = sub.add_parser(NAME, help=HELP)
-    p.add_argument("--out", type=Path, required=True, help="output directory")
+    p.add_argument("--out", type=_a.out_dir, required=True, help="output directory")
     p.add_argument("--evals", type=_a.positive_int, default=d.evals,
                    help=f"candidate evaluations (default {d.evals}; whole generations)")
     p.add_argument("--draws", type=_a.positive_int, default=d.draws,

@@ -46,7 +46,8 @@ import casadi as ca
 import numpy as np
 
 from ..._util.lazy import lazy_module
-from ...config import MPCConfig
+from ..._util.validate import ModelInputError
+from ...config import MPCConfig, SystemConfig
 from ..formulation import MPC
 from ..solution import (
     STATUS_BREAKDOWN,
@@ -61,7 +62,14 @@ from ..solution import (
     check_parameters,
 )
 
-__all__ = ["KernelSolver", "cache_dir", "warm_up"]
+__all__ = ["KernelInputError", "KernelSolver", "cache_dir", "warm_up"]
+
+
+class KernelInputError(ModelInputError):
+    """The compiled kernel cannot solve the MPC of the system and config it was given (its
+    check problem fails there, and passes with the default system and config): the input, not
+    the formulation, is what it cannot handle (raised at the first solve, where the kernel is
+    checked; the message names the input and the reference back-end)."""
 
 log = logging.getLogger(__name__)
 
@@ -148,6 +156,7 @@ class KernelSolver(StartSettings, BackendBase):
         self.mpc = mpc
         self.config = config or MPCConfig()
         sysc = mpc.system
+        sysc.common("U_bar", "the kernel back-end (use backend='ipopt')")  # before any work
         self.n, self.N = mpc.n, mpc.N
         N = self.N
         self._method_asked = method
@@ -244,12 +253,32 @@ class KernelSolver(StartSettings, BackendBase):
             "cost": abs(f - sol.cost) / (1.0 + abs(f)),
         }
         bad = {k: v for k, v in errors.items() if not v <= _KKT_CHECK_TOL}
+        if (not sol.success or bad) and self._defaults_pass():
+            sysc, cfg = self.mpc.system, self.config
+            raise KernelInputError(
+                f"the compiled MPC kernel cannot solve the MPC of this system and config "
+                f"({sol.status}; tau={cfg.tau:g}, tol={cfg.tol:g}, P_bar={sysc.P_bar!r}, "
+                f"U_bar={sysc.U_bar!r}, alpha={sysc.alpha!r}, N={sysc.N}); expected inputs "
+                "nearer the defaults (config.RANGES), or backend 'ipopt' (the reference)")
         if not sol.success or bad:
             raise RuntimeError(
                 "KernelSolver's solution violates the KKT conditions of MPC.qp_function "
                 f"({sol.status}; {bad}); the formulation in mpcrl_lite.mpc.formulation changed and "
                 "mpcrl_lite.mpc.backends.kernel_core must be updated to match it"
             )
+
+    def _defaults_pass(self) -> bool:
+        """Whether the check passes for the default system (same n and N) and config, i.e.
+        the formulation agrees with the kernel and only the input is out of its reach."""
+        system = self.mpc.system
+        reference = SystemConfig(n=system.n, N=system.N)
+        if system == reference and self.config == MPCConfig():
+            return False
+        try:
+            KernelSolver(MPC(reference), MPCConfig(), method=self.method)
+        except (RuntimeError, ValueError):
+            return False
+        return True
 
     # ------------------------------------------------------------------ solving ----------
     def _solve_parameters(self, P: np.ndarray, x0: np.ndarray | None,

@@ -35,12 +35,16 @@ from .kernel import KernelSolver
 
 # MPCSolution, BatchSolution, FALLBACK and IpoptSolver live in their own modules and stay
 # importable from here.
-__all__ = ["AUTO", "REGISTRY", "make_solver"]
+__all__ = ["AUTO", "CONVEX_ONLY", "REGISTRY", "make_solver"]
 
 log = logging.getLogger(__name__)
 
 #: The back-end name that chooses one of the others (see :func:`make_solver`).
 AUTO = "auto"
+
+#: The back-ends that solve a convex MPC only (``phi1, T1 >= 0``); given a theta that is not
+#: convex, :func:`make_solver` uses IPOPT instead, with a warning.
+CONVEX_ONLY = ("batch", "kernel")
 
 #: Back-end constructors ``(mpc, config) -> back-end`` by their name in
 #: :data:`mpcrl_lite.config.BACKENDS`.
@@ -66,7 +70,14 @@ def make_solver(
 
     ``'auto'`` chooses the compiled interior point when the MPC is a convex QP for ``theta``
     (``phi1, T1 >= 0``; always true with ``LearningConfig.keep_well_posed``) and every battery
-    has the same ``U_bar``, and IPOPT otherwise; the choice is logged at INFO level and readable from ``solver.name``.
+    has the same ``U_bar``, and IPOPT otherwise; the choice is logged at INFO level and
+    readable from ``solver.name``. An explicit ``'kernel'`` or ``'batch'``
+    (:data:`CONVEX_ONLY`) given a theta that is not convex is replaced by IPOPT too, with a
+    warning.
+
+    A kernel that cannot solve the MPC of this system and config says so at its first solve
+    (:class:`~mpcrl_lite.mpc.backends.kernel.KernelInputError`, naming the input), never
+    blaming the formulation.
 
     Raises
     ------
@@ -78,6 +89,11 @@ def make_solver(
     if backend == AUTO:
         backend = _auto_backend(theta, mpc)
         log.info("MPC back-end 'auto' chose %r", backend)
+    elif backend in CONVEX_ONLY and theta is not None and not theta.is_convex():
+        log.warning("theta is not convex (phi1 or T1 < 0): the %r back-end solves convex MPCs "
+                    "only (it breaks down on a share of the solves); using 'ipopt' instead, "
+                    "as 'auto' does", backend)
+        backend = "ipopt"
     if backend not in REGISTRY:
         known = tuple(name for name in BACKENDS if name == AUTO or name in REGISTRY)
         raise ValueError(f"MPC back-end {backend!r} is not available; expected one of {known}")

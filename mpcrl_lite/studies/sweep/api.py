@@ -74,6 +74,8 @@ from typing import Any
 import pandas as pd
 import yaml
 
+from ..._util.budget import Budget, check_estimate, learning_estimate
+from ...learning import rundir
 from ...publish.report import NOTEBOOK_DIR
 from .grid import (
     SECTIONS,
@@ -95,6 +97,7 @@ from .schedule import (
     CONNECT_TIMEOUT,
     DaskMissingError,
     SchedulerError,
+    check_address,
     check_scheduler,
     require_dask,
     run_dask,
@@ -118,6 +121,7 @@ __all__ = [
     "Sweep",
     "SweepRun",
     "check_scheduler",
+    "check_sweep_budget",
     "load_grid",
     "load_results",
     "run_sweep",
@@ -141,10 +145,43 @@ def _check_arguments(scheduler: Any, workers: Any, lockstep: Any = None) -> None
             f"scheduler={scheduler!r}: expected None (a local cluster), 'serial' or the "
             "address of a Dask scheduler"
         )
-    if workers and scheduler not in (None, "serial"):
+    if workers is not None and scheduler not in (None, "serial"):
         raise GridError(
-            "workers sets the size of the local cluster; it cannot be used with a scheduler address"
+            f"workers={workers!r} and scheduler={scheduler!r} contradict each other: workers "
+            "sets the size of a local cluster (0: serial), a scheduler address runs on that "
+            "scheduler's workers; expected one of them"
         )
+    if scheduler not in (None, "serial"):
+        check_address(scheduler)
+
+
+def check_sweep_budget(sweep: Sweep, scheduler: str | None = None,
+                       workers: int | None = None) -> Budget:
+    """The memory of the largest run and the run time of all of them (shared by the local
+    workers; a remote cluster's size is not known, so only memory is checked there) against
+    the machine (:func:`mpcrl_lite._util.budget.check_estimate`), before anything starts.
+
+    Raises
+    ------
+    GridError
+        One line naming the number of runs and the largest one.
+    """
+    budgets = [learning_estimate(r.system.n, r.learning.days_per_month, r.learning.months,
+                                 r.learning.eval_draws, r.learning.eval_every, r.system.N)
+               for r in sweep.runs]
+    largest = max(range(len(budgets)), key=lambda i: budgets[i].seconds)
+    run = sweep.runs[largest]
+    remote = scheduler not in (None, "serial") and workers is None
+    slots = 1 if scheduler == "serial" or workers == 0 else (workers or 2)
+    total = Budget(max(b.memory for b in budgets),
+                   0.0 if remote else sum(b.seconds for b in budgets) / slots)
+    what = (f"the sweep's {len(budgets)} run(s) (the largest: run {run.run_id!r}, learning.months "
+            f"{run.learning.months}, days_per_month {run.learning.days_per_month}, n "
+            f"{run.system.n})")
+    try:
+        return check_estimate(what, total)
+    except ValueError as err:
+        raise GridError(str(err)) from None
 
 
 def run_sweep(
@@ -220,7 +257,11 @@ def run_sweep(
     t_start = time.perf_counter()
     sweep = load_grid(grid)
     _check_arguments(scheduler, workers, lockstep)
-    out = Path(out).resolve()
+    check_sweep_budget(sweep, scheduler, workers)
+    try:
+        out = Path(rundir.refuse_empty(out)).resolve()
+    except rundir.RunDirError as err:
+        raise GridError(str(err)) from None
     serial = scheduler == "serial" or workers == 0
     selected = set(sweep.run_ids)
     if only is not None:
@@ -239,17 +280,6 @@ def run_sweep(
     if not serial and scheduler is not None:
         check_scheduler(scheduler, connect_timeout)
 
-    rows = {run.run_id: run_row(run, out, notebooks) for run in sweep.runs}
-    for row in rows.values():
-        row["cached"] = row["status"] == "done"
-    todo = [
-        run for run in sweep.runs
-        if run.run_id in selected and (
-            rows[run.run_id]["status"] != "done" or (notebooks and not rows[run.run_id]["notebook"])
-        )
-    ]
-    if todo and not serial:
-        require_dask()
     try:
         grid_text = yaml.safe_dump(sweep.to_dict(), sort_keys=False)
     except yaml.YAMLError as err:  # e.g. numpy scalars in a grid given as a dict
@@ -258,39 +288,55 @@ def run_sweep(
             f"the sweep cannot be saved as grid.yaml ({one_line(what)}); "
             "give its values as plain numbers, strings and lists"
         ) from None
-
-    # the first writes: a failure here (a full disk, a race) is still one line
-    try:
+    try:  # the lock needs the directory
         out.mkdir(parents=True, exist_ok=True)
-        (out / "grid.yaml").write_text(grid_text)
-        write_table(results_table(sweep, rows, notebooks), out)
     except OSError as err:
         raise GridError(f"output directory {out} cannot be written: {err}") from None
+    with rundir.lock_output_dir(out, "sweep"):  # one process at a time in out
+        rows = {run.run_id: run_row(run, out, notebooks) for run in sweep.runs}
+        for row in rows.values():
+            row["cached"] = row["status"] == "done"
+        todo = [
+            run for run in sweep.runs
+            if run.run_id in selected and (
+                rows[run.run_id]["status"] != "done" or (notebooks and not rows[run.run_id]["notebook"])
+            )
+        ]
+        if todo and not serial:
+            require_dask()
 
-    def finished(run: SweepRun, row: dict[str, Any]) -> None:
-        row["cached"] = False
-        rows[run.run_id] = row
-        write_table(results_table(sweep, rows, notebooks), out)
+        # the first writes: a failure here (a full disk, a race) is still one line
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            (out / "grid.yaml").write_text(grid_text)
+            write_table(results_table(sweep, rows, notebooks), out)
+        except OSError as err:
+            raise GridError(f"output directory {out} cannot be written: {err}") from None
 
-    args = (str(out), None if nb_path is None else str(nb_path), mapping)
-    try:
-        if not todo:
-            pass
-        elif serial:
-            run_serial(todo, args, finished, progress, lockstep)
-        else:
-            run_dask(todo, args, finished, progress, scheduler, workers, out, lockstep)
-    finally:
-        table = results_table(sweep, rows, notebooks)
-        table.attrs.update({
-            "wall_time_s": time.perf_counter() - t_start,
-            "executed": len(todo),
-            "failed": int((table["status"] == "failed").sum()),
-            "scheduler": "serial" if serial else (scheduler or f"local:{workers or 2}"),
-        })
-        write_table(table, out)
-        write_json(out / "sweep.json", {**table.attrs, "runs": len(table)})
-    return table
+        def finished(run: SweepRun, row: dict[str, Any]) -> None:
+            row["cached"] = False
+            rows[run.run_id] = row
+            write_table(results_table(sweep, rows, notebooks), out)
+
+        args = (str(out), None if nb_path is None else str(nb_path), mapping)
+        try:
+            if not todo:
+                pass
+            elif serial:
+                run_serial(todo, args, finished, progress, lockstep)
+            else:
+                run_dask(todo, args, finished, progress, scheduler, workers, out, lockstep)
+        finally:
+            table = results_table(sweep, rows, notebooks)
+            table.attrs.update({
+                "wall_time_s": time.perf_counter() - t_start,
+                "executed": len(todo),
+                "failed": int((table["status"] == "failed").sum()),
+                "scheduler": "serial" if serial else (scheduler or f"local:{workers or 2}"),
+            })
+            write_table(table, out)
+            write_json(out / "sweep.json", {**table.attrs, "runs": len(table)})
+        return table
 
 
 def run_sweep_cli(

@@ -21,7 +21,7 @@ from typing import Any
 
 import yaml
 
-from ...config import LearningConfig, MPCConfig, SystemConfig
+from ...config import LearningConfig, MPCConfig, SystemConfig, check_grid_bound
 
 __all__ = [
     "SECTIONS",
@@ -30,6 +30,7 @@ __all__ = [
     "Sweep",
     "SweepRun",
     "load_grid",
+    "load_yaml",
     "one_line",
 ]
 
@@ -142,6 +143,36 @@ def _yaml_problem(err: yaml.YAMLError) -> str:
     return one_line(err)
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader, refusing a key written twice in one mapping: YAML keeps the last
+    one silently, and a grid that names ``learning.seed`` twice never means that."""
+
+    def construct_mapping(self, node, deep=False):  # type: ignore[override]
+        if isinstance(node, yaml.MappingNode):
+            seen: dict[Any, Any] = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    first = seen.setdefault(key, key_node)
+                except TypeError:  # an unhashable key: the constructor reports it
+                    continue
+                if first is not key_node:
+                    raise yaml.constructor.ConstructorError(
+                        None, None, f"key {key!r} is written twice (first at line "
+                        f"{first.start_mark.line + 1}); expected each key once",
+                        key_node.start_mark)
+        return super().construct_mapping(node, deep=deep)
+
+
+def load_yaml(text: str) -> Any:
+    """``yaml.safe_load`` that refuses a key written twice in one mapping (a
+    ``yaml.YAMLError`` naming the key and both lines): for grids and system files, where a
+    repeated key is a mistake YAML would hide by keeping the last one."""
+    return yaml.load(text, Loader=_UniqueKeyLoader)  # a SafeLoader
+
+
 def _refers_to_itself(value: Any, path: tuple[int, ...] = ()) -> bool:
     # a YAML alias inside its own anchor ('a: &x [*x]') makes a list that contains itself
     if isinstance(value, (list, tuple, dict)):
@@ -172,7 +203,7 @@ def _read_grid_file(path: Path) -> Any:
             f"{where} is not UTF-8 text (byte {raw[err.start]:#04x} at position {err.start})"
         ) from None
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml(text)
     except yaml.YAMLError as err:
         raise GridError(f"{where}: not valid YAML: {_yaml_problem(err)}") from None
     except RecursionError:
@@ -350,6 +381,8 @@ def load_grid(grid: Mapping[str, Any] | str | os.PathLike) -> Sweep:
             kwargs = {k[len(prefix):]: v for k, v in overrides.items() if k.startswith(prefix)}
             try:
                 configs[section] = cls(**kwargs)
+                if section == "system":
+                    check_grid_bound(configs[section])
             # ArithmeticError: an integer too large for a float (YAML reads any length)
             except (ValueError, TypeError, ArithmeticError) as err:
                 hints = "".join(_yaml_hint(v) for v in kwargs.values())

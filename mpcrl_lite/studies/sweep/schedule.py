@@ -21,10 +21,12 @@ import asyncio
 import logging
 import math
 import os
+import re
+import time
 import traceback
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import ExitStack
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -37,8 +39,11 @@ from .table import run_row
 
 __all__ = [
     "CONNECT_TIMEOUT",
+    "NO_WORKER_TIMEOUT",
+    "NO_WORKER_TIMEOUT_ENV",
     "DaskMissingError",
     "SchedulerError",
+    "check_address",
     "check_scheduler",
     "chunks",
     "require_dask",
@@ -48,6 +53,14 @@ __all__ = [
 
 #: Seconds :func:`check_scheduler` waits for a scheduler's answer by default.
 CONNECT_TIMEOUT = 5.0
+
+#: Seconds a sweep on Dask waits while no worker is alive before it stops (one line; the
+#: finished runs are kept). The environment variable :data:`NO_WORKER_TIMEOUT_ENV` sets
+#: another value.
+NO_WORKER_TIMEOUT = 120.0
+NO_WORKER_TIMEOUT_ENV = "MPCRL_LITE_NO_WORKER_TIMEOUT_S"
+#: What a scheduler address looks like: ``PROTOCOL://HOST[:PORT]`` or ``HOST:PORT``.
+_ADDRESS = re.compile(r"^(?:[a-z][a-z0-9+.-]*://[^\s/]+|[^\s/:]+:\d{1,5})$")
 
 Finished = Callable[[SweepRun, dict[str, Any]], None]
 
@@ -85,6 +98,18 @@ async def _identity(address: str, timeout: float) -> Any:
 async def _identity_within(address: str, timeout: float) -> Any:
     # connect()'s timeout does not cover a peer that accepts and then stays silent
     return await asyncio.wait_for(_identity(address, timeout), timeout)
+
+
+def check_address(address: Any) -> str:
+    """``address`` if it reads as a Dask scheduler address (``tcp://HOST:PORT``,
+    ``tls://...``, ``HOST:PORT``), else a :class:`SchedulerError` in one line; nothing is
+    contacted (:func:`check_scheduler` does that)."""
+    if not isinstance(address, str) or not _ADDRESS.match(address.strip()):
+        raise SchedulerError(
+            f"scheduler address {address!r} is not an address; expected the address of a "
+            "running Dask scheduler, e.g. tcp://HOST:8786 (or 'serial', or none for a local "
+            "cluster)")
+    return address
 
 
 def check_scheduler(address: str, timeout: float = CONNECT_TIMEOUT) -> None:
@@ -168,9 +193,13 @@ def run_dask(
     ``args`` are the task's arguments after the runs (``out``, notebook, mapping).
     """
     require_dask()
-    from distributed import Client, LocalCluster, as_completed
+    from distributed import Client, LocalCluster
 
     with ExitStack() as stack:
+        # Dask's own INFO lines (cluster start, connections, shutdown) are not the sweep's
+        # news: WARNING and above only, ERROR and above without a progress bar (--quiet)
+        stack.enter_context(_log_level("distributed", logging.WARNING if progress
+                                       else logging.ERROR))
         if scheduler is None:
             cluster = stack.enter_context(LocalCluster(
                 n_workers=workers or 2, threads_per_worker=1, processes=True,
@@ -192,7 +221,7 @@ def run_dask(
         }
         failed = 0
         with tqdm(total=len(todo), desc="sweep", unit="run", disable=not progress) as bar:
-            for future in as_completed(futures):
+            for future in _completed(client, futures, scheduler):
                 chunk = futures[future]
                 try:
                     rows = future.result()
@@ -212,3 +241,62 @@ def run_dask(
                         bar.set_postfix(failed=failed, refresh=False)
                     finished(run, row)
                     bar.update(1)
+
+
+def _no_worker_timeout() -> float:
+    text = os.environ.get(NO_WORKER_TIMEOUT_ENV)
+    if not text:
+        return NO_WORKER_TIMEOUT
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise GridError(f"{NO_WORKER_TIMEOUT_ENV}={text!r}: expected a number of seconds > 0")
+    return value
+
+
+def _completed(client: Any, futures: Any, scheduler: str | None, poll: float = 1.0):
+    """The futures as they complete, like ``distributed.as_completed``; a
+    :class:`SchedulerError` (one line) once no worker has been alive for
+    :data:`NO_WORKER_TIMEOUT` seconds (the tasks would wait forever)."""
+    from distributed import wait
+
+    limit = _no_worker_timeout()
+    pending = set(futures)
+    alone_since: float | None = None
+    while pending:
+        try:
+            done, pending = wait(pending, timeout=poll, return_when="FIRST_COMPLETED")
+        except TimeoutError:
+            done = set()
+        yield from done
+        if not pending or done:
+            alone_since = None
+            continue
+        try:
+            alive = len(client.scheduler_info()["workers"])
+        except Exception:  # noqa: BLE001 (the scheduler itself is gone)
+            alive = 0
+        now = time.monotonic()
+        if alive:
+            alone_since = None
+        elif alone_since is None:
+            alone_since = now
+        elif now - alone_since > limit:
+            raise SchedulerError(
+                f"no Dask worker alive at {scheduler or 'the local cluster'} for {limit:g} s "
+                f"with {len(pending)} task(s) left; the finished runs are kept: start workers "
+                f"(or set {NO_WORKER_TIMEOUT_ENV}) and run the same sweep again")
+
+
+@contextmanager
+def _log_level(name: str, level: int):
+    """The logger ``name`` at ``level`` for the block (at least that severe), then as it was."""
+    logger = logging.getLogger(name)
+    before = logger.level
+    logger.setLevel(max(level, before))
+    try:
+        yield
+    finally:
+        logger.setLevel(before)

@@ -137,16 +137,21 @@ def results_table(
 
 
 def write_table(table: pd.DataFrame, out: Path) -> None:
-    """Save ``table`` as ``out/results.csv`` and, with pyarrow, ``out/results.parquet``."""
+    """Save ``table`` as ``out/results.csv`` and, with pyarrow, ``out/results.parquet``
+    (each written aside and renamed; a failed write, e.g. a full disk, removes its temporary
+    file and raises the ``OSError``)."""
     tmp = out / "results.csv.tmp"
-    table.to_csv(tmp, index=False)
-    tmp.replace(out / "results.csv")
     try:
+        table.to_csv(tmp, index=False)
+        tmp.replace(out / "results.csv")
         tmp = out / "results.tmp.parquet"
         table.to_parquet(tmp, index=False)
         tmp.replace(out / "results.parquet")
     except ImportError:  # pyarrow is optional; the csv is always written
         log.warning("pyarrow is not installed: %s not written", out / "results.parquet")
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def load_results(out: str | os.PathLike) -> pd.DataFrame:
