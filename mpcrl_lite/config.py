@@ -143,6 +143,7 @@ from ._util.validate import (  # noqa: F401
 __all__ = [
     "BACKENDS",
     "EARLIER_BEHAVIOUR",
+    "EUR_NOK_RATE",
     "EXPLORATION_BOUNDS",
     "FORECASTS",
     "HOURS_PER_DAY",
@@ -162,6 +163,14 @@ __all__ = [
 
 #: Unit of every price in the project (see the module docstring for why).
 PRICE_UNIT = "NOK/MWh"
+
+#: NOK per EUR used to convert a price file in EUR/MWh to :data:`PRICE_UNIT` when no rate is
+#: given (``--eur-rate``, ``load_prices(..., eur_rate=)``): the European Central Bank's euro
+#: reference rate for the Norwegian krone, monthly average of November 2025 (11.7402; ECB
+#: statistical data warehouse, series EXR.M.NOK.EUR.SP00.A). The monthly averages of 2025
+#: ranged from about 11.5 to 11.9, so a run on another month should pass its own rate; the
+#: rate used is recorded in the run's History and summary.json.
+EUR_NOK_RATE = 11.7402
 
 #: Clock hours in one day of price data; an episode (``SystemConfig.hours_per_day``) lasts at
 #: most this long, since the price matrices (:class:`mpcrl_lite.system.prices.Prices`) are indexed by

@@ -41,7 +41,11 @@ LAYERS: list[set[str]] = [
 #: its own subpackage (never from its own entry: modules side by side are independent).
 SUBLAYERS: dict[str, list[set[str]]] = {
     "_util": [{"jit", "jsonio", "resources", "references", "stats", "validate", "version"}],
-    "system": [{"prices", "battery"}, {"forecast"}],
+    "system": [{"price_files", "battery"}, {"prices"}, {"forecast"}],
+    "system.price_files": [{"areas", "series"},
+                           {"currency", "detect", "energidataservice", "entsoe", "entsoe_legacy",
+                            "month", "nordpool_elspot", "nordpool_portal", "pandas_series"},
+                           {"load"}],
     "mpc": [{"formulation"}, {"solution"}, {"sensitivity"}, {"backends"}],
     "mpc.backends": [{"batch_linalg", "kernel_core"}, {"batch_kkt"}, {"batch_adjoint"},
                      {"batch", "ipopt", "kernel"}, {"registry"}],
