@@ -257,7 +257,11 @@ class SystemConfig(_Config):
     sample_time_h: float = 1.0
     """Sampling time in hours (informational: the dynamics are written per sample)."""
     sell_ratio: float = 0.5
-    """Selling price = ``sell_ratio`` x buying price (the paper uses 0.5)."""
+    """Selling price = ``sell_ratio`` x buying price (the paper uses 0.5). For a negative
+    buying price (common in 2025, never in the paper's month) ``sell_ratio`` x price would be
+    *above* the buying price, so that a battery could earn by buying and selling at once; the
+    spread is kept instead: ``phi_s = phi_b - (1 - sell_ratio) |phi_b|``, i.e.
+    ``(2 - sell_ratio) phi_b`` for ``phi_b < 0`` (``mpcrl_lite.system.prices.sell_prices``)."""
     price_scale: float = 1.0
     """Multiplier on the price series (1.0 keeps NOK/MWh; a classroom knob)."""
     soc0: float = 0.6

@@ -254,6 +254,7 @@ class DecentralizedExperiment(Learner):
                          for _ in range(self.system.n)]
         self.rng = np.random.default_rng(self.learning.seed)
         self.history = History(self.system, self.mpc_config, self.learning, backend=self.backend)
+        self.history.prices_origin = dict(getattr(self.prices, "origin", {}) or {})
 
     @property
     def backend(self) -> str:

@@ -43,7 +43,7 @@ from .price_files.series import LOCAL_TZ
 # here (``from mpcrl_lite.system.prices import load_nordpool_csv``).
 _MOVED = (LOCAL_TZ, daily_matrix, load_nordpool_csv, nordpool_areas)
 
-__all__ = ["DATA_DIR", "Prices", "load_default_profile"]
+__all__ = ["DATA_DIR", "Prices", "load_default_profile", "sell_prices"]
 
 #: Folder of the shipped data, found through the package (never through the working directory):
 #: ``mpcrl_lite/data`` in an installed wheel, the repository's ``data/`` in a checkout.
@@ -57,6 +57,23 @@ _DEFAULT_SOURCE = (
     "(data/README.md)"
 )
 
+
+
+def sell_prices(buy: np.ndarray, sell_ratio: float) -> np.ndarray:
+    """Selling prices of buying prices ``buy``: the paper's ``phi_s = r phi_b`` (``r`` =
+    ``sell_ratio``) where ``phi_b >= 0``, and ``phi_s = (2 - r) phi_b`` where ``phi_b < 0``.
+
+    Both are ``phi_s = phi_b - (1 - r) |phi_b|``: selling is never worth more than buying
+    (the spread ``(1 - r) |phi_b|`` is never negative). With ``r phi_b`` also for negative
+    prices (common in 2025) selling would be worth more than buying -- ``phi_b = -10`` would
+    sell at ``-5`` -- and a battery could earn money by buying and selling the same energy in
+    the same hour. For ``phi_b >= 0`` the value is ``sell_ratio * buy``, bit for bit.
+    """
+    buy = np.asarray(buy, dtype=float)
+    spread = sell_ratio * buy
+    if (buy < 0).any():
+        return np.where(buy < 0, (2.0 - sell_ratio) * buy, spread)
+    return spread
 
 
 # ----------------------------------------------------------------------------------------------
@@ -192,8 +209,9 @@ class Prices:
 
     @property
     def sell(self) -> np.ndarray:
-        """Selling prices ``phi_s = sell_ratio * phi_b``, shape ``(days, 24)``."""
-        return self.sell_ratio * self.buy
+        """Selling prices, shape ``(days, 24)``: ``phi_s = sell_ratio * phi_b`` where
+        ``phi_b >= 0`` (:func:`sell_prices` for negative prices)."""
+        return sell_prices(self.buy, self.sell_ratio)
 
     def window(self, hour: int, N: int) -> tuple[np.ndarray, np.ndarray]:
         """Buying and selling prices the MPC sees at ``hour`` over a horizon of ``N`` hours.
@@ -220,7 +238,7 @@ class Prices:
         ahead = int(hour) + np.arange(N)  # hours counted from today's midnight, (N,)
         day = (np.arange(self.days)[:, None] + ahead[None, :] // HOURS_PER_DAY) % self.days
         buy = self.buy[day, ahead[None, :] % HOURS_PER_DAY]  # (days, N)
-        return buy, self.sell_ratio * buy
+        return buy, sell_prices(buy, self.sell_ratio)
 
     def to_frame(self) -> pd.DataFrame:
         """The prices as a tidy table for plotting: one row per (day, hour).
@@ -261,7 +279,7 @@ class Prices:
             sell_ratio=self.sell_ratio,
             unit=self.unit,
             source=f"{self.source}; first {days} day(s)",
-            origin=self.origin,
+            origin={**self.origin, "days": days} if self.origin else {},
         )
 
     def scaled(self, factor: float) -> Prices:
@@ -345,6 +363,7 @@ class Prices:
         keys = ("source", "format", "area", "column", "currency", "eur_rate",
                 "resolution_min")
         origin = {k: series.attrs.get(k) for k in keys}
+        origin["file_currency"] = series.attrs.get("file_currency", origin["currency"])
         origin["file"] = origin.pop("source")
         origin.update(month=str(month), unit=unit, days=int(buy.shape[0]))
         name = series.name if series.name is not None else "series"

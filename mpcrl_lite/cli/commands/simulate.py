@@ -73,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
         "wall_time_s": elapsed,
         "ms_per_mpc_solve": 1000 * elapsed / (days * system.hours_per_day),
         "prices": prices.source,
+        **({"prices_origin": dict(prices.origin)} if prices.origin else {}),
         "theta": theta.to_dict(),
         "system": system.to_dict(),
         "mpc": mpc_config.to_dict(),

@@ -38,5 +38,5 @@ def convert(series: pd.Series, currency: str | None, eur_rate: float | None = No
     rate = float(EUR_NOK_RATE if eur_rate is None else eur_rate)
     out = series * rate if currency == "NOK" else series / rate
     out.attrs = {**series.attrs, "currency": currency, "unit": f"{currency}/MWh",
-                 "eur_rate": rate}
+                 "eur_rate": rate, "file_currency": have}
     return out

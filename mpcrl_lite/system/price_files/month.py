@@ -161,6 +161,6 @@ def month_matrix(series: pd.Series, month: str, days: int | None = None) -> np.n
         expected = pd.date_range(t0, t1, freq="h", inclusive="left")
         missing = expected.difference(inside.dropna().index)
         if len(missing) and len(inside.dropna()):
-            raise ValueError(f"{month}: {len(missing)} hour(s) without a price, the first "
-                             f"{missing[0]}; expected every hour of the month")
+            raise ValueError(f"{len(missing)} hour(s) missing from {month}: the first "
+                             f"{missing[0]}; expected a price for every hour of the month")
     return daily_matrix(series, first, count)
