@@ -21,7 +21,7 @@ def price(t: pd.Timestamp, area: str = "NO3") -> float:
     t = t.tz_convert("UTC")
     hours = int((t - pd.Timestamp("2020-01-01", tz="UTC")) / pd.Timedelta(hours=1))
     base = (hours % 97) - 20.5  # negative for some hours
-    offset = {"NO3": 0.0, "NO1": 1000.0, "DK2": 2000.0, "DK1": 3000.0, "NO4": 4000.0}[area]
+    offset = {"NO3": 0.0, "NO1": 1000.0, "DK2": 0.5, "DK1": 3000.0, "NO4": 4000.0}[area]
     return round(base + offset + 0.25 * (t.minute // 15), 2)
 
 

@@ -121,7 +121,11 @@ def month_prices(path: str | os.PathLike, area: str | None, month: str, system: 
             warnings.simplefilter("ignore", PriceFileWarning)
             series = load_prices(path, area, currency=currency, format=fmt, eur_rate=eur_rate)
     except (OSError, ValueError, TypeError) as err:
-        raise ValueError(_one_line(f"--prices {path}: {err}")) from None
+        text = str(err)
+        if text.startswith("area "):
+            raise ValueError(_one_line(f"--{text}")) from None
+        text = text.removeprefix(f"{path}: ")
+        raise ValueError(_one_line(f"--prices {path}: {text}")) from None
     try:
         if series.attrs.get("unit") != PRICE_UNIT:
             raise ValueError(f"prices in {series.attrs.get('unit')}; expected {PRICE_UNIT} "

@@ -367,8 +367,10 @@ class Prices:
         origin["file"] = origin.pop("source")
         origin.update(month=str(month), unit=unit, days=int(buy.shape[0]))
         name = series.name if series.name is not None else "series"
+        if origin.get("column") and origin["column"] != name:
+            name = f"{origin['column']} ({name})"
         where = origin["file"] or "series"
         rate = (f", EUR x {origin['eur_rate']:g} NOK/EUR" if origin.get("eur_rate") else "")
         prices = cls(buy, sell_ratio=system.sell_ratio, unit=unit, origin=origin,
-                     source=f"{name} {month} ({buy.shape[0]} day(s)) from {where}{rate}")
+                     source=f"{name}, {buy.shape[0]} day(s) from {month}-01 ({where}{rate})")
         return prices.scaled(system.price_scale)

@@ -73,7 +73,8 @@ def find_column(area: str, columns: list[str], where: str) -> str:
     if not found:
         listed = ", ".join(dict.fromkeys(f"{c} ({canonical(c)})" if canonical(c) != c else c
                                          for c in columns))
-        raise ValueError(f"{where}: no area {area!r} (read as {code}); the file has: {listed}")
+        raise ValueError(f"area {area!r} is not in {where} (read as {code}); expected one of: "
+                         f"{listed}")
     order = [_key(n) for n in (code, *AREAS.get(code, ()))]
     found.sort(key=lambda c: order.index(_key(c)) if _key(c) in order else len(order))
     return found[0]

@@ -68,6 +68,6 @@ def detect_format(text: str, where: str = "file") -> tuple[str, int]:
         seen += 1
         if seen >= HEADER_SEARCH_LINES:
             break
-    raise ValueError(f"{where}: not a price file this package reads; expected the header of one "
+    raise ValueError(f"{where} is not a price file this package reads; expected the header of one "
                      f"of {', '.join(FORMATS[:-1])} among the first {HEADER_SEARCH_LINES} lines "
                      "(see README 'Prices from your own files')")

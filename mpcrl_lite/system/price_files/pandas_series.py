@@ -30,7 +30,7 @@ def read(series: pd.Series, area: str | None, currency: str, where: str = "serie
     order = np.argsort(index.asi8, kind="stable")
     index = index[order]
     values = pd.to_numeric(series.iloc[order], errors="coerce").to_numpy(dtype=float)
-    steps = np.diff(index.asi8) / 60e9
+    steps = ((index[1:] - index[:-1]) / pd.Timedelta(minutes=1)).to_numpy(dtype=float)
     positive = steps[steps > 0]
     step = int(positive.min()) if len(positive) else 60
     if step not in (15, 60):
