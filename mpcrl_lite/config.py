@@ -158,6 +158,7 @@ __all__ = [
     "CoordinationConfig",
     "LearningConfig",
     "MPCConfig",
+    "PriceFileConfig",
     "SystemConfig",
 ]
 
@@ -603,3 +604,42 @@ class CoordinationConfig(_Config):
         set_("tol", check_real("tol", self.tol, 0.0, 1e-2, low_open=True))
         set_("max_iter", check_int("max_iter", self.max_iter, 1))
         set_("local_grid_factor", check_real("local_grid_factor", self.local_grid_factor, 10.0))
+
+
+@dataclass(frozen=True)
+class PriceFileConfig(_Config):
+    """A month of prices from a file, for runs set up by configuration (the sweep's and the
+    study's ``prices`` section; the commands' ``--prices/--area/--month/--currency/--eur-rate/
+    --price-format``). ``file=''`` (the default) is the shipped month.
+
+    Read by :meth:`mpcrl_lite.system.prices.Prices.from_file` through
+    :func:`mpcrl_lite.system.price_files.load.load_prices`.
+    """
+
+    file: str = ""
+    """The price file (any format ``load_prices`` reads); empty: the shipped month."""
+    area: str = ""
+    """Its bidding zone by any of its names (``'NO3'``, ``'Tr.heim'``, ``'BZN|NO3'``); empty:
+    the format's default (Tr.heim for Nord Pool's old export)."""
+    month: str = ""
+    """The month to use, ``'YYYY-MM'`` (required with ``file``)."""
+    currency: str = "NOK"
+    """The model's currency: NOK (:data:`PRICE_UNIT`, a EUR file converted at ``eur_rate``)."""
+    eur_rate: float = EUR_NOK_RATE
+    """NOK per EUR for a EUR file (default :data:`EUR_NOK_RATE`, its source stated there)."""
+    format: str = ""
+    """A format to force (``mpcrl_lite.system.price_files.detect.FORMATS``); empty: from the
+    file's header."""
+
+    def __post_init__(self) -> None:
+        set_ = self._set
+        for name in ("file", "area", "month", "currency", "format"):
+            value = getattr(self, name)
+            if not isinstance(value, str):
+                raise TypeError(f"{name}={value!r}: expected a string")
+        if self.currency != "NOK":
+            raise ValueError(f"currency={self.currency!r}: expected 'NOK' (the penalties are in "
+                             f"{PRICE_UNIT}; a EUR file is converted at eur_rate)")
+        set_("eur_rate", check_real("eur_rate", self.eur_rate, 0.0, low_open=True))
+        if self.file and not self.month:
+            raise ValueError(f"month='': expected 'YYYY-MM' with file={self.file!r}")

@@ -206,7 +206,7 @@ def price_base(args: argparse.Namespace) -> dict[str, Any]:
             "eur_rate": "eur_rate", "format": "price_format"}
     if getattr(args, "prices", None) is None:
         return {}
-    return {f"prices.{k}": (str(getattr(args, a)) if k == "file" else getattr(args, a))
+    return {f"prices.{k}": (str(Path(getattr(args, a)).resolve()) if k == "file" else getattr(args, a))
             for k, a in keys.items() if getattr(args, a, None) is not None}
 
 

@@ -22,6 +22,7 @@ Three layers, each usable alone:
 from __future__ import annotations
 
 import datetime as _dt
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -34,10 +35,11 @@ import pandas as pd
 
 from .._util.resources import candidate_folders, package_folder
 from .._util.validate import check_instance, check_int, check_real
-from ..config import HOURS_PER_DAY, PRICE_UNIT, SystemConfig
+from ..config import HOURS_PER_DAY, PRICE_UNIT, PriceFileConfig, SystemConfig
+from .price_files.load import load_prices
 from .price_files.month import _as_date, daily_matrix, month_matrix
 from .price_files.nordpool_elspot import load_nordpool_csv, nordpool_areas
-from .price_files.series import LOCAL_TZ
+from .price_files.series import LOCAL_TZ, PriceFileWarning
 
 # The old Nord Pool reader and the day matrix moved to price_files; their names stay importable
 # here (``from mpcrl_lite.system.prices import load_nordpool_csv``).
@@ -374,3 +376,25 @@ class Prices:
         prices = cls(buy, sell_ratio=system.sell_ratio, unit=unit, origin=origin,
                      source=f"{name}, {buy.shape[0]} day(s) from {month}-01 ({where}{rate})")
         return prices.scaled(system.price_scale)
+
+    @classmethod
+    def from_file(
+        cls,
+        config: PriceFileConfig,
+        system: SystemConfig | None = None,
+        days: int | None = None,
+    ) -> Prices:
+        """The month of a :class:`~mpcrl_lite.config.PriceFileConfig` (file, area, month,
+        currency, rate, format) through :func:`~mpcrl_lite.system.price_files.load.load_prices`
+        and :meth:`from_month`; its first ``days`` days when given (the whole month must have
+        a price every hour). Hours without a price outside the month are not reported."""
+        check_instance("config", config, PriceFileConfig)
+        if not config.file:
+            raise ValueError("config.file is empty; expected a price file (Prices.month gives "
+                             "the shipped month)")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PriceFileWarning)
+            series = load_prices(config.file, config.area or None, currency=config.currency,
+                                 format=config.format or None, eur_rate=config.eur_rate)
+        prices = cls.from_month(series, config.month, system)
+        return prices.take(days) if days is not None and days < prices.days else prices

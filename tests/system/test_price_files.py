@@ -364,3 +364,17 @@ def test_cli_price_options_are_checked(tmp_path, capsys):
         code = main(["simulate", "--days", "1", "--out", str(tmp_path / "o"), "--quiet", *extra])
         err = capsys.readouterr().err.strip()
         assert code == 2 and match in err and len(err.splitlines()) == 1, err
+
+
+def test_study_runs_on_a_price_file_through_the_sweep_base(tmp_path, capsys):
+    path, _, _ = write(tmp_path, "portal_quarters", ("2025-11-01", "2025-12-01"))
+    out = tmp_path / "study"
+    code = main(["study", "--seeds", "1", "--months", "1", "--days", "2", "--prices", str(path),
+                 "--area", "NO3", "--month", "2025-11", "--target", "best_seen", "--workers",
+                 "0", "--quiet", "--out", str(out)])
+    assert code == 0, capsys.readouterr().err
+    config = json.loads(next(out.rglob("config.json")).read_text())
+    assert config["prices"]["file"] == str(path.resolve())
+    assert config["prices"]["month"] == "2025-11" and config["learning"]["days_per_month"] == 2
+    history = json.loads(next(out.rglob("history.json")).read_text())
+    assert history["prices_origin"]["format"] == "nordpool_portal"

@@ -38,6 +38,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="share of the gap nominal -> target a converged seed closes "
                         "(default 0.9)")
     _a.add_forecast(p)
+    _a.add_price_args(p)
     p.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
     p.add_argument("--workers", type=_a.nonneg_int, default=None, help="local workers (0: serial)")
     p.add_argument("--lockstep", type=_a.positive_int, default=None, metavar="K",
@@ -57,6 +58,10 @@ def run(args: argparse.Namespace) -> int:
         base["learning.eval_draws"] = args.eval_draws
     if args.forecast is not None:
         base["mpc.forecast"] = args.forecast
+    prices = _a.month_prices(args, _a.SYSTEM, args.days)  # checked before any work
+    if prices is not None:
+        base.update(_a.price_base(args))
+        base["learning.days_per_month"] = prices.days
     try:
         summary = run_study(
             args.seeds, args.months, args.out, seed_start=args.seed_start, base=base,
