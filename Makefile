@@ -44,7 +44,7 @@ lab: $(STAMP)
 		$(LAB_ROOT_ARG) $(LAB_ARGS)
 
 bench: $(STAMP)
-	$(BIN)/python benchmarks/run_all.py
+	$(BIN)/python benchmarks/run_all.py --out benchmarks/results/bench-$$(date +%Y%m%d-%H%M%S).json
 
 ## student version of the notebooks (solution cells removed) into student/
 student: $(STAMP)

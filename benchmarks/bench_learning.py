@@ -354,7 +354,8 @@ def scaling_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def scaling_figure(rows: list[dict], path: Path = BENCH_DIR / "scaling.png") -> Path:
+def scaling_figure(rows: list[dict], path: Path = BENCH_DIR / "results" / "scaling.png"
+                   ) -> Path:
     """Log-log figure: ms per step vs n (N = 12) and vs N (n = 3)."""
     import matplotlib
     import matplotlib.ticker
@@ -387,6 +388,7 @@ def scaling_figure(rows: list[dict], path: Path = BENCH_DIR / "scaling.png") -> 
         ax.legend(fontsize=8)
     fig.suptitle("mpcrl_lite: MPC solve + policy sensitivity per day-hour "
                  "(30 days per call; wall time, see benchmarks/README.md)")
+    path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path

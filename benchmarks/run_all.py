@@ -7,7 +7,9 @@ The mpcrl comparison needs the benchmark-only requirements
 (``pip install -r benchmarks/requirements.txt``); without them it is skipped with a message
 on stderr and ``mpcrl_ms_per_step: null``. Nothing is installed by this script.
 
-Every ratio is computed from figures measured in this same run. Each measurement runs in its
+Every ratio is computed from figures measured in this same run. Files (the scaling figure,
+with ``--out`` the JSON) go to ``benchmarks/results/`` (git-ignored): a run rewrites nothing
+that is tracked. Each measurement runs in its
 own interpreter, so imports, caches and memory of one part do not leak into another. Wall
 times are the headline figures; CPU times (``*_cpu_*``) are reported next to them because
 on a shared machine the wall clock also measures the other processes (see README.md).
@@ -39,7 +41,15 @@ TARGETS = {
     "kernel_us_per_problem": ("<=", 60.0),
     "decentralized_n20_s_per_month": ("<=", 2.0),
     "study_20x100_s": ("<=", 180.0),
+    "startup_import_s": ("<=", 0.3),
+    "startup_experiment_s": ("<=", 0.5),
+    "paper_command_1_draw_s": ("<=", 3.0),
+    "paper_command_10_draws_s": ("<=", 5.0),
+    "tune_s": ("<=", 120.0),
 }
+
+#: Where ``make bench`` writes its files (git-ignored; nothing tracked is rewritten).
+RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def _log(msg: str) -> None:
@@ -141,13 +151,34 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
         "import sys, bench_study; "
         f"sys.exit(bench_study.main({['--quick'] if quick else []!r}))", timeout=4 * 3600))
 
+    _log("best-in-class search: 2,500 evaluations x 6 draws on 2 workers")
+    search = _try("tune benchmark", lambda: run_json(
+        "import sys, bench_tune; "
+        f"sys.exit(bench_tune.main({['--quick'] if quick else []!r}))", timeout=4 * 3600))
+
     _log("cold start")
     cold = bench_learning.cold_start(trials=1 if quick else 3)
 
+    _log("start-up and the paper's run as commands (whole processes, beside references)")
+    commands = _try("command benchmark", lambda: run_json(
+        "import sys, bench_commands; "
+        f"sys.exit(bench_commands.main({['--quick', '--trials', '1'] if quick else []!r}))",
+        timeout=4 * 3600))
+    if commands is not None:
+        _log(f"start-up: import {commands['startup_import_s']:.2f} s, Experiment() "
+             f"{commands['startup_experiment_s']:.2f} s (python + numpy "
+             f"{commands['startup_reference_s']:.2f} s); learn 100 months: 1 draw "
+             f"{commands['paper_command_1_draw_s']:.1f} s (cpu "
+             f"{commands['paper_command_1_draw_cpu_s']:.1f}), 10 draws "
+             f"{commands['paper_command_10_draws_s']:.1f} s (cpu "
+             f"{commands['paper_command_10_draws_cpu_s']:.1f}); reference work "
+             f"{commands['reference_work_s']:.2f} s; load {commands['loadavg_start']} -> "
+             f"{commands['loadavg_end']}")
+
     _log("scaling")
     rows = bench_learning.scaling(quick=quick)
-    # the smoke run leaves the committed figure alone
-    figure = None if quick else bench_learning.scaling_figure(rows)
+    # written into the git-ignored results folder (the smoke run draws none)
+    figure = None if quick else bench_learning.scaling_figure(rows, RESULTS / "scaling.png")
 
     ms = ours["ms_per_step"]
     result.update({
@@ -200,6 +231,11 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
             "decentralized_n20_ratio_cpu")},
         "scaling": rows,
     })
+    for key in ("startup_reference_s", "startup_import_s", "startup_face_s",
+                "startup_experiment_s", "paper_command_1_draw_s", "paper_command_10_draws_s",
+                "reference_work_s"):
+        result[key] = None if commands is None else commands[key]
+        result[key[:-2] + "_cpu_s"] = None if commands is None else commands[key[:-2] + "_cpu_s"]
     # the study's keys (the 20x100 ones are null in the smoke run, which runs 4x4)
     study = study or {}
     for key in ("study_20x100_s", "study_20x100_cpu_s", "study_serial_20x100_s",
@@ -208,7 +244,12 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
                 "study_cpu_ratio_vs_serial", "lockstep_cpu_ratio", "study_j_star_s",
                 "study_j_star_cpu_s", "study_eval_draws"):
         result[key] = study.get(key)
+    search = search or {}
+    for key in ("tune_s", "tune_cpu_s", "tune_heldout_s", "one_at_a_time_s",
+                "one_at_a_time_cpu_s", "tune_speedup_vs_one_at_a_time"):
+        result[key] = search.get(key)
     values = {
+        "tune_s": result["tune_s"],
         "speedup_vs_mpcrl": result["speedup_vs_mpcrl"],
         "paper_experiment_s": result["paper_experiment_s"],
         "peak_rss_mb": result["peak_rss_mb"],
@@ -218,6 +259,8 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
         "cold_start_s": result["cold_start_s"],
         "kernel_us_per_problem": result["kernel_us_per_problem"],
         "decentralized_n20_s_per_month": result["decentralized_n20_s_per_month"],
+        **{key: result[key] for key in ("startup_import_s", "startup_experiment_s",
+                                        "paper_command_1_draw_s", "paper_command_10_draws_s")},
     }
     targets = {}
     for name, (op, bound) in TARGETS.items():
@@ -233,7 +276,7 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
         "mpcrl_cold_cached_numba": mpcrl_cold_cached, "paper": paper,
         "paper_default_eval": paper_draws,
         "paper_learning_only": paper_learn, "cold": cold, "kernel": kernel,
-        "decentralized": dec, "study": study,
+        "decentralized": dec, "study": study, "commands": commands,
         "figure": None if figure is None else str(figure),
     }
     result["total_s"] = time.perf_counter() - t_start
@@ -246,12 +289,15 @@ def main(argv: list[str] | None = None) -> int:
                         help="smoke run: 1 month, 3 months of the paper run (extrapolated), "
                              "fewer scaling sizes")
     parser.add_argument("--skip-mpcrl", action="store_true", help="leave out the mpcrl comparison")
-    parser.add_argument("--out", type=Path, help="also write the JSON to this file")
+    parser.add_argument("--out", type=Path,
+                        help="also write the JSON to this file (make bench: "
+                             "benchmarks/results/bench-<date>.json, git-ignored)")
     args = parser.parse_args(argv)
     result = run(quick=args.quick, skip_mpcrl=args.skip_mpcrl)
     line = json.dumps(result)
     print(line, flush=True)
     if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(line + "\n")
     print()
     print(bench_learning.scaling_table(result["scaling"]))

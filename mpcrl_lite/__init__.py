@@ -17,7 +17,8 @@ The MPC (:mod:`mpcrl_lite.mpc`)
 The closed loop (:mod:`mpcrl_lite.sim`)
     ``simulate``: the one closed loop; ``MPCPolicy``: the MPC as a policy; ``run_month``: a
     month in closed loop; ``evaluate_mpc``: a theta on common noise draws; ``Record``: the
-    record of a simulated period.
+    record of a simulated period; ``BatteryEnv``: the system as a Gymnasium environment
+    (``gymnasium.make("mpcrl_lite/Batteries-v0")``), ``MPCAgent``: the MPC as its policy.
 Learning (:mod:`mpcrl_lite.learning`, :mod:`mpcrl_lite.decentralized`)
     ``Experiment``: the centralized learner (LSTD critic, DPG actor); ``History``: a run's
     results; ``lstd_q``: the compatible critic's fit; ``policy_gradient``: the DPG estimate
@@ -42,7 +43,11 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
+from ._util import gym_registration as _gym_registration
 from ._util.version import __version__
+
+# gymnasium.make("mpcrl_lite/Batteries-v0") from now on, Gymnasium itself not imported here
+_gym_registration.install()
 
 #: Where each public name lives (module below ``mpcrl_lite``); loaded on first access.
 _HOMES: dict[str, str] = {
@@ -63,6 +68,8 @@ _HOMES: dict[str, str] = {
     "run_month": "sim.closed_loop",
     "evaluate_mpc": "sim.closed_loop",
     "Record": "sim.record",
+    "BatteryEnv": "sim.env",
+    "MPCAgent": "sim.env",
     "Experiment": "learning.experiment",
     "History": "learning.history",
     "lstd_q": "learning.lstd",
@@ -79,10 +86,12 @@ _HOMES: dict[str, str] = {
 
 __all__ = [
     "MPC",
+    "BatteryEnv",
     "DecentralizedExperiment",
     "Experiment",
     "History",
     "LearningConfig",
+    "MPCAgent",
     "MPCConfig",
     "MPCPolicy",
     "Prices",
@@ -140,6 +149,7 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from .mpc.formulation import MPC
     from .mpc.sensitivity import policy_sensitivity
     from .sim.closed_loop import MPCPolicy, evaluate_mpc, run_month, simulate
+    from .sim.env import BatteryEnv, MPCAgent
     from .sim.record import Record
     from .studies.study import run_study
     from .studies.sweep.api import run_sweep

@@ -151,6 +151,7 @@ __all__ = [
     "PAPER_EXPLORATION_STD",
     "PAPER_STEP_SIZE",
     "PAPER_TAU",
+    "PER_BATTERY",
     "PRICE_UNIT",
     "VALUE_FEATURES",
     "VALUE_FEATURE_SETS",
@@ -219,6 +220,13 @@ class _Config:
 class SystemConfig(_Config):
     """The battery system and the MPC's structure; defaults are the paper's Table I.
 
+    **Per battery.** ``alpha``, ``U_bar``, ``soc0``, ``noise_mean``, ``noise_var`` and ``p``
+    (:data:`PER_BATTERY`) take a scalar, the same for every battery (stored as a float), or
+    one value per battery (a sequence of length ``n``, stored as a tuple; each value checked
+    with the battery's index in the message, ``"alpha[1]=-0.1: expected ..."``): a site that
+    mixes battery sizes. :meth:`battery` gives any of them as ``n`` values,
+    :meth:`battery_groups` the groups of identical batteries.
+
     A grid bound at or above the batteries' total, ``P_bar >= n * U_bar``, can never bind
     (paper eq. 8 asks for less): it is legal and warns (:class:`ConfigWarning`).
 
@@ -228,22 +236,25 @@ class SystemConfig(_Config):
 
     n: int = 3
     """Number of batteries (agents)."""
-    alpha: float = 1.0 / 12.0
-    """True battery size factor in ``soc+ = soc + alpha (Delta + b - s)``; must be > 0."""
-    noise_mean: float = 0.0
-    """Mean of the production-demand noise ``Delta``."""
-    noise_var: float = 0.5
-    """Variance of ``Delta`` (Table I's ``N(0, 0.5)``; the std is ``sqrt(noise_var)``)."""
-    U_bar: float = 1.0
-    """Bound on each battery's buying and selling power, ``0 <= b, s <= U_bar``."""
+    alpha: float | tuple[float, ...] = 1.0 / 12.0
+    """True battery size factor in ``soc+ = soc + alpha (Delta + b - s)``; must be > 0
+    (per battery: a scalar for all, or one value each, see the class docstring)."""
+    noise_mean: float | tuple[float, ...] = 0.0
+    """Mean of the production-demand noise ``Delta`` (per battery)."""
+    noise_var: float | tuple[float, ...] = 0.5
+    """Variance of ``Delta`` (Table I's ``N(0, 0.5)``; the std is ``sqrt(noise_var)``; per
+    battery)."""
+    U_bar: float | tuple[float, ...] = 1.0
+    """Bound on each battery's buying and selling power, ``0 <= b, s <= U_bar`` (per
+    battery)."""
     P_bar: float = 1.5
     """Grid peak bound: ``sum_i b_i <= P_bar`` and ``sum_i s_i <= P_bar``."""
     omega: tuple[float, float] = (20.0, 20.0)
     """MPC stage slack weights on (soc above 0.9, soc below 0.1)."""
     omega_f: tuple[float, float] = (20.0, 20.0)
     """MPC terminal slack weights."""
-    p: float = 1000.0
-    """True-cost penalty per unit of soc outside [soc_low, soc_high]."""
+    p: float | tuple[float, ...] = 1000.0
+    """True-cost penalty per unit of soc outside [soc_low, soc_high] (per battery)."""
     soc_low: float = 0.1
     """Lower edge of the safe soc band (penalised below)."""
     soc_high: float = 0.9
@@ -265,16 +276,16 @@ class SystemConfig(_Config):
     ``(2 - sell_ratio) phi_b`` for ``phi_b < 0`` (``mpcrl_lite.system.prices.sell_prices``)."""
     price_scale: float = 1.0
     """Multiplier on the price series (1.0 keeps NOK/MWh; a classroom knob)."""
-    soc0: float = 0.6
-    """soc of every battery at the start of each day (text: 0.6; Table I says 0.5)."""
+    soc0: float | tuple[float, ...] = 0.6
+    """soc at the start of each day (text: 0.6; Table I says 0.5; per battery)."""
 
     def __post_init__(self) -> None:
         set_ = self._set
         set_("n", check_int("n", self.n, 1))
-        set_("alpha", check_real("alpha", self.alpha, 0.0, low_open=True))
-        set_("noise_mean", check_real("noise_mean", self.noise_mean))
-        set_("noise_var", check_real("noise_var", self.noise_var, 0.0))
-        set_("U_bar", check_real("U_bar", self.U_bar, 0.0, low_open=True))
+        set_("alpha", self._battery_values("alpha", 0.0, low_open=True))
+        set_("noise_mean", self._battery_values("noise_mean"))
+        set_("noise_var", self._battery_values("noise_var", 0.0))
+        set_("U_bar", self._battery_values("U_bar", 0.0, low_open=True))
         set_("P_bar", check_real("P_bar", self.P_bar, 0.0, low_open=True))
         for name in ("omega", "omega_f"):
             value = getattr(self, name)
@@ -284,7 +295,7 @@ class SystemConfig(_Config):
             if len(value) != 2:
                 raise ValueError(f"{expected}, got {len(value)} value(s)")
             set_(name, tuple(check_real(name, v, 0.0) for v in value))
-        set_("p", check_real("p", self.p, 0.0))
+        set_("p", self._battery_values("p", 0.0))
         set_("soc_low", check_real("soc_low", self.soc_low, 0.0, 1.0))
         set_("soc_high", check_real("soc_high", self.soc_high, self.soc_low, 1.0))
         set_("gamma", check_real("gamma", self.gamma, 0.0, 1.0, low_open=True))
@@ -296,9 +307,10 @@ class SystemConfig(_Config):
         set_("sample_time_h", check_real("sample_time_h", self.sample_time_h, 0.0, low_open=True))
         set_("sell_ratio", check_real("sell_ratio", self.sell_ratio, 0.0))
         set_("price_scale", check_real("price_scale", self.price_scale, 0.0))
-        set_("soc0", check_real("soc0", self.soc0, 0.0, 1.0))
-        try:
-            reach = self.n * self.U_bar  # the most all batteries can buy (or sell) at once
+        set_("soc0", self._battery_values("soc0", 0.0, 1.0))
+        try:  # the most all batteries can buy (or sell) at once
+            reach = (self.n * self.U_bar if isinstance(self.U_bar, float)
+                     else math.fsum(self.U_bar))
         except OverflowError:  # an n beyond the float range
             reach = math.inf
         if self.P_bar >= reach:
@@ -309,10 +321,62 @@ class SystemConfig(_Config):
                 stacklevel=3,
             )
 
+    def _battery_values(self, name: str, low: float | None = None, high: float | None = None,
+                        *, low_open: bool = False) -> float | tuple[float, ...]:
+        """A per-battery field validated: a scalar (every battery) as a float, or one value
+        per battery as a tuple of floats, each in the range (errors name the battery)."""
+        value = getattr(self, name)
+        if isinstance(value, (str, bytes)) or not hasattr(value, "__len__"):
+            return check_real(name, value, low, high, low_open=low_open)
+        values = tuple(value)
+        if len(values) != self.n:
+            raise ValueError(f"{name}={show(value)}: expected a scalar or one value per battery "
+                             f"(n={self.n}), got {len(values)} value(s)")
+        return tuple(check_real(f"{name}[{i}]", v, low, high, low_open=low_open)
+                     for i, v in enumerate(values))
+
+    def battery(self, name: str) -> tuple[float, ...]:
+        """The per-battery field ``name`` (one of :data:`PER_BATTERY`) as ``n`` values."""
+        check_choice("name", name, PER_BATTERY)
+        value = getattr(self, name)
+        return value if isinstance(value, tuple) else (value,) * self.n
+
+    def common(self, name: str, where: str) -> float:
+        """The one value of the per-battery field ``name`` that ``where`` needs the same for
+        every battery, else a one-line ``ValueError`` naming the field, the values and
+        ``where``."""
+        values = self.battery(name)
+        if len(set(values)) > 1:
+            raise ValueError(f"{name}={list(values)}: {where} expects one value for every "
+                             "battery")
+        return values[0]
+
+    def battery_groups(self) -> tuple[int, ...]:
+        """The group of every battery: batteries with equal values of every field of
+        :data:`PER_BATTERY` share a group, numbered from 0 in order of first appearance
+        (``(0, 0, 0)`` for identical batteries, ``(0, 1, 1)`` for one large and two equal
+        small ones)."""
+        keys = list(zip(*(self.battery(name) for name in PER_BATTERY), strict=True))
+        first = {key: i for i, key in reversed(list(enumerate(keys)))}
+        labels = {i: g for g, i in enumerate(sorted(set(first.values())))}
+        return tuple(labels[first[key]] for key in keys)
+
     @property
-    def noise_std(self) -> float:
-        """Standard deviation of ``Delta``."""
+    def identical(self) -> bool:
+        """Every battery has the same parameters (every field of :data:`PER_BATTERY`)."""
+        return all(not isinstance(getattr(self, name), tuple)
+                   or len(set(getattr(self, name))) <= 1 for name in PER_BATTERY)
+
+    @property
+    def noise_std(self) -> float | tuple[float, ...]:
+        """Standard deviation of ``Delta`` (per battery when ``noise_var`` is)."""
+        if isinstance(self.noise_var, tuple):
+            return tuple(math.sqrt(v) for v in self.noise_var)
         return math.sqrt(self.noise_var)
+
+
+#: The fields of :class:`SystemConfig` that take one value per battery (or one for all).
+PER_BATTERY = ("alpha", "noise_mean", "noise_var", "U_bar", "p", "soc0")
 
 
 #: Solver back-ends known to :mod:`mpcrl_lite.mpc.backends.registry`.
@@ -468,13 +532,17 @@ class LearningConfig(_Config):
     grad_clip: float | None = None
     """If set, rescale each update so that ||step|| <= grad_clip."""
     tie_agents: bool = True
-    """Learn one value of each part of theta for all batteries: the gradient is averaged
-    over the agents before the update, so batteries that start alike stay alike. The
-    batteries of :class:`SystemConfig` are identical, and so is the role of each in the
-    cost, so the best causal policy treats them alike; tying them triples the data behind
-    each parameter and rules out one battery drifting alone into a corner where its policy
-    no longer responds (see the module docstring). False learns every battery's own (the
-    paper's 24 parameters; :meth:`paper`)."""
+    """Learn one value of each part of theta for all *identical* batteries: the gradient is
+    averaged over the agents of each group of identical batteries
+    (:meth:`SystemConfig.battery_groups`: equal values of every per-battery field) before the
+    update, so batteries that start alike stay alike. The batteries of the default
+    :class:`SystemConfig` are identical, and so is the role of each in the cost, so the best
+    causal policy treats them alike; tying them triples the data behind each parameter and
+    rules out one battery drifting alone into a corner where its policy no longer responds
+    (see the module docstring). On a mixed site only equal batteries are tied: with one large
+    and two small batteries the large one learns its own parameters and the two small ones
+    share theirs; batteries that all differ learn each their own. False learns every
+    battery's own (the paper's 24 parameters; :meth:`paper`)."""
     natural_damping: float = 1e-3
     """``optimizer='natural'`` only: relative damping ``lambda`` of the metric,
     ``(F + lambda diag F)^-1 g`` (:func:`mpcrl_lite.learning.update_rules.natural_direction`)."""

@@ -72,13 +72,14 @@ class Theta:
     @classmethod
     def nominal(cls, system: SystemConfig | None = None) -> Theta:
         """theta0: the nominal model (``theta_alpha = alpha``, ``theta_delta = alpha *
-        noise_mean``) and no cost corrections."""
+        noise_mean``, each battery's own) and no cost corrections."""
         system = system or SystemConfig()
         n = system.n
         zeros = np.zeros(n)
+        alpha, mean = np.array(system.battery("alpha")), np.array(system.battery("noise_mean"))
         return cls(
-            alpha=np.full(n, system.alpha),
-            delta=np.full(n, system.alpha * system.noise_mean),
+            alpha=alpha,  # each battery's own (one value for all: the same n floats as before)
+            delta=alpha * mean,
             **{name: zeros for name in PARTS[2:]},
         )
 

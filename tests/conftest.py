@@ -40,7 +40,9 @@ def package_imports(module: str, modules: dict[str, Path] | None = None,
     """Package modules imported by ``module`` (dotted, as :func:`package_modules` names them),
     with the line of the first import; read from the source (ast), so an import inside a
     function counts too, unless ``top_level_only``. ``from pkg import name`` counts as an
-    import of the module ``pkg.name`` where that is a module, else of ``pkg``."""
+    import of the module ``pkg.name`` where that is a module, else of ``pkg``; a module
+    imported on first use (``name = lazy_module("mpcrl_lite.pkg.mod")``,
+    :mod:`mpcrl_lite._util.lazy`) counts as an import of ``pkg.mod``."""
     modules = package_modules() if modules is None else modules
     path = modules[module]
     if path.name == "__init__.py":
@@ -77,6 +79,13 @@ def package_imports(module: str, modules: dict[str, Path] | None = None,
             for alias in node.names:
                 if alias.name.startswith("mpcrl_lite."):
                     add(alias.name.split(".")[1:], node.lineno)
+        elif isinstance(node, ast.Assign) and isinstance(node.value, ast.Call):
+            # name = lazy_module("mpcrl_lite.x.y"): an import made on first use
+            call = node.value
+            if getattr(call.func, "id", None) == "lazy_module" and call.args \
+                    and isinstance(call.args[0], ast.Constant) \
+                    and str(call.args[0].value).startswith("mpcrl_lite."):
+                add(str(call.args[0].value).split(".")[1:], node.lineno)
     return found
 
 

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["dumps", "json_default", "plain", "plain_json", "to_json_types"]
+__all__ = ["dumps", "json_default", "plain", "to_json_types"]
 
 
 def json_default(value: Any) -> Any:
@@ -59,12 +59,16 @@ def dumps(data: Any, indent: int | None = 1, **options: Any) -> bytes:
     return text.encode("utf-8")
 
 
-def plain(data: Any) -> Any:
-    """``data`` as it reads back from :func:`dumps` (plain lists, dicts, numbers, None)."""
+def plain(data: Any, keep_nonfinite: bool = False) -> Any:
+    """``data`` made of JSON types only (plain lists, dicts, numbers, strings, None), as it
+    reads back from :func:`dumps`: NaN and infinities become ``None``, unless
+    ``keep_nonfinite`` (a notebook's displayed summary keeps them as ``NaN``/``Infinity``).
+
+    Raises
+    ------
+    TypeError
+        For a value JSON cannot hold (e.g. a set), naming its type.
+    """
+    if keep_nonfinite:
+        return json.loads(json.dumps(data, default=json_default))
     return json.loads(dumps(data, indent=None))
-
-
-def plain_json(value: Any) -> Any:
-    """A copy of ``value`` (dicts, lists, numbers, strings, numpy values) made of JSON types
-    only, as written and read back."""
-    return json.loads(json.dumps(value, default=json_default))

@@ -70,7 +70,7 @@ import scipy.sparse as sp
 from scipy.optimize import linprog
 
 from ..sim.record import Record
-from ..system.battery import penalty
+from ..system.battery import battery_values, penalty
 from .scenario import PolicyResult, Scenario, evaluate_policy
 
 __all__ = ['ClairvoyantResult', 'clairvoyant', 'clairvoyant_lp']
@@ -121,7 +121,9 @@ def clairvoyant_lp(
     valid_day = isinstance(day, (int, np.integer)) and not isinstance(day, bool)
     if not valid_day or not 0 <= day < scenario.days:
         raise ValueError(f"day={day!r}: expected an integer in [0, {scenario.days})")
-    H, n, alpha, U = sysc.hours_per_day, sysc.n, sysc.alpha, sysc.U_bar
+    H, n = sysc.hours_per_day, sysc.n
+    # each battery's own (floats when one value serves all: the same numbers as a scalar)
+    alpha, U, p = (battery_values(sysc, name) for name in ("alpha", "U_bar", "p"))
     lay = _LPLayout(H, n)
     iub, ius, ieb, ies = (lay.block(k) for k in ("ub", "us", "eb", "es"))
     isoc, ihi, ilo = lay.block("soc"), lay.block("ehi"), lay.block("elo")
@@ -132,7 +134,7 @@ def clairvoyant_lp(
         c[var] = (disc * price)[:, None]
     for var, price in ((ius, scenario.sell[day]), (ies, scenario.sell[day])):
         c[var] = -(disc * price)[:, None]
-    c[ihi] = c[ilo] = sysc.p * disc[1:, None]
+    c[ihi] = c[ilo] = p * disc[1:, None]
 
     def sparse(terms: list[tuple[np.ndarray, np.ndarray, Any]], rows: int) -> sp.csr_matrix:
         r = np.concatenate([t[0].ravel() for t in terms])
@@ -144,7 +146,7 @@ def clairvoyant_lp(
     r = np.arange(H * n).reshape(H, n)
     A_eq = sparse([(r, isoc, 1.0), (r, iub, -alpha), (r, ieb, -alpha), (r, ius, alpha),
                    (r, ies, alpha), (r[1:], isoc[:-1], -1.0)], H * n)
-    b_eq = alpha * noise.ravel()
+    b_eq = (alpha * noise).ravel()
     b_eq[:n] += scenario.soc0[day]
 
     terms: list[tuple[np.ndarray, np.ndarray, Any]] = []

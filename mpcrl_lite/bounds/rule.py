@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..config import SystemConfig
-from ..system.battery import project_action
+from ..system.battery import battery_values, project_action
 from ..system.prices import Prices
 
 __all__ = ['RuleBasedPolicy']
@@ -44,9 +44,11 @@ class RuleBasedPolicy:
         sysc = self.system
         price = self.prices.buy[:, hour]
         direction = np.sign(self.median - price)[:, None]  # +1 buy (cheap), -1 sell
-        a = np.broadcast_to(direction * sysc.U_bar, soc.shape).copy()
+        U, alpha = battery_values(sysc, "U_bar"), battery_values(sysc, "alpha")
+        mean = battery_values(sysc, "noise_mean")  # each battery's own
+        a = np.broadcast_to(direction * U, soc.shape).copy()
         if self.soc_guard:
-            room_up = np.maximum((sysc.soc_high - soc) / sysc.alpha - sysc.noise_mean, 0.0)
-            room_down = np.maximum((soc - sysc.soc_low) / sysc.alpha + sysc.noise_mean, 0.0)
+            room_up = np.maximum((sysc.soc_high - soc) / alpha - mean, 0.0)
+            room_down = np.maximum((soc - sysc.soc_low) / alpha + mean, 0.0)
             a = np.clip(a, -room_down, room_up)
         return project_action(a, sysc)

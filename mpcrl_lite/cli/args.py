@@ -70,7 +70,28 @@ def finite_float(text: str) -> float:
 SYSTEM, MPC_DEFAULTS, LEARNING = SystemConfig(), MPCConfig(), LearningConfig()
 
 
+def add_system_file(p: argparse.ArgumentParser) -> None:
+    """``--system FILE.yaml``: the fields of SystemConfig from a YAML file."""
+    p.add_argument("--system", type=Path, default=None, metavar="FILE.yaml",
+                   help="the battery system from a YAML file of SystemConfig fields (e.g. "
+                        "examples/mixed_site.yaml); --n, --p-bar and --noise-var override it")
+
+
+def system_file(args: argparse.Namespace) -> dict[str, Any]:
+    """The fields of ``--system`` (empty without it), checked before any work."""
+    from . import inputs as cli_inputs
+
+    path = getattr(args, "system", None)
+    if path is None:
+        return {}
+    try:
+        return cli_inputs.read_system_file(path)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+
+
 def add_system_args(p: argparse.ArgumentParser) -> None:
+    add_system_file(p)
     p.add_argument("--seed", type=nonneg_int, default=LEARNING.seed,
                    help=f"random seed (default {LEARNING.seed})")
     p.add_argument("--p-bar", type=finite_float, default=None,
@@ -125,7 +146,10 @@ def add_force(p: argparse.ArgumentParser) -> None:
 
 # -- configs from arguments ----------------------------------------------------------------
 def configs(args: argparse.Namespace, **learning: Any):
-    system = {}
+    """The three configs of the options: the fields of ``--system`` (if given), then the
+    flags ``--p-bar``, ``--noise-var`` and ``--n`` over them, ``--tau``, ``--backend``,
+    ``--forecast``, ``--seed`` and the ``learning`` fields given (None: the default)."""
+    system = system_file(args)
     if args.p_bar is not None:
         system["P_bar"] = args.p_bar
     if args.noise_var is not None:
@@ -141,13 +165,16 @@ def configs(args: argparse.Namespace, **learning: Any):
         mpc["forecast"] = args.forecast
     learning = {k: v for k, v in learning.items() if v is not None}
     try:
-        return (
+        configs = (
             SystemConfig(**system),
             MPCConfig(**mpc),
             LearningConfig(seed=args.seed, **learning),
         )
+        if configs[1].backend in ("batch", "kernel"):  # their formulation has one U_bar
+            configs[0].common("U_bar", f"--backend {configs[1].backend}")
     except ValueError as err:
         raise UsageError(str(err)) from None
+    return configs
 
 
 def write_json(path: Path, data: dict[str, Any]) -> None:

@@ -28,6 +28,8 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
+import yaml
+
 from ..config import PRICE_UNIT, SystemConfig
 from ..learning.rundir import RunDirError, check_output_dir, inspect
 from ..system.price_files.load import load_prices
@@ -49,6 +51,7 @@ __all__ = [
     "estimate",
     "month_prices",
     "prepare_out",
+    "read_system_file",
     "refuse_finished",
 ]
 
@@ -135,6 +138,67 @@ def month_prices(path: str | os.PathLike, area: str | None, month: str, system: 
         raise ValueError(_one_line(f"--prices {path} --area {area} --month {month}: {err}")) \
             from None
     return prices.take(days) if days is not None and days < length else prices
+
+
+# -- a system file ------------------------------------------------------------------------
+def _yaml_where(err: yaml.YAMLError) -> str:
+    mark = getattr(err, "problem_mark", None)
+    problem = getattr(err, "problem", None)
+    if mark is not None and problem:
+        return f"line {mark.line + 1}, column {mark.column + 1}: {problem}"
+    return _one_line(str(err))
+
+
+def read_system_file(path: str | os.PathLike) -> dict:
+    """The fields of a :class:`~mpcrl_lite.config.SystemConfig` written in the YAML file
+    ``path`` (a mapping ``field: value``; YAML lists stand for tuples: ``omega``, and one value
+    per battery where a field takes them), checked by building the config from them alone.
+
+    Returns
+    -------
+    dict
+        The fields as given (lists as tuples), for the command's flags to override.
+
+    Raises
+    ------
+    ValueError
+        One line naming the file and what is wrong: missing, not YAML, not a mapping, an
+        unknown field, a value of the wrong type or out of range.
+    """
+    where = f"--system {os.fspath(path)}"
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ValueError(f"{where}: no such file; expected a YAML file of SystemConfig fields") \
+            from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise ValueError(_one_line(f"{where}: cannot be read ({err})")) from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise ValueError(_one_line(f"{where}: not valid YAML: {_yaml_where(err)}")) from None
+    except (RecursionError, ValueError) as err:
+        raise ValueError(_one_line(f"{where}: not valid YAML: {err}")) from None
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ValueError(  # noqa: TRY004
+            f"{where}: expected a mapping of SystemConfig fields (field: value), "
+            f"got {type(data).__name__}")
+    bad_keys = [k for k in data if not isinstance(k, str)]
+    if bad_keys:
+        raise ValueError(f"{where}: field {bad_keys[0]!r} is not a name; expected SystemConfig "
+                         "field names")
+    fields = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
+    try:
+        import warnings
+
+        with warnings.catch_warnings():  # a warning is for the final config, not the file
+            warnings.simplefilter("ignore")
+            SystemConfig.from_dict(fields)
+    except (ValueError, TypeError) as err:
+        raise ValueError(_one_line(f"{where}: {err}")) from None
+    return fields
 
 
 # -- resources ----------------------------------------------------------------------------

@@ -114,6 +114,13 @@ month of the decentralized learner took 2.4 s of CPU with the compiled path (the
 1.4 s, the sensitivities 0.05 s, the learners' month-end fits 0.35 s) against 19 s with the
 reference, measured in the same run (``benchmarks/bench_decentralized.py``).
 
+Why one module of ~750 lines: about 130 of them are this description; the rest is one
+algorithm, the rounds above (residual, decomposed Newton step, coordinator step, line search,
+barrier path, stopping rule, fallback), whose parts share the per-hour state
+(:class:`_Hour`, :class:`_Point`) and make sense only together. The local problems
+(:mod:`~mpcrl_lite.decentralized.local_qp`) and the compiled rounds
+(:mod:`~mpcrl_lite.decentralized.coordination_kernel`) are modules of their own.
+
 Example
 -------
 >>> from mpcrl_lite import SystemConfig, Theta

@@ -39,7 +39,11 @@ battery and round (``n = 20``, ``N = 12``: ~0.15 ms per day and round), against 
 day and round for the vectorized reference.
 
 The kernels are compiled into numba's on-disk cache with those of :mod:`mpcrl_lite.mpc.backends.kernel_core`
-(:func:`warm_up`, called by ``python -m mpcrl_lite.mpc.backends.kernel --warm``).
+(:func:`warm_up`, called by ``python -m mpcrl_lite.cli.warm``).
+
+Why one module of ~630 lines: the compiled rounds call each other inside numba's loops, and
+numba's on-disk cache checks only the source file of a compiled function, not the files of
+the functions it calls; kept in one file, an edit recompiles all of them together.
 """
 
 from __future__ import annotations

@@ -73,6 +73,7 @@ from ..sim.exploration import GaussianExploration
 from ..system.prices import Prices
 from ..theta import PARTS, Theta
 from .coordination import CoordinatedMPC, join_theta, split_theta
+from .local_qp import local_system
 
 __all__ = ["DecentralizedExperiment", "DecentralizedMonth", "compare_learners", "run_month_decentralized"]
 
@@ -249,12 +250,15 @@ class DecentralizedExperiment(Learner):
         self.thetas = split_theta(theta0)
         self.callbacks = list(callbacks)
         self.policy = CoordinatedMPC(self.system, self.mpc_config, self.coordination)
-        local = self.policy.local_mpc.system
-        self.updaters = [DPGUpdater.from_configs(self.learning, local)
-                         for _ in range(self.system.n)]
+        self.updaters = [DPGUpdater.from_configs(self.learning, self._local(i))
+                         for i in range(self.system.n)]
         self.rng = np.random.default_rng(self.learning.seed)
         self.history = History(self.system, self.mpc_config, self.learning, backend=self.backend)
         self.history.prices_origin = dict(getattr(self.prices, "origin", {}) or {})
+
+    def _local(self, battery: int) -> SystemConfig:
+        """Battery ``battery``'s own local system (its alpha scales its updater's steps)."""
+        return local_system(self.system, self.coordination.local_grid_factor, battery)
 
     @property
     def backend(self) -> str:
@@ -331,8 +335,8 @@ class DecentralizedExperiment(Learner):
         if not isinstance(saved, list) or len(saved) != self.system.n:
             raise RunDirError(f"{where}: 'updaters' is not a list of {self.system.n} optimizer "
                               "states; start over with --force")
-        local = self.policy.local_mpc.system
-        fresh = [DPGUpdater.from_configs(self.learning, local) for _ in saved]
+        fresh = [DPGUpdater.from_configs(self.learning, self._local(i))
+                 for i in range(len(saved))]
         try:
             for updater, s in zip(fresh, saved):
                 updater.load_state_dict(s)

@@ -26,20 +26,27 @@ import warnings
 import casadi as ca
 import numpy as np
 
-from ..config import ConfigWarning, SystemConfig
+from ..config import PER_BATTERY, ConfigWarning, SystemConfig
 from ..mpc.formulation import MPC
 
 __all__ = ["LocalQP", "local_system"]
 
 
-def local_system(system: SystemConfig, local_grid_factor: float = 1e4) -> SystemConfig:
-    """The local MPC's system: ``system`` with ``n = 1`` and an inert grid row
-    (``P_bar = local_grid_factor * max(U_bar, P_bar)``; the true limit is priced)."""
+def local_system(system: SystemConfig, local_grid_factor: float = 1e4,
+                 battery: int = 0) -> SystemConfig:
+    """The local MPC's system: ``system`` with ``n = 1``, the per-battery fields of battery
+    ``battery`` and an inert grid row (``P_bar = local_grid_factor * max(U_bar, P_bar)``; the
+    true limit is priced). The local MPCs share one formulation, so ``U_bar`` must be the same
+    for every battery (a one-line error otherwise)."""
     if not isinstance(system, SystemConfig):
         raise ValueError(f"system={system!r}: expected a SystemConfig")  # noqa: TRY004
+    U = system.common("U_bar", "the decentralized MPCs")
+    own = {name: system.battery(name)[battery] for name in PER_BATTERY if name != "U_bar"}
+    own = {name: value for name, value in own.items() if isinstance(getattr(system, name), tuple)}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConfigWarning)
-        return system.replace(n=1, P_bar=local_grid_factor * max(system.U_bar, system.P_bar))
+        return system.replace(n=1, P_bar=local_grid_factor * max(U, system.P_bar), U_bar=U,
+                              **own)
 
 
 def _scatter(out: ca.DM, shape: tuple[int, int], flat: np.ndarray) -> np.ndarray:

@@ -24,13 +24,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import matplotlib.pyplot as plt
 import numpy as np
-from matplotlib.axes import Axes
-from matplotlib.figure import Figure
-from matplotlib.ticker import MultipleLocator
 
+from .._util.lazy import lazy_module
 from .._util.validate import check_instance, check_int
 from ..config import PRICE_UNIT
 from ..learning.history import History
@@ -51,6 +49,15 @@ from .style import (
     steps,
     u_bar_lines,
 )
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+
+#: matplotlib, imported when a figure is first drawn (a run without figures never
+#: loads it)
+plt = lazy_module("matplotlib.pyplot")
+_ticker = lazy_module("matplotlib.ticker")
 
 __all__ = [
     "PAPER_FIGURES",
@@ -138,7 +145,7 @@ def _month_axis(
     ax.grid(True, color=grid, lw=0.6)
     ax.legend(fontsize=legend_size, framealpha=0.9)
     if months <= 12:
-        ax.xaxis.set_major_locator(MultipleLocator(1))
+        ax.xaxis.set_major_locator(_ticker.MultipleLocator(1))
 
 
 def fig1_trajectories(
@@ -184,7 +191,7 @@ def fig1_trajectories(
     for i in range(n):
         ax_s, ax_p = flat[2 * i], flat[2 * i + 1]
         soc_reference(ax_s, system, label=(i == 0))
-        u_bar_lines(ax_p, system.U_bar)
+        u_bar_lines(ax_p, max(system.battery("U_bar")))
         for key, (rec, color, label) in months.items():
             t, y = _concat_soc(rec.soc, chosen, i)
             ax_s.plot(t, y, color=color, lw=1.4, gid=f"soc[{i + 1}] {key}",
@@ -193,7 +200,7 @@ def fig1_trajectories(
                       color=color, lw=1.1, alpha=0.85, gid=f"policy[{i + 1}] {key}")
         ax_s.set_ylabel(f"soc$^{i + 1}$ (–)")
         ax_p.set_ylabel(rf"$\pi^{i + 1}$ (MW)")
-        ax_p.set_ylim(-1.15 * system.U_bar, 1.15 * system.U_bar)
+        ax_p.set_ylim(-1.15 * max(system.battery("U_bar")), 1.15 * max(system.battery("U_bar")))
         for ax in (ax_s, ax_p):
             day_axis(ax, len(chosen), H, labels=chosen if i == 0 else None)
     flat[-2].set_xlabel("time (h)")
@@ -436,15 +443,15 @@ def fig5_policy_and_agent_costs(
     # x = hour + agent column + day position: a deterministic spread, days left to right
     spread = (np.arange(D) / max(D - 1, 1) - 0.5) * 0.8 * slot if D > 1 else np.zeros(1)
     centre = 0.5 + (np.arange(n) - (n - 1) / 2) * slot
-    u_bar_lines(ax_pi, system.U_bar)
+    u_bar_lines(ax_pi, max(system.battery("U_bar")))
     x_day = (np.arange(H)[:, None] + spread[None, :]).reshape(-1)  # (H*D,), hour-major
     for i in range(n):
         ax_pi.scatter(x_day + centre[i], rec.policy[:, :, i].reshape(-1), s=6,
                       color=agent_color(i), alpha=0.7, lw=0, gid=f"policy[{i + 1}]",
                       label=f"agent {i + 1}")
     ax_pi.set_xlim(0, H)
-    ax_pi.xaxis.set_major_locator(MultipleLocator(max(1, H // 8)))
-    ax_pi.set_ylim(-1.15 * system.U_bar, 1.15 * system.U_bar)
+    ax_pi.xaxis.set_major_locator(_ticker.MultipleLocator(max(1, H // 8)))
+    ax_pi.set_ylim(-1.15 * max(system.battery("U_bar")), 1.15 * max(system.battery("U_bar")))
     ax_pi.set_xlabel("hour of day (h)")
     ax_pi.set_ylabel(r"policy $\pi^i(s)$ = b − s (MW)")
     ax_pi.set_title(f"Learned policy, last month ({D} days)", loc="left", fontsize=11)
@@ -493,7 +500,7 @@ def fig6_prices(
         ax.plot(hours, prices.buy[d], color=color, lw=1.7, marker="o", ms=3,
                 gid=f"buy day {d + 1}", label=f"day {d + 1}")
     ax.set_xlim(-0.5, hours[-1] + 0.5)
-    ax.xaxis.set_major_locator(MultipleLocator(3))
+    ax.xaxis.set_major_locator(_ticker.MultipleLocator(3))
     ax.set_xlabel("hour of day (h)")
     ax.set_ylabel(rf"buying price $\phi_b$ ({prices.unit})")
     ax.set_title("Buying price", loc="left", fontsize=11)

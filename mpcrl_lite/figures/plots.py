@@ -154,7 +154,7 @@ def plot_day(
                      loc="left", fontsize=11)
     legend_beside(ax_soc)
 
-    u_bar_lines(ax_a, system.U_bar)
+    u_bar_lines(ax_a, max(system.battery("U_bar")))
     for i in range(n):
         c = agent_color(i)
         ax_a.plot(hours, steps(record.policy[:, day, i]), drawstyle="steps-post", color=c,
@@ -266,7 +266,7 @@ def plot_plan(
     legend_beside(ax_soc)
     if title:
         ax_soc.set_title(title, loc="left", fontsize=10)
-    u_bar_lines(ax_a, system.U_bar, zero=False)
+    u_bar_lines(ax_a, max(system.battery("U_bar")), zero=False)
     for i in range(n):
         # agents that plan the same power overlap: earlier agents drawn wider, underneath
         ax_a.plot(j, steps(plan.b[:, i] - plan.s[:, i]), drawstyle="steps-post",

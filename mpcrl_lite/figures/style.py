@@ -24,17 +24,26 @@ from __future__ import annotations
 
 import numbers
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
-import matplotlib.pyplot as plt
 import numpy as np
-from matplotlib.axes import Axes
-from matplotlib.figure import Figure
-from matplotlib.legend import Legend
-from matplotlib.lines import Line2D
-from matplotlib.ticker import MultipleLocator
 
+from .._util.lazy import lazy_module
 from .._util.validate import check_int
 from ..config import PRICE_UNIT, SystemConfig
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+    from matplotlib.legend import Legend
+    from matplotlib.lines import Line2D
+
+#: matplotlib, imported when a figure is first drawn (a run without figures never
+#: loads it)
+plt = lazy_module("matplotlib.pyplot")
+_figure = lazy_module("matplotlib.figure")
+_axes = lazy_module("matplotlib.axes")
+_ticker = lazy_module("matplotlib.ticker")
 
 __all__ = [
     "AGENT_COLORS",
@@ -84,13 +93,13 @@ def agent_color(i: int) -> str:
 
 def find_lines(fig_or_ax: Figure | Axes, gid: str) -> list[Line2D]:
     """All lines whose ``gid`` is ``gid``, in every axes of a figure (or in one axes)."""
-    axes = fig_or_ax.axes if isinstance(fig_or_ax, Figure) else [fig_or_ax]
+    axes = fig_or_ax.axes if isinstance(fig_or_ax, _figure.Figure) else [fig_or_ax]
     return [line for ax in axes for line in ax.get_lines() if line.get_gid() == gid]
 
 
 def _root_figure(ax: Axes) -> Figure:
     fig = ax.figure
-    while not isinstance(fig, Figure):  # axes of a SubFigure
+    while not isinstance(fig, _figure.Figure):  # axes of a SubFigure
         fig = fig.figure
     return fig
 
@@ -108,7 +117,7 @@ def axes_or_new(
     if axes is not None and fig is not None:
         raise ValueError(f"{name} and fig: expected one of them, not both")
     if fig is not None:
-        if not isinstance(fig, Figure):
+        if not isinstance(fig, _figure.Figure):
             raise ValueError(f"fig: expected a matplotlib Figure, got {type(fig).__name__}")
         fig.clear()
         fig.set_layout_engine("constrained")
@@ -119,8 +128,8 @@ def axes_or_new(
             *shape, figsize=figsize, squeeze=False, layout="constrained", **kwargs
         )
         return new, list(grid.ravel())
-    given = [axes] if isinstance(axes, Axes) else list(np.ravel(np.asarray(axes, dtype=object)))
-    if len(given) != count or not all(isinstance(a, Axes) for a in given):
+    given = [axes] if isinstance(axes, _axes.Axes) else list(np.ravel(np.asarray(axes, dtype=object)))
+    if len(given) != count or not all(isinstance(a, _axes.Axes) for a in given):
         raise ValueError(f"{name}: expected {count} matplotlib Axes, got {len(given)} object(s)")
     return _root_figure(given[0]), given
 
@@ -157,7 +166,7 @@ def soc_reference(ax: Axes, system: SystemConfig, label: bool = True) -> None:
     ax.axhline(0.0, color=REF_GREY, ls="-", lw=0.6, gid="soc_min")
     ax.axhline(1.0, color=REF_GREY, ls="-", lw=0.6, gid="soc_max")
     ax.set_ylim(-0.04, 1.04)
-    ax.yaxis.set_major_locator(MultipleLocator(0.2))
+    ax.yaxis.set_major_locator(_ticker.MultipleLocator(0.2))
 
 
 def p_bar_line(ax: Axes, P_bar: float) -> None:
@@ -197,10 +206,10 @@ def day_axis(ax: Axes, n_days: int, hours: int, labels: Sequence[int] | None = N
     total = n_days * hours
     ax.set_xlim(0, total)
     if n_days == 1:
-        ax.xaxis.set_major_locator(MultipleLocator(max(1, hours // 8)))
+        ax.xaxis.set_major_locator(_ticker.MultipleLocator(max(1, hours // 8)))
     else:
-        ax.xaxis.set_major_locator(MultipleLocator(hours))
-        ax.xaxis.set_minor_locator(MultipleLocator(max(1, hours // 4)))
+        ax.xaxis.set_major_locator(_ticker.MultipleLocator(hours))
+        ax.xaxis.set_minor_locator(_ticker.MultipleLocator(max(1, hours // 4)))
         for j in range(1, n_days):
             ax.axvline(j * hours, color="0.8", lw=0.8, zorder=0)
     if labels is not None:

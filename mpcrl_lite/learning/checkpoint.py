@@ -1,7 +1,9 @@
 r"""Checkpoints of a learning run: what is saved after every month, and the verified resume.
 
 After every month the run directory (:mod:`mpcrl_lite.learning.rundir`) gets one commit holding
-``history.json``, ``history.npz`` and ``checkpoint.json``; the latter has ``format`` (the
+``history.json``, ``history.npz`` and ``checkpoint.json`` (months between the first and the last
+of a run append to the journal ``history.jsonl`` and keep ``history.json``, see
+:meth:`Checkpointing.save_checkpoint`); ``checkpoint.json`` has ``format`` (the
 learner's), ``months_done``, ``theta``, the optimizer state (``updater``, or ``updaters``
 per battery), the generator state ``rng``, the configurations and ``prices``, a fingerprint of
 the month's prices (:func:`prices_fingerprint`). :meth:`Learner.load_checkpoint` verifies
@@ -137,12 +139,55 @@ class Checkpointing:
             "prices": prices_fingerprint(self.prices),
         }
 
-    def save_checkpoint(self, directory: str | Path) -> None:
-        """Commit the History and the checkpoint to ``directory`` (one atomic commit)."""
-        files = self.history.to_files()
-        files[rundir.CHECKPOINT] = jsonio.dumps(self.checkpoint_state())
-        rundir.commit(directory, files, kind=self.KIND, months_done=self.history.months,
-                      configs_hash=self.configs_hash())
+    def save_checkpoint(self, directory: str | Path, last: bool = True,
+                        background: bool = False) -> None:
+        """Commit the History and the checkpoint to ``directory`` (one atomic commit).
+
+        With ``last=False`` (a month of a run that goes on) and a previous commit of this
+        learner in ``directory``, the months since that commit are appended to the journal
+        ``history.jsonl`` and ``history.json`` is kept (:mod:`mpcrl_lite.learning.rundir`): the
+        cost of a month does not grow with the months done. Otherwise (the default) the
+        whole History is written and the journal dropped.
+
+        With ``background=True`` the files are built here and written by a thread
+        (:func:`~mpcrl_lite.learning.rundir.commit_soon`) while the caller goes on; the next
+        checkpoint (or :meth:`wait_for_checkpoint`) waits for it first and raises its error.
+        """
+        self.wait_for_checkpoint()
+        directory = Path(directory)
+        previous, self._last_commit = getattr(self, "_last_commit", None), None
+        checkpoint = jsonio.dumps(self.checkpoint_state())
+        common: dict[str, Any] = {"kind": self.KIND, "months_done": self.history.months,
+                                  "configs_hash": self.configs_hash()}
+        history = self.history
+        if not last and previous is not None and previous[0] == directory \
+                and previous[1] is history and rundir.HISTORY_JSON in previous[2]["files"] \
+                and rundir.manifest_of(directory) == previous[2]:
+            files = {rundir.HISTORY_NPZ: history.npz_bytes(compress=False),
+                     rundir.CHECKPOINT: checkpoint}
+            common.update(previous=previous[2], keep=[rundir.HISTORY_JSON],
+                          append={rundir.JOURNAL: history.journal_record(previous[3])})
+        else:
+            files = history.to_files()
+            files[rundir.CHECKPOINT] = checkpoint
+        lengths = history.series_lengths()
+        if background:
+            self._pending_commit = (rundir.commit_soon(directory, files, **common), history,
+                                    lengths)
+        else:
+            manifest = rundir.commit(directory, files, **common)
+            self._last_commit = (directory, history, manifest, lengths)
+
+    def wait_for_checkpoint(self) -> None:
+        """Wait for a checkpoint written in the background (:meth:`save_checkpoint`) and
+        raise its error if it failed (the directory then holds the commit before it)."""
+        pending = getattr(self, "_pending_commit", None)
+        if pending is None:
+            return
+        self._pending_commit = None
+        commit, history, lengths = pending
+        manifest = commit.result()
+        self._last_commit = (commit.directory, history, manifest, lengths)
 
     def load_checkpoint(self, directory: str | Path) -> None:
         """Continue from the run in ``directory``; everything is verified before anything
@@ -156,8 +201,9 @@ class Checkpointing:
             raise RunDirError(
                 f"{directory / rundir.HISTORY_JSON} is missing next to {rundir.CHECKPOINT} "
                 f"(an incomplete or damaged run); {RECOVER}")
-        run = rundir.read(directory, [rundir.HISTORY_JSON, rundir.HISTORY_NPZ, rundir.CHECKPOINT],
-                          optional=[rundir.HISTORY_NPZ, rundir.CHECKPOINT])
+        run = rundir.read(directory, [rundir.HISTORY_JSON, rundir.HISTORY_NPZ, rundir.CHECKPOINT,
+                                      rundir.JOURNAL],
+                          optional=[rundir.HISTORY_NPZ, rundir.CHECKPOINT, rundir.JOURNAL])
         if run.kind == "history" or rundir.CHECKPOINT not in run.files:
             raise RunDirError(
                 f"{directory} holds a History without {rundir.CHECKPOINT}: it cannot be "

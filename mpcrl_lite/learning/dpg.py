@@ -189,9 +189,10 @@ class DPGUpdater:
         ``max_policy_change`` and ``average_months``.
     n : int
         Number of agents (theta has ``10 n`` entries).
-    system_alpha : float
-        The true battery factor ``SystemConfig.alpha``: the natural scale of the model parts
-        ``alpha`` and ``delta`` for Adam, and a sanity check of ``alpha_min``.
+    system_alpha : float or sequence of float
+        The true battery factor ``SystemConfig.alpha`` (one for all agents, or one per
+        agent): the natural scale of the model parts ``alpha`` and ``delta`` for Adam (each
+        agent's own), and a sanity check of ``alpha_min``.
     betas : (float, float), default :data:`ADAM_BETAS`
         Adam only: decay rates of the first and second moments.
     eps : float, default :data:`ADAM_EPS`
@@ -241,8 +242,13 @@ class DPGUpdater:
     moments for them stay zero).
 
     **Tying.** With ``tie_agents`` the gradient (and the metric) are projected onto the
-    parameters shared by all agents: each part's gradient is replaced by its mean over the
-    agents, so every agent's entry of a part moves alike.
+    parameters shared by the agents of a group (``groups``; by default one group: all of
+    them): each part's gradient is replaced by its mean over the agents of the group, so
+    every agent's entry of a part moves alike within a group. Only identical batteries are
+    tied (:meth:`from_configs` takes the groups of
+    :meth:`~mpcrl_lite.config.SystemConfig.battery_groups`): on a mixed site, e.g. one large
+    and two equal small batteries, the large one learns its own parameters and the two small
+    ones share theirs; batteries that all differ are not tied at all.
 
     **Step size.** ``step_size`` at update ``t``, times ``min(1, t / step_warmup)`` when
     ``step_warmup > 0`` and divided by ``1 + (t - 1) / step_decay`` when ``step_decay > 0``.
@@ -284,11 +290,22 @@ class DPGUpdater:
         eps: float = ADAM_EPS,
         scale: dict[str, float] | None = None,
         price_scale: float = 1.0,
+        groups: tuple[int, ...] | None = None,
     ) -> None:
         self.config = check_instance("config", config, LearningConfig)
         self.mask = learnable_mask(n, config.learn_constants)
         self.n = int(n)
+        if isinstance(system_alpha, (tuple, list, np.ndarray)):
+            alphas = tuple(check_real(f"system_alpha[{i}]", a, 0.0, low_open=True)
+                           for i, a in enumerate(system_alpha))
+            if len(alphas) != self.n:
+                raise ValueError(f"system_alpha has {len(alphas)} values: expected n={self.n}")
+            self.agent_alpha: tuple[float, ...] | None = alphas
+            system_alpha = min(alphas)
+        else:
+            self.agent_alpha = None
         self.system_alpha = check_real("system_alpha", system_alpha, 0.0, low_open=True)
+        self.groups = self._groups(groups)
         self.scale = self._scale_vector(scale or {}, price_scale)
         options: dict[str, Any] = {"scale": self.scale, "eps": eps,
                                    "damping": config.natural_damping}
@@ -318,7 +335,18 @@ class DPGUpdater:
         """Build from the two configs (``n``, ``alpha`` and ``price_scale`` taken from
         ``system``)."""
         kwargs.setdefault("price_scale", system.price_scale if system.price_scale > 0 else 1.0)
+        kwargs.setdefault("groups", system.battery_groups())
         return cls(learning, system.n, system.alpha, **kwargs)
+
+    def _groups(self, groups: Any) -> tuple[int, ...] | None:
+        """The tying groups checked; None stands for one group of all agents."""
+        if groups is None:
+            return None
+        groups = tuple(int(g) for g in groups)
+        if len(groups) != self.n or sorted(set(groups)) != list(range(len(set(groups)))):
+            raise ValueError(f"groups={groups!r}: expected one label per agent (n={self.n}), "
+                             "numbered 0, 1, ...")
+        return None if len(set(groups)) == 1 else groups
 
     def _scale_vector(self, scale: dict[str, float], price_scale: float) -> np.ndarray:
         unknown = set(scale) - set(PARTS)
@@ -329,7 +357,12 @@ class DPGUpdater:
         parts = part_scales(self.system_alpha, price_scale)
         for name, value in scale.items():
             parts[name] = check_real(f"scale[{name!r}]", value, 0.0, low_open=True)
-        return np.repeat([parts[name] for name in PARTS], self.n)
+        vector = np.repeat([parts[name] for name in PARTS], self.n)
+        if self.agent_alpha is not None:  # each agent's own alpha scales its model parts
+            for name in ("alpha", "delta"):
+                if name not in scale and DEFAULT_SCALE[name] is None:
+                    vector[Theta.index(self.n, name)] = self.agent_alpha
+        return vector
 
     # -- state ----------------------------------------------------------------------------
     def reset(self) -> None:
@@ -517,10 +550,19 @@ class DPGUpdater:
         return self._tie(g) if self.config.tie_agents else g
 
     def _tie(self, x: np.ndarray) -> np.ndarray:
-        """The mean over the agents of each part, for every agent: the orthogonal projection
-        onto parameters shared by all agents (along axis 0 of ``x``, shape ``(10 n, ...)``)."""
+        """The mean over the agents of a group of each part, for every agent of the group: the
+        orthogonal projection onto parameters shared within the groups (along axis 0 of
+        ``x``, shape ``(10 n, ...)``)."""
         parts = x.reshape((len(PARTS), self.n) + x.shape[1:])
-        return np.broadcast_to(parts.mean(axis=1, keepdims=True), parts.shape).reshape(x.shape)
+        if self.groups is None:  # one group
+            return np.broadcast_to(parts.mean(axis=1, keepdims=True),
+                                   parts.shape).reshape(x.shape)
+        out = np.empty_like(parts)
+        labels = np.asarray(self.groups)
+        for g in range(labels.max() + 1):
+            members = labels == g
+            out[:, members] = parts[:, members].mean(axis=1, keepdims=True)
+        return out.reshape(x.shape)
 
     def __repr__(self) -> str:
         c = self.config

@@ -7,7 +7,10 @@ A :class:`History` is saved as two plain files, never as pickle:
   parameters of a month evaluated on ``LearningConfig.eval_draws`` fixed noise draws without
   exploration, see :meth:`mpcrl_lite.learning.experiment.Experiment.evaluate`);
 * ``history.npz`` -- the arrays (theta per month, J per agent, and the full trajectories of
-  the first and last month), loaded with ``allow_pickle=False``.
+  the first and last month), loaded with ``allow_pickle=False``;
+* while a run is going on, ``history.jsonl`` -- the months since ``history.json`` was
+  written, one JSON line per monthly commit (:meth:`History.journal_record`; see
+  :mod:`mpcrl_lite.learning.rundir`); :meth:`History.load` adds them to ``history.json``'s.
 
 A number that is not finite (e.g. ``eval_bound_share`` of a month whose every MPC solve
 failed) is written as ``null`` -- JSON has no NaN -- and read back as NaN. Series added
@@ -127,6 +130,8 @@ class History:
         "J_eval", "J_eval_per_agent", "eval_max_P_mpc", "eval_bound_share",
         "J_eval_ci_low", "J_eval_ci_high", "hours_above_P_bar",
     )
+    #: Every series a file holds, in the order written.
+    STORED_SERIES = SERIES + EVAL_SERIES + LATER_SERIES
     FORMAT = "mpcrl_lite.History/1"
 
     @property
@@ -233,6 +238,36 @@ class History:
         return {"system": self.system.to_dict(), "mpc": self.mpc.to_dict(),
                 "learning": self.learning.to_dict()}
 
+    def series_lengths(self) -> dict[str, int]:
+        """The length of every stored series (what :meth:`journal_record` continues from)."""
+        return {k: len(getattr(self, k)) for k in self.STORED_SERIES}
+
+    def journal_record(self, since: Mapping[str, int]) -> bytes:
+        """One line of ``history.jsonl``: the entries of every series after ``since`` (as
+        :meth:`series_lengths` gave it), ``theta_final`` and ``backend``, as strict JSON.
+
+        Read back by :meth:`from_files`, ``history.json`` and its journal give the same
+        History as ``history.json`` written whole (:meth:`to_files`)."""
+        record = {
+            "months": self.months,
+            "theta_final": self.theta_final,
+            "backend": self.backend,
+            "series": {k: getattr(self, k)[since[k]:] for k in self.STORED_SERIES},
+        }
+        return jsonio.dumps(record, indent=None) + b"\n"
+
+    def npz_bytes(self, compress: bool = True) -> bytes:
+        """The content of ``history.npz`` (the first and last month's arrays); ``compress=False``
+        stores them as they are (a run's monthly commits: several times faster to write)."""
+        arrays: dict[str, np.ndarray] = {}
+        if self.first_month is not None:
+            arrays.update(self.first_month.arrays("first"))
+        if self.last_month is not None:
+            arrays.update(self.last_month.arrays("last"))
+        buffer = io.BytesIO()
+        (np.savez_compressed if compress else np.savez)(buffer, **arrays)
+        return buffer.getvalue()
+
     def to_files(self) -> dict[str, bytes]:
         """The contents of ``history.json`` and ``history.npz``."""
         meta = {
@@ -240,18 +275,10 @@ class History:
             **self.configs(),
             "theta_final": self.theta_final,
             "backend": self.backend,
-            **{k: getattr(self, k)
-               for k in self.SERIES + self.EVAL_SERIES + self.LATER_SERIES},
+            **{k: getattr(self, k) for k in self.STORED_SERIES},
             **({"prices_origin": dict(self.prices_origin)} if self.prices_origin else {}),
         }
-        arrays: dict[str, np.ndarray] = {}
-        if self.first_month is not None:
-            arrays.update(self.first_month.arrays("first"))
-        if self.last_month is not None:
-            arrays.update(self.last_month.arrays("last"))
-        buffer = io.BytesIO()
-        np.savez_compressed(buffer, **arrays)
-        return {rundir.HISTORY_JSON: jsonio.dumps(meta), rundir.HISTORY_NPZ: buffer.getvalue()}
+        return {rundir.HISTORY_JSON: jsonio.dumps(meta), rundir.HISTORY_NPZ: self.npz_bytes()}
 
     def save(self, directory: str | Path) -> Path:
         """Write ``history.json`` and ``history.npz`` into ``directory`` as one commit
@@ -286,8 +313,8 @@ class History:
             (:class:`~mpcrl_lite.learning.rundir.RunDirError`) a file that does not verify, or files
             that disagree; the message names the file and the problem.
         """
-        run = rundir.read(directory, [rundir.HISTORY_JSON, rundir.HISTORY_NPZ],
-                          optional=[rundir.HISTORY_NPZ])
+        run = rundir.read(directory, [rundir.HISTORY_JSON, rundir.HISTORY_NPZ, rundir.JOURNAL],
+                          optional=[rundir.HISTORY_NPZ, rundir.JOURNAL])
         history = cls.from_files(run.files, Path(directory))
         if run.months_done is not None and run.months_done != history.months:
             raise RunDirError(
@@ -298,7 +325,8 @@ class History:
 
     @classmethod
     def from_files(cls, files: Mapping[str, bytes], directory: Path | str = ".") -> History:
-        """Inverse of :meth:`to_files`, checked: a :class:`~mpcrl_lite.learning.rundir.RunDirError`
+        """Inverse of :meth:`to_files` (with the journal ``history.jsonl`` of a run in
+        progress, if ``files`` hold it), checked: a :class:`~mpcrl_lite.learning.rundir.RunDirError`
         names the first problem found (``directory`` only names the files in messages)."""
         path = Path(directory) / rundir.HISTORY_JSON
         try:
@@ -310,6 +338,8 @@ class History:
                 f"{path} holds a {type(meta).__name__}, expected an object; {RECOVER}")
         if meta.get("format") != cls.FORMAT:
             raise RunDirError(f"{path}: format {meta.get('format')!r}, expected {cls.FORMAT!r}")
+        if files.get(rundir.JOURNAL):
+            _merge_journal(meta, files[rundir.JOURNAL], Path(directory) / rundir.JOURNAL)
         missing = [k for k in ("system", "mpc", "learning", "theta_final", *cls.SERIES)
                    if k not in meta]
         if missing:
@@ -432,6 +462,29 @@ def _check_series(path: Path, series: dict[str, Any], n: int) -> None:
     if any(isinstance(m, bool) or not isinstance(m, int) or not 0 <= m < months
            for m in eval_month):
         raise RunDirError(f"{path}: eval_month holds months outside 0..{months - 1}; {RECOVER}")
+
+
+def _merge_journal(meta: dict[str, Any], data: bytes, path: Path) -> None:
+    """Add the journal's lines (:meth:`History.journal_record`) to ``history.json``'s
+    ``meta``; the merged series are checked as a whole file's afterwards."""
+    for number, line in enumerate(data.splitlines(), start=1):
+        try:
+            record = json.loads(line)
+        except ValueError as err:
+            raise RunDirError(f"{path}: line {number} is not valid JSON ({err}); {RECOVER}") \
+                from None
+        series = record.get("series") if isinstance(record, dict) else None
+        if not isinstance(series, dict) or set(series) - set(History.STORED_SERIES) or any(
+                not isinstance(v, list) or not isinstance(meta.get(k, []), list)
+                for k, v in series.items()):
+            raise RunDirError(f"{path}: line {number} is not a month record; {RECOVER}")
+        for key, values in series.items():
+            meta.setdefault(key, []).extend(values)
+        meta["theta_final"] = record.get("theta_final")
+        meta["backend"] = record.get("backend", meta.get("backend", ""))
+        if record.get("months") != len(meta.get("J", [])):
+            raise RunDirError(f"{path}: line {number} records {record.get('months')!r} months, "
+                              f"the series before it {len(meta.get('J', []))}; {RECOVER}")
 
 
 def _nan_for_null(value: Any) -> Any:

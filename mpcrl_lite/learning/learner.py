@@ -48,6 +48,7 @@ __all__ = [
     "MAX_FAILED_SOLVE_SHARE",
     "Learner",
     "close_month",
+    "finish_checkpoint",
     "resolve_setup",
     "run_months",
 ]
@@ -118,26 +119,46 @@ def run_months(
     history = learner.history
     bar = tqdm(total=months, initial=min(history.months, months), desc=desc, unit="month",
                disable=not progress)
-    with bar, threadpool_limits(limits=BLAS_THREADS):
-        while learner.history.months < months:
-            learner.run_one_month()
-            history = learner.history
-            postfix = {"J": f"{history.J[-1]:.1f}"}
-            if history.J_eval:
-                postfix["J_eval"] = f"{history.J_eval[-1]:.1f}"
-            bar.set_postfix(postfix, refresh=False)
-            bar.update(1)
-            close_month(learner, out)
+    try:
+        with bar, threadpool_limits(limits=BLAS_THREADS):
+            while learner.history.months < months:
+                learner.run_one_month()
+                history = learner.history
+                postfix = {"J": f"{history.J[-1]:.1f}"}
+                if history.J_eval:
+                    postfix["J_eval"] = f"{history.J_eval[-1]:.1f}"
+                bar.set_postfix(postfix, refresh=False)
+                bar.update(1)
+                close_month(learner, out, last=learner.history.months >= months)
+    except BaseException:
+        finish_checkpoint(learner)
+        raise
+    learner.wait_for_checkpoint()
     return learner.history
 
 
-def close_month(learner: Learner, out: Path | None) -> None:
+def finish_checkpoint(learner: Learner) -> None:
+    """Wait for the learner's checkpoint under way (after an error of the run, which goes
+    on: the checkpoint's own error, if any, is dropped; the directory holds the last
+    commit that succeeded)."""
+    try:
+        learner.wait_for_checkpoint()
+    except Exception:  # noqa: BLE001, S110 (the run's own error is the one to report)
+        pass
+
+
+def close_month(learner: Learner, out: Path | None, last: bool = True) -> None:
     """What follows every month of :func:`run_months`: the warning on failed solves, the
-    checkpoint in ``out`` and the learner's callbacks."""
+    checkpoint in ``out`` (``last=False`` for a month after which the run goes on: appended,
+    and written in the background unless the learner has callbacks, see
+    :meth:`~mpcrl_lite.learning.checkpoint.Checkpointing.save_checkpoint`) and the learner's
+    callbacks."""
     history = learner.history
     _warn_failed_solves(history)
     if out is not None:
-        learner.save_checkpoint(out)
+        # written while the next month computes, unless it is the last or a callback may
+        # look at the directory
+        learner.save_checkpoint(out, last=last, background=not last and not learner.callbacks)
     for callback in learner.callbacks:
         callback(history.months - 1, history, learner)
 

@@ -6,6 +6,8 @@ A run directory ``D`` holds, once a month has been committed::
     D/history.json      the History's configurations and per-month series (readable JSON)
     D/history.npz       the History's arrays (first and last month), allow_pickle=False
     D/checkpoint.json   what a learner needs to continue (theta, optimizer and RNG state)
+    D/history.jsonl     while a run is going on: the months since history.json, one JSON
+                        line per commit (the History's journal, see below)
     D/summary.json      written by the ``learn`` command at the end (derived, not committed)
 
 :meth:`History.save <mpcrl_lite.learning.history.History.save>` writes the same format without
@@ -19,14 +21,16 @@ How a month is committed (:func:`commit`)
    renamed, directory fsynced). **This rename is the commit.** The manifest carries
 
    =================  ============================================================
-   ``format``         ``"mpcrl_lite.Run/1"``
+   ``format``         ``"mpcrl_lite.Run/1"``, or ``"mpcrl_lite.Run/2"`` when a file is
+                      appended (a journal, below)
    ``kind``           ``"centralized"``, ``"decentralized"`` (a learner's run) or
                       ``"history"`` (a History on its own)
    ``months_done``    months recorded by the committed files
    ``config_sha256``  sha256 of the configurations (:func:`config_sha256`; the
                       learning config without ``months``, which a resume may extend)
    ``files``          per user-visible name (``history.json`` ...): its ``sha256``,
-                      ``size`` in bytes and ``staged`` (its name under ``.run/``)
+                      ``size`` in bytes and ``staged`` (its name under ``.run/``); for
+                      an appended file ``append: true`` instead of ``staged``
    =================  ============================================================
 
 3. the user-visible names are then pointed at the new files (a hard link, or a copy where
@@ -36,6 +40,31 @@ A kill or a full disk before step 2 leaves the previous commit untouched (the st
 are unreferenced and removed by the next writer); after step 2 the new month is committed,
 and a reader finds each file under its visible name or, if step 3 did not finish, under its
 staged name: :func:`read` accepts a file only if its sha256 matches the manifest.
+
+Appended files: O(1) per month
+------------------------------
+Rewriting the whole History every month costs in proportion to the months so far. A commit
+may instead **keep** entries of the previous manifest (a file written by an earlier commit,
+e.g. ``history.json`` of the run's first month, stays as it is) and **append** to a journal
+(:data:`JOURNAL`): the new bytes go after the journal's committed ``size`` (bytes beyond it,
+left by an interrupted writer, are cut first) and are fsynced before the manifest is written;
+the manifest's ``size`` and ``sha256`` then cover the journal's new length. The committed
+prefix is never touched, so step 1's promise holds: a kill before the rename leaves the
+previous commit readable, and :func:`read` gives the journal's first ``size`` bytes only if
+their sha256 matches. A commit that lists no journal (a whole History again) removes a
+journal left from before. The learners append every month but the first and the last of a
+call (:meth:`~mpcrl_lite.learning.checkpoint.Checkpointing.save_checkpoint`), so a finished
+run holds no journal and reads as format 1.
+
+Commits in the background
+-------------------------
+The writes of a commit are mostly waits for the disk (fsync, rename): :func:`commit_soon`
+runs :func:`commit` in a thread of its own, with contents the caller has built already, so
+that the next month computes meanwhile. At most one commit per directory is under way; every
+function of this module that reads or writes a directory first waits for it (so a reader in
+the process never sees a commit half-done), and its error, if it failed, is raised by the
+next :meth:`PendingCommit.result` (the learner's next checkpoint). Nothing changes on the
+disk: the same writes in the same order, one commit after the other.
 
 Directories written before the manifest existed (``history.json``, ``history.npz`` and
 ``checkpoint.json`` only) are read as **legacy** runs: there is no checksum, so the readers
@@ -57,12 +86,14 @@ leaves a directory that resumes or is refused (``tests/learning/test_durability.
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
 import re
 import signal
 import tempfile
+import threading
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -71,20 +102,27 @@ from typing import Any
 
 from .._util.jsonio import dumps
 
-__all__ = ["CHECKPOINT", "FORMAT", "HISTORY_JSON", "HISTORY_NPZ", "KINDS", "MANIFEST", "RECOVER", "STAGING", "SUMMARY", "Contents", "Run", "RunDirError", "RunDirMissing", "RunWriteError", "atomic_output", "check_output_dir", "clear", "commit", "config_sha256", "inspect", "read", "write_atomic", "write_json"]
+__all__ = ["APPENDABLE", "CHECKPOINT", "FORMAT", "FORMATS", "FORMAT_APPEND", "HISTORY_JSON", "HISTORY_NPZ", "JOURNAL", "KINDS", "MANIFEST", "RECOVER", "STAGING", "SUMMARY", "Contents", "PendingCommit", "Run", "RunDirError", "RunDirMissing", "RunWriteError", "atomic_output", "check_output_dir", "clear", "commit", "commit_soon", "config_sha256", "inspect", "manifest_of", "read", "write_atomic", "write_json"]
 
 FORMAT = "mpcrl_lite.Run/1"
+#: The manifest's format when it lists an appended file (readers of format 1 refuse it).
+FORMAT_APPEND = "mpcrl_lite.Run/2"
+FORMATS = (FORMAT, FORMAT_APPEND)
 MANIFEST = "manifest.json"
 HISTORY_JSON = "history.json"
 HISTORY_NPZ = "history.npz"
 CHECKPOINT = "checkpoint.json"
+#: The History's journal: the months since ``history.json``, appended (one line a commit).
+JOURNAL = "history.jsonl"
+#: The files a commit may append to instead of writing them anew.
+APPENDABLE = (JOURNAL,)
 SUMMARY = "summary.json"
 #: Where a commit's new files are written before the manifest names them.
 STAGING = ".run"
 #: What a run directory holds: a learner's run or a History on its own.
 KINDS = ("history", "centralized", "decentralized")
 #: The files a run directory may hold under their visible names.
-RUN_FILES = (HISTORY_JSON, HISTORY_NPZ, CHECKPOINT)
+RUN_FILES = (HISTORY_JSON, HISTORY_NPZ, CHECKPOINT, JOURNAL)
 #: How to recover from a directory that does not verify (appended to the error messages).
 RECOVER = "restore the directory from a backup, or start over in it with --force (force=True)"
 
@@ -164,6 +202,49 @@ def _write_file(path: Path, data: bytes) -> None:
     _wrote()
 
 
+def _append_file(path: Path, offset: int, data: bytes) -> None:
+    """Write ``data`` to ``path`` at ``offset`` (the file created if needed and cut to
+    ``offset`` first, so that a tail left by an interrupted writer goes) and fsync it."""
+    mid = _hook(KILL_MID_WRITE_ENV) == _writes + 1
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT, 0o666)
+    try:
+        os.ftruncate(fd, offset)
+        view = memoryview(data)
+        if mid:
+            view = view[: len(data) // 2]
+        while view:
+            done = os.pwrite(fd, view, offset)
+            offset += done
+            view = view[done:]
+        os.fsync(fd)
+        if mid:
+            _kill_self()
+    finally:
+        os.close(fd)
+    _wrote()
+
+
+#: The running sha256 of the appended files this process committed, by path: (size, sha256,
+#: hash object), so that an append hashes its new bytes only.
+_appended: dict[Path, tuple[int, str, Any]] = {}
+
+
+def _append_hash(path: Path, entry: Mapping[str, Any] | None) -> Any:
+    """A sha256 object over the committed prefix ``entry`` describes (a new one for a new
+    file), from :data:`_appended` or, if this process did not commit it, from the file."""
+    if entry is None:
+        return hashlib.sha256()
+    known = _appended.get(path)
+    if known is not None and known[:2] == (entry["size"], entry["sha256"]):
+        return known[2].copy()
+    with open(path, "rb") as f:
+        prefix = f.read(entry["size"])
+    digest = hashlib.sha256(prefix)
+    if len(prefix) != entry["size"] or digest.hexdigest() != entry["sha256"]:
+        raise OSError(errno.EIO, f"{path.name} changed after its last commit")
+    return digest
+
+
 def _replace(src: Path, dst: Path) -> None:
     os.replace(src, dst)
     _wrote()
@@ -191,6 +272,7 @@ def write_atomic(path: str | os.PathLike, data: bytes) -> None:
     """Replace ``path`` by ``data`` atomically (temporary file, fsync, rename, fsync of the
     directory): a reader sees the old or the new file, never a part of one."""
     path = Path(path)
+    _settle(path.parent)
     tmp = path.with_name(f".{path.name}.tmp")
     try:
         _write_file(tmp, data)
@@ -276,6 +358,7 @@ class Contents:
 
 def inspect(directory: str | os.PathLike, others: Iterable[str] = ()) -> Contents:
     """Which run files (and which of ``others``, e.g. ``summary.json``) ``directory`` holds."""
+    _settle(directory)
     directory = Path(directory)
     found = Contents(directory)
     if not directory.is_dir():
@@ -340,6 +423,75 @@ def check_output_dir(path: str | os.PathLike, flag: str = "--out", create: bool 
     return directory
 
 
+# -- commits in the background -------------------------------------------------------------
+class PendingCommit:
+    """A :func:`commit` under way in a thread (:func:`commit_soon`)."""
+
+    def __init__(self, directory: Path, run: Any) -> None:
+        self.directory = directory
+        self._manifest: dict[str, Any] | None = None
+        self._error: BaseException | None = None
+
+        def work() -> None:
+            try:
+                self._manifest = run()
+            except BaseException as err:  # noqa: BLE001 (raised by result())
+                self._error = err
+
+        self._thread = threading.Thread(target=work, name=f"mpcrl_lite commit {directory.name}")
+        self._thread.start()
+
+    def done(self) -> bool:
+        """Whether the commit has finished (committed or failed)."""
+        return not self._thread.is_alive()
+
+    def wait(self) -> None:
+        """Wait until the commit has finished."""
+        self._thread.join()
+
+    def result(self) -> dict[str, Any]:
+        """The manifest written, once the commit has finished; its error if it failed."""
+        self.wait()
+        if self._error is not None:
+            raise self._error
+        assert self._manifest is not None
+        return self._manifest
+
+
+#: The commit under way in each directory (a key only while its thread runs or until waited).
+_pending: dict[Path, PendingCommit] = {}
+_pending_lock = threading.Lock()
+
+
+def _settle(directory: str | os.PathLike) -> None:
+    """Wait for a commit under way in ``directory`` (its error stays with its owner)."""
+    key = Path(os.path.abspath(directory))
+    with _pending_lock:
+        pending = _pending.get(key)
+    if pending is not None and pending._thread is not threading.current_thread():
+        pending.wait()
+        with _pending_lock:
+            if _pending.get(key) is pending:
+                del _pending[key]
+
+
+def commit_soon(directory: str | os.PathLike, files: Mapping[str, bytes], **options: Any
+                ) -> PendingCommit:
+    """:func:`commit` (same arguments) in a thread: returns at once with a
+    :class:`PendingCommit` (see "Commits in the background" in the module docstring)."""
+    directory = Path(directory)
+    _settle(directory)
+    files = dict(files)
+
+    def run() -> dict[str, Any]:
+        return commit(directory, files, **options)
+
+    key = Path(os.path.abspath(directory))
+    with _pending_lock:
+        pending = _pending[key] = PendingCommit(directory, run)
+    return pending
+
+
 # -- commit -------------------------------------------------------------------------------
 def commit(
     directory: str | os.PathLike,
@@ -348,6 +500,9 @@ def commit(
     kind: str,
     months_done: int,
     configs_hash: str,
+    previous: Mapping[str, Any] | None = None,
+    keep: Sequence[str] = (),
+    append: Mapping[str, bytes] | None = None,
 ) -> dict[str, Any]:
     """Commit ``files`` (visible name -> content) as the directory's new state.
 
@@ -356,33 +511,63 @@ def commit(
     intact and the new files are removed); a failure after the commit (pointing the visible
     names at the new files) is retried by the next :func:`commit` or :func:`read` with
     ``repair=True``.
+
+    ``previous`` is the manifest of the directory's last commit (as this function returned
+    it); the names in ``keep`` keep their entries from it, unchanged, and ``append`` (name
+    among :data:`APPENDABLE` -> bytes) adds bytes after an appended file's committed size
+    (or starts the file when ``previous`` does not list it as appended).
     """
+    _settle(directory)
     if kind not in KINDS:
         raise ValueError(f"kind={kind!r}: expected one of {KINDS}")
     if isinstance(months_done, bool) or not isinstance(months_done, int) or months_done < 0:
         raise ValueError(f"months_done={months_done!r}: expected an integer >= 0")
+    append = dict(append or {})
     unknown = set(files) - set(RUN_FILES)
     if unknown:
         raise ValueError(f"files {sorted(unknown)}: expected names among {RUN_FILES}")
+    if set(append) - set(APPENDABLE):
+        raise ValueError(f"append {sorted(set(append) - set(APPENDABLE))}: expected names "
+                         f"among {APPENDABLE}")
+    old_files = previous["files"] if previous is not None else {}
+    missing = [name for name in keep if name not in old_files]
+    if missing or (set(keep) | set(append)) & set(files) or set(keep) & set(append):
+        raise ValueError(f"keep={list(keep)}, append={sorted(append)}: expected names of the "
+                         "previous commit, each in one of files, keep and append")
     directory = Path(directory)
     staging = directory / STAGING
     token = os.urandom(4).hex()
-    entries: dict[str, dict[str, Any]] = {}
+    entries: dict[str, dict[str, Any]] = {name: dict(old_files[name]) for name in keep}
     written: list[Path] = []
+    hashes: dict[Path, tuple[int, str, Any]] = {}
     tmp = directory / (MANIFEST + ".tmp")
     try:
         directory.mkdir(parents=True, exist_ok=True)
-        if not staging.is_dir():
-            staging.mkdir()
-            _wrote()
-        for name, data in files.items():
-            staged = f"{STAGING}/{months_done:06d}-{token}-{name}"
-            written.append(directory / staged)
-            _write_file(directory / staged, data)
-            entries[name] = {"sha256": _sha256(data), "size": len(data), "staged": staged}
-        _fsync_dir(staging)
+        for name, data in append.items():
+            path = directory / name
+            entry = old_files.get(name)
+            entry = entry if entry is not None and entry.get("append") else None
+            digest = _append_hash(path, entry)
+            size = entry["size"] if entry is not None else 0
+            _append_file(path, size, data)
+            if entry is None:
+                _fsync_dir(directory)  # the new file's name
+            digest.update(data)
+            entries[name] = {"sha256": digest.hexdigest(), "size": size + len(data),
+                             "append": True}
+            hashes[path] = (size + len(data), entries[name]["sha256"], digest)
+        if files:
+            if not staging.is_dir():
+                staging.mkdir()
+                _wrote()
+            for name, data in files.items():
+                staged = f"{STAGING}/{months_done:06d}-{token}-{name}"
+                written.append(directory / staged)
+                _write_file(directory / staged, data)
+                entries[name] = {"sha256": _sha256(data), "size": len(data), "staged": staged}
+            _fsync_dir(staging)
         manifest = {
-            "format": FORMAT,
+            "format": FORMAT_APPEND if append else FORMAT,
             "kind": kind,
             "months_done": months_done,
             "config_sha256": configs_hash,
@@ -402,6 +587,10 @@ def commit(
             "previous commit is kept (free the space or fix the permissions, then resume)",
         ) from err
     # committed: from here on a failure only delays pointing the visible names at the files
+    for path in list(_appended):
+        if path.parent == directory:
+            del _appended[path]
+    _appended.update(hashes)
     _publish(directory, manifest, dict(files))
     return manifest
 
@@ -415,7 +604,7 @@ def _publish(directory: Path, manifest: Mapping[str, Any], data: Mapping[str, by
         _fsync_dir(directory)
         for name, entry in manifest["files"].items():
             target = directory / name
-            if _file_sha256(target) == entry["sha256"]:
+            if entry.get("append") or _file_sha256(target) == entry["sha256"]:
                 continue
             staged = directory / entry["staged"]
             if not staged.exists():
@@ -429,7 +618,7 @@ def _publish(directory: Path, manifest: Mapping[str, Any], data: Mapping[str, by
                 _write_file(tmp, data[name] if name in data else staged.read_bytes())
             _replace(tmp, target)
         _fsync_dir(directory)
-        _remove_leftovers(directory)
+        _remove_leftovers(directory, [n for n in APPENDABLE if n not in manifest["files"]])
     except OSError:
         return
 
@@ -441,9 +630,10 @@ def _file_sha256(path: Path) -> str | None:
         return None
 
 
-def _remove_leftovers(directory: Path) -> None:
+def _remove_leftovers(directory: Path, unlisted: Iterable[str] = ()) -> None:
     """Remove the staged files and the temporary files of interrupted writers (called once
-    every visible name holds the committed content)."""
+    every visible name holds the committed content), and the files ``unlisted`` (appended
+    files the manifest no longer lists)."""
     staging = directory / STAGING
     if staging.is_dir():
         for path in sorted(staging.iterdir()):
@@ -454,13 +644,14 @@ def _remove_leftovers(directory: Path) -> None:
             _wrote()
         except OSError:
             pass
-    for name in (MANIFEST + ".tmp", *(f".{n}.tmp" for n in RUN_FILES)):
+    for name in (MANIFEST + ".tmp", *(f".{n}.tmp" for n in RUN_FILES), *unlisted):
         _unlink(directory / name)
 
 
 def clear(directory: str | os.PathLike, others: Iterable[str] = ()) -> None:
     """Remove a run from ``directory`` (and the files ``others``): the manifest first, so
     that an interruption never leaves something that reads as a run of mixed origins."""
+    _settle(directory)
     directory = Path(directory)
     _unlink(directory / MANIFEST)
     _fsync_dir(directory)
@@ -507,7 +698,7 @@ def _load_manifest(directory: Path) -> dict[str, Any]:
         raise RunDirError(f"{where} cannot be read ({err}); {RECOVER}") from None
     if not isinstance(manifest, dict):
         raise RunDirError(f"{where} holds a {type(manifest).__name__}, expected an object; {RECOVER}")
-    if manifest.get("format") != FORMAT:
+    if manifest.get("format") not in FORMATS:
         raise RunDirError(
             f"{where}: format {manifest.get('format')!r}, expected {FORMAT!r} (written by "
             f"another program or version); {RECOVER}"
@@ -526,13 +717,27 @@ def _load_manifest(directory: Path) -> dict[str, Any]:
             name in RUN_FILES and isinstance(entry, dict)
             and isinstance(entry.get("sha256"), str) and _HEX64.match(entry["sha256"])
             and isinstance(entry.get("size"), int)
-            and isinstance(entry.get("staged"), str)
-            and entry["staged"].startswith(STAGING + "/")
-            and _STAGED.match(entry["staged"][len(STAGING) + 1 :])
         )
+        if ok and entry.get("append") is True:
+            ok = name in APPENDABLE and "staged" not in entry and entry["size"] >= 0 \
+                and manifest["format"] == FORMAT_APPEND
+        elif ok:
+            ok = (isinstance(entry.get("staged"), str)
+                  and entry["staged"].startswith(STAGING + "/")
+                  and _STAGED.match(entry["staged"][len(STAGING) + 1 :]) is not None)
         if not ok:
             raise RunDirError(f"{where}: the entry of {name!r} is malformed; {RECOVER}")
     return manifest
+
+
+def manifest_of(directory: str | os.PathLike) -> dict[str, Any] | None:
+    """The manifest of ``directory`` as it is on disk, or None if there is none or it does
+    not verify (a writer checks with it that the directory still holds its last commit)."""
+    _settle(directory)
+    try:
+        return _load_manifest(Path(directory))
+    except RunDirError:
+        return None
 
 
 def read(
@@ -557,6 +762,7 @@ def read(
     RunDirError
         Anything that does not verify; the message says which file and what to do.
     """
+    _settle(directory)
     directory = Path(directory)
     if not directory.is_dir():
         raise RunDirMissing(f"{directory / names[0]} not found: {directory} is not a directory")
@@ -572,12 +778,17 @@ def read(
             raise RunDirError(
                 f"{directory / MANIFEST} lists no {name} (a {manifest['kind']} directory); {RECOVER}"
             )
-        for candidate in (directory / name, directory / entry["staged"]):
+        appended = bool(entry.get("append"))
+        candidates = [directory / name] if appended else [directory / name,
+                                                          directory / entry["staged"]]
+        for candidate in candidates:
             try:
                 data = candidate.read_bytes()
             except OSError:
                 continue
-            if _sha256(data) == entry["sha256"]:
+            if appended:  # bytes after the committed size are an interrupted append's
+                data = data[: entry["size"]] if len(data) >= entry["size"] else b""
+            if _sha256(data) == entry["sha256"] and len(data) == entry["size"]:
                 files[name] = data
                 break
         else:

@@ -243,6 +243,8 @@ class MPC:
         # constant stage-0 terms: phi_theta(soc0) and the slack that soc0 forces
         cost = phi(soc0) + ca.sum1(w_hi * ca.fmax(soc0 - hi, 0) + w_lo * ca.fmax(lo - soc0, 0))
         g, h = [], []
+        U_bar = sysc.U_bar  # one bound for all batteries, or each battery's own
+        U_bar = U_bar if isinstance(U_bar, float) else ca.DM(list(U_bar))
         soc_prev = soc0
         for j in range(N):
             b, s = var("b", j), var("s", j)
@@ -257,9 +259,9 @@ class MPC:
             g.append(soc - soc_prev - th["alpha"] * (b - s) - th["delta"])
             h += [  # the groups of INEQUALITIES, in its order
                 -b,
-                b - sysc.U_bar,
+                b - U_bar,
                 -s,
-                s - sysc.U_bar,
+                s - U_bar,
                 ca.sum1(b) - sysc.P_bar,
                 ca.sum1(s) - sysc.P_bar,
                 soc - hi - shi,

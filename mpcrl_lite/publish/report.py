@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .._util.jsonio import plain_json
+from .._util.jsonio import plain
 from .._util.resources import package_folder
 from .._util.validate import InputTypeError, check_choice
 from ..learning import rundir
@@ -188,7 +188,7 @@ def show_summary(values: dict[str, Any]) -> None:
     rounded to :data:`SUMMARY_DIGITS` significant digits."""
     from IPython.display import display
 
-    data = _round_floats(plain_json(values))
+    data = _round_floats(plain(values, keep_nonfinite=True))
     display({SUMMARY_MIME: data, "text/plain": json.dumps(data, indent=1)}, raw=True)
 
 

@@ -3,6 +3,8 @@
 - :mod:`~mpcrl_lite.sim.closed_loop`: :func:`~mpcrl_lite.sim.closed_loop.simulate` (with
   hooks), the MPC-as-policy adapter, :func:`~mpcrl_lite.sim.closed_loop.run_month`,
   :func:`~mpcrl_lite.sim.closed_loop.evaluate_mpc`;
+- :mod:`~mpcrl_lite.sim.candidates`: many thetas x days x noise draws in one closed loop
+  (:func:`~mpcrl_lite.sim.candidates.evaluate_candidates`, common random numbers);
 - :mod:`~mpcrl_lite.sim.record`: every array of a simulated period;
 - :mod:`~mpcrl_lite.sim.exploration` (compiled in
   :mod:`~mpcrl_lite.sim.exploration_kernel`): what a learner commands around the policy.

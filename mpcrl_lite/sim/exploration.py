@@ -21,10 +21,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._util.lazy import lazy_module
 from .._util.validate import check_choice, check_real
 from ..config import EXPLORATION_BOUNDS, SystemConfig
 from ..system.battery import project_action
-from .exploration_kernel import ensure_compiled, explore_rows
+
+#: :mod:`mpcrl_lite.sim.exploration_kernel`, imported at the first compiled exploration (numba
+#: comes with it)
+kernel = lazy_module("mpcrl_lite.sim.exploration_kernel")
 
 __all__ = [
     "GaussianExploration",
@@ -91,7 +95,7 @@ class GaussianExploration:
 
 def check_margin(margin: float, system: SystemConfig) -> float:
     """``margin`` as a float in ``[0, min(U_bar, P_bar) / 2]``, else an error naming it."""
-    limit = 0.5 * min(system.U_bar, system.P_bar)
+    limit = 0.5 * min(system.common("U_bar", "the exploration"), system.P_bar)
     return check_real("margin", margin, 0.0, limit)
 
 
@@ -127,7 +131,7 @@ def exploration_center(pi: np.ndarray, system: SystemConfig, margin: float) -> n
     margin = check_margin(margin, system)
     if margin == 0.0:
         return pi
-    inner = system.U_bar - margin
+    inner = system.common("U_bar", "the exploration") - margin
     c = np.clip(pi, -inner, inner)
     room = system.P_bar - margin
     for sign in (1.0, -1.0):
@@ -192,12 +196,13 @@ def bounded_exploration(
     for name, value in (("pi", pi), ("e", e)):
         if not np.isfinite(value).all():
             raise ValueError(f"{name} has non-finite entries: expected finite values only")
-    ensure_compiled()
+    kernel.ensure_compiled()
     # compiled (mpcrl_lite.sim.exploration_kernel): per day, pi projected onto the feasible set,
     # the radial step (and the slide along the grid faces), the result projected once more
     # as a guard against rounding (base + step is feasible up to ~1e-16)
-    return explore_rows(np.ascontiguousarray(pi), np.ascontiguousarray(e), system.U_bar,
-                        system.P_bar, bounds == "symmetric")
+    return kernel.explore_rows(np.ascontiguousarray(pi), np.ascontiguousarray(e),
+                        system.common("U_bar", "the exploration"), system.P_bar,
+                        bounds == "symmetric")
 
 
 class Projection:

@@ -13,7 +13,7 @@ here is taken in the order numpy takes it (sums from the first entry on, ``maxim
 the numpy form to the last bit (``tests/sim/test_closed_loop.py`` checks it).
 
 Compiled with numba's on-disk cache in the folder of the MPC kernels
-(:mod:`mpcrl_lite.mpc.backends.kernel`; ``python -m mpcrl_lite.mpc.backends.kernel --warm`` fills it).
+(:mod:`mpcrl_lite.mpc.backends.kernel`; ``python -m mpcrl_lite.cli.warm`` fills it).
 """
 
 from __future__ import annotations

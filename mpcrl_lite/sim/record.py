@@ -139,7 +139,8 @@ class Record:
             raise ValueError(f"tol={tol!r}: expected a finite value >= 0")
         sysc = self.system
         a = self.policy
-        at_bound = (np.abs(a) >= sysc.U_bar - tol) | (np.abs(a) <= tol)
+        U = np.array(sysc.battery("U_bar")) if isinstance(sysc.U_bar, tuple) else sysc.U_bar
+        at_bound = (np.abs(a) >= U - tol) | (np.abs(a) <= tol)
         buy = np.clip(a, 0.0, None).sum(axis=-1, keepdims=True)
         sell = np.clip(-a, 0.0, None).sum(axis=-1, keepdims=True)
         grid = ((a > 0) & (buy >= sysc.P_bar - tol)) | ((a < 0) & (sell >= sysc.P_bar - tol))

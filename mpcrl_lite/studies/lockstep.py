@@ -71,7 +71,7 @@ from tqdm.auto import tqdm
 from ..learning.checkpoint import open_run
 from ..learning.experiment import Experiment
 from ..learning.history import History
-from ..learning.learner import BLAS_THREADS, Learner, close_month
+from ..learning.learner import BLAS_THREADS, Learner, close_month, finish_checkpoint
 from ..sim.closed_loop import RunBlocks, run_month
 from ..sim.record import MonthRecord
 from ..theta import Theta
@@ -180,7 +180,7 @@ def run_lockstep(
     def alone(i: int) -> None:
         try:
             learners[i].run_one_month()
-            close_month(learners[i], paths[i])
+            close_month(learners[i], paths[i], last=learners[i].history.months >= targets[i])
         except Exception as err:  # noqa: BLE001
             fail(i, err)
 
@@ -206,7 +206,7 @@ def run_lockstep(
         for i, run, part, theta in zip(group, runs, parts, thetas, strict=True):
             try:
                 run.end_month(part, theta, share)
-                close_month(run, paths[i])
+                close_month(run, paths[i], last=run.history.months >= targets[i])
             except Exception as err:  # noqa: BLE001
                 fail(i, err)
 
@@ -236,5 +236,8 @@ def run_lockstep(
                 else:
                     together(group, [thetas[i] for i in group])
             bar.update(len(active))
+    for i, learner in enumerate(learners):  # the failed runs' checkpoints under way
+        if results[i] is not None:
+            finish_checkpoint(learner)
     return [learner.history if result is None else result
             for learner, result in zip(learners, results, strict=True)]

@@ -58,6 +58,8 @@ import numpy as np
 import pandas as pd
 
 from .._util import jsonio
+from .._util.stats import mean_ci
+from ..bounds.baselines import load_class_best
 from ..bounds.causal.dual import lagrangian_bound
 from ..bounds.causal.table import causal_bound
 from ..config import SystemConfig
@@ -70,7 +72,7 @@ from .sweep.grid import load_grid
 from .sweep.store import check_out_dir
 
 __all__ = ["LATE_COLLAPSE", "SEED_COLUMNS", "TARGETS", "THRESHOLD", "causal_target",
-           "gap_closed", "plot_curves", "run_study", "seed_row", "summarize"]
+           "class_split", "gap_closed", "plot_curves", "run_study", "seed_row", "summarize"]
 
 #: Default share of the gap ``J_nom - J_target`` a seed must close to count as converged.
 THRESHOLD = 0.9
@@ -348,6 +350,7 @@ def run_study(
     progress: bool = True,
     lockstep: int | None = None,
     target: str = "causal",
+    class_best: str | os.PathLike | None = None,
 ) -> dict[str, Any]:
     """Run (or resume) the study and write its files into ``out``; returns the summary.
 
@@ -379,6 +382,10 @@ def run_study(
         One of :data:`TARGETS`: ``'causal'`` (default) computes J* for the study's system and
         month before any run starts (:func:`causal_target`; kept in ``study_j_star.json``),
         ``'best_seen'`` judges against the best J_eval reached.
+    class_best
+        A ``tune`` output directory of the study's system and forecast: the summary then has
+        ``class_split`` (:func:`class_split`), the regret split into the learner's and the
+        class's parts.
     """
     for name, value, low in (("seeds", seeds, 1), ("months", months, 1),
                              ("seed_start", seed_start, 0)):
@@ -406,6 +413,16 @@ def run_study(
         J_star, method, note = found["J_star"], found["method"], found["note"]
     elif J_star is None:
         note = "target='best_seen': judged against the best J_eval reached"
+    tuned = None
+    if class_best is not None:  # checked before the runs start
+        tuned = load_class_best(class_best)
+        run = load_grid(grid).runs[0]
+        if tuned.get("system") != json.loads(jsonio.dumps(run.system.to_dict())) or \
+                tuned.get("forecast") != run.mpc.forecast:
+            raise ValueError(f"--class-best {class_best}: searched for another class (system "
+                             f"or forecast {tuned.get('forecast')!r}) than the study's "
+                             f"(forecast {run.mpc.forecast!r}); expected a tune result of the "
+                             "study's system and forecast")
     table = run_sweep(grid, out, scheduler=scheduler, workers=workers, progress=progress,
                       lockstep=lockstep)
     rows, histories = [], {}
@@ -419,6 +436,9 @@ def run_study(
         rows.append(row)
     seed_table, summary = summarize(pd.DataFrame(rows), J_star, threshold,
                                     J_star_method=method or "given", J_star_note=note)
+    if tuned is not None:
+        summary["class_split"] = class_split(seed_table, tuned, summary["J_star"])
+        summary["class_split"]["source"] = str(class_best)
     seed_table = seed_table.reindex(columns=list(SEED_COLUMNS))
     curves = curves_table(histories)
     seed_table.to_csv(out / "study.csv", index=False)
@@ -432,6 +452,47 @@ def run_study(
     finally:
         plt.close(fig)
     return summary
+
+
+def class_split(table: pd.DataFrame, tuned: Mapping[str, Any],
+                J_star: float | None) -> dict[str, Any]:
+    r"""The regret of every finished seed split in two against the class's best theta:
+
+    ``J_eval_final - J* = (J_eval_final - J_class) [learner] + (J_class - J*) [class]``, with
+    ``J_class`` the held-out mean of a ``tune`` result (``tuned``, :func:`mpcrl_lite.bounds.
+    baselines.load_class_best`: judged on draws of ``LearningConfig().eval_seed``, which
+    include the runs' evaluation draws) and its 95 % interval.
+
+    Returns
+    -------
+    dict
+        ``J_class``, ``J_class_ci`` ([low, high]), ``learner_gap`` ({seed: J_eval_final -
+        J_class}), ``learner_gap_median``, ``learner_gap_iqr``, ``learner_gap_worst``
+        ({seed, value}), ``learner_gap_mean`` (with ``ci_low``/``ci_high`` over the seeds),
+        and with J* ``class_gap`` (``J_class - J*``, with the interval of ``J_class``).
+    """
+    held = tuned["J_heldout"]
+    J_class = float(held["mean"])
+    ok = (table["status"] == "done") & table["J_eval_final"].notna()
+    seeds = [int(v) for v in table.loc[ok, "seed"]]
+    gaps = table.loc[ok, "J_eval_final"].to_numpy(float) - J_class
+    out: dict[str, Any] = {
+        "J_class": J_class,
+        "J_class_ci": [held.get("ci_low"), held.get("ci_high")],
+        "learner_gap": {str(s): float(g) for s, g in zip(seeds, gaps)},
+        "learner_gap_median": float(np.median(gaps)) if gaps.size else math.nan,
+        "learner_gap_iqr": ([float(np.percentile(gaps, 25)), float(np.percentile(gaps, 75))]
+                            if gaps.size else [math.nan, math.nan]),
+        "learner_gap_worst": ({"seed": seeds[int(np.argmax(gaps))], "value": float(gaps.max())}
+                              if gaps.size else None),
+        "learner_gap_mean": mean_ci(gaps).as_dict() if gaps.size else None,
+    }
+    if J_star is not None:
+        low, high = held.get("ci_low"), held.get("ci_high")
+        out["class_gap"] = {"mean": J_class - J_star,
+                            "ci_low": None if low is None else low - J_star,
+                            "ci_high": None if high is None else high - J_star}
+    return out
 
 
 def _eval_draws(histories: Mapping[int, History]) -> int | None:

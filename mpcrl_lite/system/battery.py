@@ -46,6 +46,7 @@ from ..config import SystemConfig
 __all__ = [
     "StepResult",
     "agent_costs",
+    "battery_values",
     "discounted_return",
     "grid_power",
     "low_level_control",
@@ -134,6 +135,15 @@ def _check_system(system: Any) -> None:
         raise ValueError(f"system={system!r}: expected a SystemConfig")  # noqa: TRY004
 
 
+def battery_values(system: SystemConfig, name: str) -> float | np.ndarray:
+    """A per-battery field of ``system`` (:data:`~mpcrl_lite.config.PER_BATTERY`) for array
+    arithmetic over ``(..., n)``: the float itself when it is one value for all batteries (so
+    identical batteries compute exactly as with a scalar), else an array of shape ``(n,)``.
+    ``'noise_std'`` gives the standard deviation of the noise."""
+    value = system.noise_std if name == "noise_std" else getattr(system, name)
+    return np.array(value, dtype=float) if isinstance(value, tuple) else value
+
+
 # -- noise and inputs -----------------------------------------------------------------------
 def sample_noise(
     rng: np.random.Generator, shape: int | tuple[int, ...], system: SystemConfig
@@ -166,7 +176,11 @@ def sample_noise(
     for d in dims:
         if isinstance(d, bool) or not isinstance(d, (int, np.integer)) or d < 0:
             raise ValueError(f"shape={shape!r}: expected non-negative integers")
-    return rng.normal(system.noise_mean, system.noise_std, size=dims)
+    mean, std = battery_values(system, "noise_mean"), battery_values(system, "noise_std")
+    if (np.ndim(mean) or np.ndim(std)) and (not dims or dims[-1] != system.n):
+        raise ValueError(f"shape={shape!r}: the noise differs between batteries; expected a "
+                         f"shape ending in n={system.n}")
+    return rng.normal(mean, std, size=dims)
 
 
 def split_action(a: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -244,8 +258,9 @@ def project_action(a: Any, system: SystemConfig) -> np.ndarray:
     _check_system(system)
     a = _batch("a", a, system.n)
     buy, sell = split_action(a)
-    return _project_capped_simplex(buy, system.U_bar, system.P_bar) - _project_capped_simplex(
-        sell, system.U_bar, system.P_bar
+    U = battery_values(system, "U_bar")
+    return _project_capped_simplex(buy, U, system.P_bar) - _project_capped_simplex(
+        sell, U, system.P_bar
     )
 
 
@@ -293,7 +308,7 @@ def low_level_control(
     """
     _check_system(system)
     soc, a, noise = _low_level_inputs(soc, a, noise, system)
-    net, _ = _apply_controller(soc, a, noise, system.alpha)
+    net, _ = _apply_controller(soc, a, noise, battery_values(system, "alpha"))
     return np.maximum(net, 0.0), np.maximum(-net, 0.0), net - a
 
 
@@ -306,7 +321,7 @@ def _low_level_inputs(
 
 
 def _apply_controller(
-    soc: np.ndarray, a: np.ndarray, noise: np.ndarray, alpha: float
+    soc: np.ndarray, a: np.ndarray, noise: np.ndarray, alpha: float | np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Applied net power and the next soc (both ``(days, n)``) for already checked inputs."""
     # Huge (finite) inputs may overflow to +-inf in the raw state; clipping handles that.
@@ -345,9 +360,8 @@ def penalty(soc: Any, system: SystemConfig) -> np.ndarray:
 def unchecked_penalty(soc: np.ndarray, system: SystemConfig) -> np.ndarray:
     """:func:`penalty` of a float array without the input checks, for hot loops (the causal
     dynamic program's grids)."""
-    return system.p * np.maximum(soc - system.soc_high, 0.0) + system.p * np.maximum(
-        system.soc_low - soc, 0.0
-    )
+    p = battery_values(system, "p")  # per battery: soc of shape (..., n)
+    return p * np.maximum(soc - system.soc_high, 0.0) + p * np.maximum(system.soc_low - soc, 0.0)
 
 
 def agent_costs(
@@ -481,7 +495,7 @@ def _step_checked(
     phi_s: np.ndarray,
     system: SystemConfig,
 ) -> StepResult:
-    net, soc_next = _apply_controller(soc, a, noise, system.alpha)
+    net, soc_next = _apply_controller(soc, a, noise, battery_values(system, "alpha"))
     b, s = np.maximum(net, 0.0), np.maximum(-net, 0.0)
     cost = _agent_costs(soc, b, s, phi_b, phi_s, system)
     return StepResult(

@@ -31,8 +31,8 @@ from types import MappingProxyType
 from typing import Any
 
 import numpy as np
-import pandas as pd
 
+from .._util.lazy import lazy_module
 from .._util.resources import candidate_folders, package_folder
 from .._util.validate import check_instance, check_int, check_real
 from ..config import HOURS_PER_DAY, PRICE_UNIT, PriceFileConfig, SystemConfig
@@ -40,6 +40,9 @@ from .price_files.load import load_prices
 from .price_files.month import _as_date, daily_matrix, month_matrix
 from .price_files.nordpool_elspot import load_nordpool_csv, nordpool_areas
 from .price_files.series import LOCAL_TZ, PriceFileWarning
+
+#: pandas, imported when a CSV file is first read (it reads and parses every price file)
+pd = lazy_module("pandas")
 
 # The old Nord Pool reader and the day matrix moved to price_files; their names stay importable
 # here (``from mpcrl_lite.system.prices import load_nordpool_csv``).

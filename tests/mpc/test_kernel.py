@@ -362,10 +362,13 @@ def test_sensitivity_reports_unusable_solutions_and_mixed_thetas(prices):
     assert not tight.ok.any() and all("ill-conditioned" in r for r in tight.reason)
 
 
-def test_formulation_mismatch_raises_at_construction():
+def test_formulation_mismatch_raises_at_the_first_solve():
     """The kernels' hand-written QP must be the CasADi formulation's: a changed formulation
-    (here the prices' discount, seen through qp_function) is caught when the solver is built."""
-    mpc = MPC(SystemConfig())
+    (here the prices' discount, seen through qp_function) is caught before the solver gives
+    its first solution (the kernels are loaded and checked at the first solve, so that
+    building a solver stays cheap), and again at every later attempt."""
+    system = SystemConfig()
+    mpc = MPC(system)
     original = mpc.qp_function
 
     def changed(p):
@@ -373,8 +376,11 @@ def test_formulation_mismatch_raises_at_construction():
         return H, 1.01 * q, c, A, e, C, d
 
     mpc.qp_function = changed
-    with pytest.raises(RuntimeError, match="formulation"):
-        KernelSolver(mpc)
+    solver = KernelSolver(mpc)
+    buy = np.linspace(20.0, 80.0, system.N)
+    for _ in range(2):
+        with pytest.raises(RuntimeError, match="formulation"):
+            solver.solve(np.full(system.n, 0.5), buy, 0.9 * buy, Theta.nominal(system))
 
 
 # -- compilation and cache --------------------------------------------------------------------

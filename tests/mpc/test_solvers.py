@@ -86,7 +86,7 @@ SOLVER_LAYER = {
                            "theta"},
     "mpc.backends.kernel_core": {"_util", "_util.jit"},
     "mpc.backends.kernel": {"mpc.backends.kernel_core", "config", "mpc.formulation",
-                            "mpc.solution", "theta"},
+                            "mpc.solution", "theta", "_util.lazy"},
     "mpc.backends.registry": {"mpc.backends.batch", "config", "mpc.backends.ipopt",
                               "mpc.backends.kernel", "mpc.formulation", "mpc.solution", "theta"},
 }

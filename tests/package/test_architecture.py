@@ -40,7 +40,8 @@ LAYERS: list[set[str]] = [
 #: Inside a subpackage, its modules lowest first: a module imports only from a lower entry of
 #: its own subpackage (never from its own entry: modules side by side are independent).
 SUBLAYERS: dict[str, list[set[str]]] = {
-    "_util": [{"jit", "jsonio", "resources", "references", "stats", "validate", "version"}],
+    "_util": [{"gym_registration", "jit", "jsonio", "lazy", "resources", "references", "stats",
+               "validate", "version"}],
     "system": [{"price_files", "battery"}, {"prices"}, {"forecast"}],
     "system.price_files": [{"areas", "series"},
                            {"currency", "detect", "energidataservice", "entsoe", "entsoe_legacy",
@@ -49,7 +50,7 @@ SUBLAYERS: dict[str, list[set[str]]] = {
     "mpc": [{"formulation"}, {"solution"}, {"sensitivity"}, {"backends"}],
     "mpc.backends": [{"batch_linalg", "kernel_core"}, {"batch_kkt"}, {"batch_adjoint"},
                      {"batch", "ipopt", "kernel"}, {"registry"}],
-    "sim": [{"record", "exploration_kernel"}, {"exploration"}, {"closed_loop"}],
+    "sim": [{"record", "exploration_kernel"}, {"exploration"}, {"closed_loop"}, {"candidates", "env"}],
     "learning": [{"lstd", "update_rules", "rundir"}, {"dpg", "history"}, {"step", "checkpoint"},
                  {"learner"}, {"experiment"}],
     "decentralized": [{"local_qp", "coordination_kernel"}, {"coordination"}, {"learner"}],
@@ -58,10 +59,11 @@ SUBLAYERS: dict[str, list[set[str]]] = {
     "figures": [{"style"}, {"paper"}, {"plots"}],
     "classroom": [{"controls", "explorers"}, {"widgets"}],
     "publish": [{"alt_text", "html_export", "launch"}, {"report"}, {"site"}],
-    "studies": [{"transfer", "lockstep"}, {"sweep"}, {"study"}],
+    "studies": [{"transfer", "lockstep", "tune"}, {"sweep"}, {"study"}],
     "studies.sweep": [{"grid"}, {"store"}, {"table"}, {"run"}, {"schedule"}, {"api"}],
     "cli": [{"inputs"}, {"args"}, {"commands"}, {"main"}, {"warm"}],
-    "cli.commands": [{"baselines", "evaluate", "learn", "report", "simulate", "study", "sweep"}],
+    "cli.commands": [{"baselines", "evaluate", "learn", "report", "simulate", "study", "sweep",
+                      "tune"}],
 }
 
 MODULES = package_modules()

@@ -10,7 +10,7 @@ import IPython.display
 import numpy as np
 import pytest
 
-from mpcrl_lite._util.jsonio import plain_json
+from mpcrl_lite._util.jsonio import plain
 from mpcrl_lite.publish.report import SUMMARY_DIGITS, SUMMARY_MIME, show_summary
 
 
@@ -38,19 +38,28 @@ def test_show_summary_rounds_floats_to_significant_digits(monkeypatch):
     assert "1833.9135" not in text and "0.30000000000000004" not in text
 
 
-def test_plain_json_turns_numpy_values_into_json_types():
+def test_plain_turns_numpy_values_into_json_types():
     value = {"a": np.arange(3), "x": np.float32(0.5), "k": np.int64(7), "ok": np.bool_(True),
              "list": [np.float64(1.5), {"m": np.ones((2, 1))}], "s": "text"}
-    plain = plain_json(value)
-    assert plain == {"a": [0, 1, 2], "x": 0.5, "k": 7, "ok": True,
+    plain_value = plain(value, keep_nonfinite=True)
+    assert plain(value) == plain_value  # nothing non-finite here: both forms agree
+    assert plain_value == {"a": [0, 1, 2], "x": 0.5, "k": 7, "ok": True,
                      "list": [1.5, {"m": [[1.0], [1.0]]}], "s": "text"}
-    assert type(plain["k"]) is int and type(plain["ok"]) is bool and type(plain["x"]) is float
+    assert type(plain_value["k"]) is int and type(plain_value["ok"]) is bool
+    assert type(plain_value["x"]) is float
     # the input is not changed
     assert isinstance(value["a"], np.ndarray)
 
 
 def test_values_json_cannot_hold_are_refused_by_name():
     with pytest.raises(TypeError, match="cannot store set in JSON"):
-        plain_json({"bad": {1, 2}})
+        plain({"bad": {1, 2}})
     with pytest.raises(TypeError, match="cannot store set in JSON"):
         show_summary({"bad": {1, 2}})
+
+
+def test_plain_turns_nonfinite_into_none_unless_kept():
+    value = {"x": float("nan"), "y": [np.inf, 1.0]}
+    assert plain(value) == {"x": None, "y": [None, 1.0]}
+    kept = plain(value, keep_nonfinite=True)
+    assert np.isnan(kept["x"]) and kept["y"] == [np.inf, 1.0]

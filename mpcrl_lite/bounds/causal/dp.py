@@ -93,7 +93,7 @@ from typing import Any
 
 import numpy as np
 
-from ...config import SystemConfig
+from ...config import PER_BATTERY, SystemConfig
 from ...system.battery import unchecked_penalty
 from ...system.prices import Prices
 from .grid import SocGrid, day_prices, distinct_days
@@ -381,6 +381,20 @@ class CausalPolicy:
         return st.at_states(soc, b.buy[day, hour], b.sell[day, hour], ev)[0]
 
 
+def _identical(system: SystemConfig) -> SystemConfig:
+    """``system`` with its per-battery fields as scalars; the DP's state space is that of
+    identical batteries (its symmetry), so batteries that differ are refused in one line."""
+    values = {name: system.battery(name) for name in PER_BATTERY}
+    differ = [name for name, v in values.items() if len(set(v)) > 1]
+    if differ:
+        raise ValueError(f"{', '.join(f'{name}={list(values[name])}' for name in differ)}: "
+                         "the causal DP expects identical batteries (lagrangian_bound "
+                         "handles batteries that differ)")
+    scalars = {name: v[0] for name, v in values.items()
+               if isinstance(getattr(system, name), tuple)}
+    return system.replace(**scalars) if scalars else system
+
+
 def causal_optimum(
     system: SystemConfig,
     prices: Prices | None = None,
@@ -411,6 +425,7 @@ def causal_optimum(
     buy, sell = day_prices(system, prices)
     if not isinstance(keep_values, bool):
         raise ValueError(f"keep_values={keep_values!r}: expected True or False")  # noqa: TRY004
+    system = _identical(system)
     soc_grid = SocGrid(system, grid, action_step)
     stage = _Stage(system, soc_grid)
     t0 = time.perf_counter()

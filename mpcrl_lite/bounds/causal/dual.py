@@ -36,13 +36,14 @@ with ``action_step=0.05``) to show it has converged (``benchmarks/bench_causal.p
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize
 
-from ...config import SystemConfig
+from ...config import PER_BATTERY, ConfigWarning, SystemConfig
 from ...system.battery import unchecked_penalty
 from ...system.prices import Prices
 from .grid import SocGrid, day_prices, distinct_days
@@ -104,6 +105,46 @@ class _SingleBattery:
                 dist = np.bincount(post, weights=dist, minlength=g.post_nodes.size) @ g.weights
         return (value, self.discount * (n * buy_power - s.P_bar),
                 self.discount * (n * sell_power - s.P_bar))
+
+
+def battery_groups(system: SystemConfig) -> list[SystemConfig]:
+    """The groups of identical batteries of ``system`` (:meth:`SystemConfig.battery_groups`),
+    each as a system of its own batteries (``n`` of them, the group's scalar parameters, the
+    site's grid limit); ``[system]`` itself when every per-battery field is one scalar."""
+    labels = system.battery_groups()
+    if not any(isinstance(getattr(system, name), tuple) for name in PER_BATTERY):
+        return [system]
+    out = []
+    for g in range(max(labels) + 1):
+        first = labels.index(g)
+        own = {name: system.battery(name)[first] for name in PER_BATTERY}
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConfigWarning)
+            out.append(system.replace(n=labels.count(g), **own))
+    return out
+
+
+class _Site:
+    """The sum of the groups' relaxed problems: ``D = sum_g n_g V_g - P_bar sum_k gamma^k
+    (lambda_k + mu_k)`` (each group's own DP on its own grid), and its supergradient."""
+
+    def __init__(self, groups: list[_SingleBattery]) -> None:
+        self.groups = groups
+
+    def evaluate(self, buy: np.ndarray, sell: np.ndarray, lam: np.ndarray,
+                 mu: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        if len(self.groups) == 1:
+            return self.groups[0].evaluate(buy, sell, lam, mu)
+        # every group's evaluate subtracts the grid term once; it counts once in the sum
+        extra = len(self.groups) - 1
+        first = self.groups[0]
+        P = first.system.P_bar
+        value = extra * P * float(first.discount @ (lam + mu))
+        d_lam, d_mu = extra * P * first.discount, extra * P * first.discount
+        for group in self.groups:
+            v, gl, gm = group.evaluate(buy, sell, lam, mu)
+            value, d_lam, d_mu = value + v, d_lam + gl, d_mu + gm
+        return value, d_lam, d_mu
 
 
 def dual_function(
@@ -197,7 +238,8 @@ def lagrangian_bound(
     Parameters
     ----------
     system : SystemConfig
-        Any ``n``.
+        Any ``n``; batteries that differ (per-battery parameters) are relaxed group by group
+        of identical batteries (:func:`battery_groups`), each on its own soc grid.
     prices : Prices, optional
         Default :meth:`Prices.default`. Days with equal prices are solved once.
     grid : int, default 41
@@ -214,8 +256,10 @@ def lagrangian_bound(
     buy, sell = day_prices(system, prices)
     if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 0:
         raise ValueError(f"max_iter={max_iter!r}: expected an integer >= 0")
-    soc_grid = SocGrid(system, grid, action_step)
-    battery = _SingleBattery(system, soc_grid)
+    groups = battery_groups(system)
+    soc_grid = SocGrid(groups[0], grid, action_step)
+    battery = _Site([_SingleBattery(g, soc_grid if i == 0 else SocGrid(g, grid, action_step))
+                     for i, g in enumerate(groups)])
     H = system.hours_per_day
     t0 = time.perf_counter()
     first, day_of = distinct_days(buy, sell)

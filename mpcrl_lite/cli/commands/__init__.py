@@ -3,7 +3,7 @@
 :data:`COMMANDS` lists them in the order ``--help`` shows.
 """
 
-from . import baselines, evaluate, learn, report, simulate, study, sweep
+from . import baselines, evaluate, learn, report, simulate, study, sweep, tune
 
 #: The command modules, in the order of ``--help``.
-COMMANDS = (simulate, learn, report, baselines, evaluate, sweep, study)
+COMMANDS = (simulate, learn, report, baselines, evaluate, sweep, study, tune)

@@ -1,4 +1,5 @@
-"""``python -m mpcrl_lite baselines``: clairvoyant / nominal / rule-based policies on the same draws as a History."""
+"""``python -m mpcrl_lite baselines``: clairvoyant / nominal / rule-based policies on the same draws as a History,
+judged against J* (the regret split in two with ``--class-best``)."""
 
 from __future__ import annotations
 
@@ -22,6 +23,12 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="a learn output directory whose final theta is evaluated too")
     p.add_argument("--days", type=_a.positive_int, default=None,
                    help=f"days (default {_a.LEARNING.days_per_month}, or all of --month)")
+    p.add_argument("--no-causal", dest="causal", action="store_false",
+                   help="skip J* (by default every policy is judged against the best causal "
+                        "policy: the stored table, else the DP or the Lagrangian bound)")
+    p.add_argument("--class-best", type=Path, default=None, metavar="DIR",
+                   help="a tune output directory: its best theta is evaluated too and the "
+                        "regret split into the learner's part and the class's part")
     _a.add_force(p)
     _a.add_price_args(p)
     _a.add_system_args(p)
@@ -41,10 +48,16 @@ def run(args: argparse.Namespace) -> int:
             learning.days_per_month, runs=3, horizon=system.N)
     try:
         result = run_baselines_cli(system, mpc_config, learning, args.history, args.out,
-                                   prices=prices, force=args.force)
+                                   prices=prices, force=args.force, causal=args.causal,
+                                   class_best=args.class_best)
     except (ValueError, OSError) as err:  # FileNotFoundError, RunDirError, RunWriteError
         raise UsageError(str(err)) from None
-    print(json.dumps(jsonio.plain({k: v["J"] for k, v in result["policies"].items()})))
+    printed = {k: v["J"] for k, v in result["policies"].items()}
+    if "causal" in result:
+        printed["J_star"] = result["causal"]["J_star"]
+        if "split" in result["causal"]:
+            printed["split"] = {k: v["mean"] for k, v in result["causal"]["split"].items()}
+    print(json.dumps(jsonio.plain(printed)))
     return 0
 
 

@@ -29,6 +29,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=_a.nonneg_int, default=0, help="seed of the first draw (default 0)")
     p.add_argument("--days", type=_a.positive_int, default=None,
                    help="days (default the run's days per month, or all of --month)")
+    p.add_argument("--class-best", type=Path, default=None, metavar="DIR",
+                   help="a tune output directory: its best theta runs on the same draws, and "
+                        "the learned theta's regret against J* is split into the learner's "
+                        "part and the class's part")
     _a.add_force(p)
     _a.add_price_args(p)
     _a.add_forecast(p, "the MPC's price forecast (default: the run's own; until_midnight is an "
@@ -58,16 +62,37 @@ def run(args: argparse.Namespace) -> int:
     days = prices.days if prices is not None else (args.days or history.learning.days_per_month)
     _a.budget(f"--draws {args.draws} --days {days} --n {system.n}", system.n, days,
             runs=2 * args.draws, horizon=system.N)
-    out = _a.prepare_out(args, EVALUATE_OUTPUTS)
+    from ...bounds.baselines import causal_reference, load_class_best, regret_split
     from ...studies.transfer import evaluate_thetas
     from ...theta import Theta
 
+    thetas = {"nominal": Theta.nominal(system), "learned": history.final_theta()}
+    tuned = None
+    if args.class_best is not None:
+        try:
+            tuned = load_class_best(args.class_best)
+        except ValueError as err:
+            raise UsageError(str(err)) from None
+        if tuned["theta_best"].n != system.n or tuned.get("forecast") != mpc_config.forecast:
+            raise UsageError(f"--class-best {args.class_best}: searched for n="
+                             f"{tuned['theta_best'].n}, forecast {tuned.get('forecast')!r}; "
+                             f"expected the run's class (n={system.n}, forecast "
+                             f"{mpc_config.forecast!r})")
+        thetas["class_best"] = tuned["theta_best"]
+    out = _a.prepare_out(args, EVALUATE_OUTPUTS)
     if prices is None:
         prices = Prices.month(system, days)
-    result = evaluate_thetas(
-        {"nominal": Theta.nominal(system), "learned": history.final_theta()},
-        system, mpc_config, prices, args.draws, args.seed,
-    )
+    result = evaluate_thetas(thetas, system, mpc_config, prices, args.draws, args.seed)
+    if tuned is not None:
+        bound, source = causal_reference(system, prices)
+        J_star = bound if isinstance(bound, float) else float(bound.J_star_for(prices).mean())
+        policies = result["policies"]
+        result["causal"] = {
+            "J_star": J_star, "source": source,
+            "split": regret_split(policies["learned"]["J"], policies["class_best"]["J"], J_star),
+            "class_best": {"dir": str(args.class_best), "J_heldout": tuned.get("J_heldout"),
+                           "J_best": tuned.get("J_best")},
+        }
     summary = {
         **result,
         "history": str(args.history),
@@ -81,7 +106,11 @@ def run(args: argparse.Namespace) -> int:
     }
     _a.write_json(out / rundir.SUMMARY, summary)
     policies = summary["policies"]
-    print(json.dumps(jsonio.plain({name: policies[name]["J_stats"] for name in policies})))
+    printed = {name: policies[name]["J_stats"] for name in policies}
+    if "causal" in summary:
+        printed["J_star"] = summary["causal"]["J_star"]
+        printed["split"] = {k: v["mean"] for k, v in summary["causal"]["split"].items()}
+    print(json.dumps(jsonio.plain(printed)))
     return 0
 
 

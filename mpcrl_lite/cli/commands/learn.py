@@ -113,6 +113,12 @@ def run(args: argparse.Namespace) -> int:
             args, months=args.months, days_per_month=prices.days, step_size=args.step_size,
             optimizer=args.optimizer, exploration_std=args.exploration_std, **kept,
         )
+    if learning.exploration_std > 0 and learning.exploration_bounds != "project":
+        try:  # the zero-mean exploration's compiled kernel has one input bound
+            system.common("U_bar", "the exploration (LearningConfig.exploration_bounds="
+                          f"{learning.exploration_bounds!r})")
+        except ValueError as err:
+            raise UsageError(str(err)) from None
     _a.budget(f"--months {args.months} --days {learning.days_per_month} --n {system.n}",
             system.n, learning.days_per_month, runs=args.months, sensitivities=True,
             horizon=system.N)

@@ -38,6 +38,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="share of the gap nominal -> target a converged seed closes "
                         "(default 0.9)")
     _a.add_forecast(p)
+    p.add_argument("--class-best", type=Path, default=None, metavar="DIR",
+                   help="a tune output directory of the study's class: split each seed's "
+                        "regret into the learner's part and the class's part")
+    _a.add_system_file(p)
     _a.add_price_args(p)
     p.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
     p.add_argument("--workers", type=_a.nonneg_int, default=None, help="local workers (0: serial)")
@@ -51,7 +55,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     from ...studies.study import THRESHOLD, run_study
 
-    base = {}
+    # the system file's fields are the sweep base's system.* overrides of every run
+    base = {f"system.{name}": value for name, value in _a.system_file(args).items()}
     if args.days is not None:
         base["learning.days_per_month"] = args.days
     if args.eval_draws is not None:
@@ -67,14 +72,20 @@ def run(args: argparse.Namespace) -> int:
             args.seeds, args.months, args.out, seed_start=args.seed_start, base=base,
             workers=args.workers, scheduler=args.scheduler, J_star=args.j_star,
             threshold=THRESHOLD if args.threshold is None else args.threshold,
-            progress=not args.quiet, lockstep=args.lockstep, target=args.target)
+            progress=not args.quiet, lockstep=args.lockstep, target=args.target,
+            class_best=args.class_best)
     except (ValueError, FileNotFoundError) as err:
         raise UsageError(str(err)) from None
     keys = ("done", "fraction_converged", "J_eval_final_median", "J_eval_final_iqr",
             "worst_seed", "largest_late_regression", "J_target", "J_star_method",
             "regret_median", "regret_iqr", "late_collapse_count")
-    print(json.dumps({**{k: summary[k] for k in keys}, "study": str(args.out / "study.json")},
-                     default=str))
+    printed = {k: summary[k] for k in keys}
+    if "class_split" in summary:
+        split = summary["class_split"]
+        printed.update({"J_class": split["J_class"],
+                        "learner_gap_median": split["learner_gap_median"],
+                        "class_gap": (split.get("class_gap") or {}).get("mean")})
+    print(json.dumps({**printed, "study": str(args.out / "study.json")}, default=str))
     return 0
 
 

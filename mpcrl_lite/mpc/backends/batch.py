@@ -6,8 +6,8 @@ It solves *the same barrier problem* (``tau`` fixed, see :mod:`mpcrl_lite.mpc.fo
 .. math:: \min_x\; \tfrac12 x^\top H x + q^\top x + c - \tau\sum_k \log(d - Cx)_k
           \quad\text{s.t.}\quad Ax = e
 
-for a batch of problems (the ``days`` of a month at one hour: they share theta and differ in
-``soc0`` and prices) in plain numpy, and computes the policy sensitivities
+for a batch of problems (the ``days`` of a month at one hour: they differ in ``soc0`` and
+prices and share theta, or come in groups of equal theta, solved group by group) in plain numpy, and computes the policy sensitivities
 ``d pi / d theta`` of all of them with the same linear algebra. Nothing is compiled:
 constructing the solver takes milliseconds.
 
@@ -192,8 +192,31 @@ class BatchSolver(StartSettings, BackendBase):
         ignored); soc follows from the dynamics. The solutions are exact barrier solutions in
         :mod:`mpcrl_lite.mpc.formulation`'s orderings; rows that failed have the status
         :data:`STATUS_MAX_ITER`, :data:`STATUS_NON_FINITE` or :data:`STATUS_BREAKDOWN`, and
-        their ``x, lam, mu`` are the last iterate.
+        their ``x, lam, mu`` are the last iterate. Rows with different theta (runs or
+        candidates stacked in one call) are solved group by group, each group as its own
+        batch, so every row gets its own theta's solution.
         """
+        groups = self.kkt.theta_groups(P, np.arange(P.shape[0]))
+        if len(groups) == 1:  # one theta for all rows: the common path
+            return self._solve_group(P, x0)
+        # one interior point per theta (the QP data share theta within a run of _run)
+        parts = [(idx, self._solve_group(P[idx], None if x0 is None else x0[idx]))
+                 for idx in groups]
+        days = P.shape[0]
+        out = {}
+        for key in ("action", "x", "lam", "mu", "cost", "success", "iterations"):
+            first = getattr(parts[0][1], key)
+            arr = np.empty((days, *first.shape[1:]), dtype=first.dtype)
+            for idx, sol in parts:
+                arr[idx] = getattr(sol, key)
+            out[key] = arr
+        status = np.empty(days, dtype=object)
+        for idx, sol in parts:
+            status[idx] = sol.status
+        return BatchSolution(**out, status=tuple(str(s) for s in status), p=P)
+
+    def _solve_group(self, P: np.ndarray, x0: np.ndarray | None) -> BatchSolution:
+        """The problems of ``P`` (days, np) that share one theta."""
         data = self.kkt.batch_data(P)
         with np.errstate(all="ignore"):  # non-finite numbers are detected per problem
             X, L, Mu, iters, status = self._run(data, x0)

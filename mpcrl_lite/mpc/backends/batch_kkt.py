@@ -175,7 +175,9 @@ class BatchKKT:
         sysc = mpc.system
         n, N = mpc.n, mpc.N
         self.n, self.N = n, N
-        self.U, self.P = float(sysc.U_bar), float(sysc.P_bar)
+        self.U = float(sysc.common("U_bar", "the batch and kernel back-ends "
+                                    "(use backend='ipopt')"))
+        self.P = float(sysc.P_bar)
         self.hi, self.lo = float(sysc.soc_high), float(sysc.soc_low)
         self._m_agent = 8 * n * N
         self._m = self._m_agent + 2 * N
@@ -211,8 +213,20 @@ class BatchKKT:
         return parts
 
     def batch_data(self, P: np.ndarray) -> BatchData:
-        """Internal QP data of parameter vectors ``P`` (days, np) that share theta."""
+        """Internal QP data of parameter vectors ``P`` (days, np) that share theta.
+
+        Raises
+        ------
+        ValueError
+            If the rows of ``P`` do not share one theta (split them with
+            :meth:`theta_groups` first).
+        """
         n, N = self.n, self.N
+        tslice = self.mpc.theta_slice
+        if P.shape[0] > 1 and not np.array_equal(P[:, tslice], np.broadcast_to(
+                P[:1, tslice], P[:, tslice].shape)):
+            raise ValueError("batch_data: the rows of P have different theta; expected one "
+                             "theta (split them with BatchKKT.theta_groups)")
         sysc = self.mpc.system
         days = P.shape[0]
         soc0 = P[:, :n].copy()

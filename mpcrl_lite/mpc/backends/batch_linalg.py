@@ -13,8 +13,21 @@ They know nothing about the MPC: arrays in, arrays out, a leading batch axis.
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg.lapack import dpotrf as _dpotrf
-from scipy.linalg.lapack import dpotrs as _dpotrs
+
+
+def _dpotrf(*args, **kwargs):
+    """LAPACK's dpotrf (``scipy.linalg.lapack``, imported on first use: scipy.linalg takes
+    a noticeable part of a second to import)."""
+    from scipy.linalg.lapack import dpotrf
+
+    return dpotrf(*args, **kwargs)
+
+
+def _dpotrs(*args, **kwargs):
+    """LAPACK's dpotrs, as :func:`_dpotrf`."""
+    from scipy.linalg.lapack import dpotrs
+
+    return dpotrs(*args, **kwargs)
 
 __all__ = ["RHS_BLOCK", "cholesky", "cholesky_solve", "tridiag_inverse"]
 

@@ -85,7 +85,7 @@ class IpoptSolver(BackendBase):
         ubx = np.full(m.nx, np.inf)
         for name in ("b", "s"):
             lbx[m.index(name)] = 0.0
-            ubx[m.index(name)] = sysc.U_bar
+            ubx[m.index(name)] = np.array(sysc.battery("U_bar"))  # (N, n), each battery's
         for name in ("sigma_hi", "sigma_lo"):
             lbx[m.index(name)] = 0.0
         self._lbx, self._ubx = lbx, ubx
@@ -182,7 +182,7 @@ class IpoptSolver(BackendBase):
         """A strictly feasible interior starting point (mid-range inputs, soc at 0.5)."""
         m, sysc = self.mpc, self.mpc.system
         x0 = np.zeros(m.nx)
-        u0 = min(0.25 * sysc.U_bar, 0.25 * sysc.P_bar / m.n)
+        u0 = min(0.25 * min(sysc.battery("U_bar")), 0.25 * sysc.P_bar / m.n)
         x0[m.index("b")] = u0
         x0[m.index("s")] = u0
         x0[m.index("soc")] = 0.5

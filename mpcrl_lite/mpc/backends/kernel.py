@@ -31,18 +31,21 @@ Cost (``benchmarks/bench_kernel.py``, closed-loop hours of a 30-day month, solve
 sensitivity per problem, measured beside the batch solver in the same run): about 55 us
 for the paper's size (n = 3, N = 12; 8x faster than the batch solver), 2.8 ms for
 n = 100 (5x) and 0.2 ms for N = 48 (11x). Loading numba and the kernels adds about a second
-to the first use in a process and about 100 MB of resident memory.
+to the first use in a process and about 100 MB of resident memory: importing this module
+and building a :class:`KernelSolver` load neither (numba comes with the first solver built,
+the kernels with its first solve or sensitivity).
 """
 
 from __future__ import annotations
 
-import argparse
+import functools
 import logging
 import time
 
 import casadi as ca
 import numpy as np
 
+from ..._util.lazy import lazy_module
 from ...config import MPCConfig
 from ..formulation import MPC
 from ..solution import (
@@ -57,18 +60,26 @@ from ..solution import (
     StartSettings,
     check_parameters,
 )
-from . import kernel_core as K
 
 __all__ = ["KernelSolver", "cache_dir", "warm_up"]
 
 log = logging.getLogger(__name__)
 
-# STATUS_* (those of every interior-point back-end, mpcrl_lite.mpc.solution) stay importable
-# from here.
-_STATUS = np.empty(4, dtype=object)  # status strings by the kernels' codes
-_STATUS[[K.CONVERGED, K.MAX_ITER, K.NON_FINITE, K.BREAKDOWN]] = (
-    STATUS_CONVERGED, STATUS_MAX_ITER, STATUS_NON_FINITE, STATUS_BREAKDOWN)
-_METHODS = {"stage": K.STAGE, "agent": K.AGENT}
+
+
+#: :mod:`~mpcrl_lite.mpc.backends.kernel_core`, imported when a solver first needs it (numba
+#: comes with it): importing this module and building a :class:`KernelSolver` stay cheap.
+K = lazy_module("mpcrl_lite.mpc.backends.kernel_core")
+
+
+@functools.cache
+def _status_names() -> np.ndarray:
+    """The status strings by the kernels' codes (STATUS_*, those of every interior-point
+    back-end, :mod:`mpcrl_lite.mpc.solution`, stay importable from here)."""
+    names = np.empty(4, dtype=object)
+    names[[K.CONVERGED, K.MAX_ITER, K.NON_FINITE, K.BREAKDOWN]] = (
+        STATUS_CONVERGED, STATUS_MAX_ITER, STATUS_NON_FINITE, STATUS_BREAKDOWN)
+    return names
 
 _BACKWARD_ERROR_MAX = 1e-6  # of the adjoint solve; above it a sensitivity is flagged
 _KKT_CHECK_TOL = 1e-9  # relative KKT residual of the formulation check at construction
@@ -132,19 +143,14 @@ class KernelSolver(StartSettings, BackendBase):
     name = "kernel"
 
     def __init__(self, mpc: MPC, config: MPCConfig | None = None, method: str = "auto") -> None:
-        if method not in ("auto", *_METHODS):
+        if method not in ("auto", "stage", "agent"):
             raise ValueError(f"method={method!r}: expected 'auto', 'stage' or 'agent'")
         self.mpc = mpc
         self.config = config or MPCConfig()
         sysc = mpc.system
         self.n, self.N = mpc.n, mpc.N
-        n, N = self.n, self.N
-        self._method = K.choose_method(n, N) if method == "auto" else _METHODS[method]
-        #: the factorisation in use, 'stage' or 'agent'
-        self.method = "stage" if self._method == K.STAGE else "agent"
-        #: sensitivities of all columns at once without refinement (many agents, 'agent'
-        #: factorisation), else column by column with iterative refinement
-        self.structured_adjoint = self._method == K.AGENT and n >= _STRUCTURED_MIN_N
+        N = self.N
+        self._method_asked = method
         gam = sysc.gamma ** np.arange(N + 1, dtype=float)
         stage = np.arange(N) < N - 1
         self._stagew = np.ascontiguousarray(np.stack([
@@ -154,8 +160,47 @@ class KernelSolver(StartSettings, BackendBase):
             np.where(stage, gam[1:] * sysc.omega[0], sysc.omega_f[0]),
             np.where(stage, gam[1:] * sysc.omega[1], sysc.omega_f[1]),
         ]))
-        K.ensure_compiled()  # the coordination kernel is loaded by its own first use
-        self._check_formulation()
+        # the kernels are loaded (or compiled) and checked against the formulation at the
+        # first solve (:meth:`_ready`); the coordination kernel by its own first use
+        self._checked = False
+
+    @property
+    def _method(self) -> int:
+        """The kernels' code of the factorisation (numba is imported on first use)."""
+        asked = self._method_asked
+        if asked == "auto":
+            return K.choose_method(self.n, self.N)
+        return K.STAGE if asked == "stage" else K.AGENT
+
+    @property
+    def method(self) -> str:
+        """The factorisation in use, 'stage' or 'agent'."""
+        return "stage" if self._method == K.STAGE else "agent"
+
+    @property
+    def structured_adjoint(self) -> bool:
+        """Sensitivities of all columns at once without refinement (many agents, 'agent'
+        factorisation), else column by column with iterative refinement; may be set."""
+        chosen = self.__dict__.get("_structured")
+        if chosen is None:
+            return self._method == K.AGENT and self.n >= _STRUCTURED_MIN_N
+        return chosen
+
+    @structured_adjoint.setter
+    def structured_adjoint(self, value: bool) -> None:
+        self._structured = bool(value)
+
+    def _ready(self) -> None:
+        """Load the kernels (from numba's cache, or compile them) and check them against the
+        CasADi formulation (:meth:`_check_formulation`), once per solver."""
+        if not self._checked:
+            K.ensure_compiled()
+            self._checked = True
+            try:
+                self._check_formulation()
+            except BaseException:
+                self._checked = False
+                raise
 
     # ------------------------------------------------------------------ options ----------
     def _opts(self, max_iter: int | None = None) -> np.ndarray:
@@ -165,7 +210,8 @@ class KernelSolver(StartSettings, BackendBase):
         opts = np.empty(K.N_OPTS)
         opts[K.O_TAU], opts[K.O_TOL] = cfg.tau, cfg.tol
         opts[K.O_MAX_ITER] = cfg.max_iter if max_iter is None else max_iter
-        opts[K.O_U], opts[K.O_P] = sysc.U_bar, sysc.P_bar
+        opts[K.O_U] = sysc.common("U_bar", "the kernel back-end (use backend='ipopt')")
+        opts[K.O_P] = sysc.P_bar
         opts[K.O_HI], opts[K.O_LO] = sysc.soc_high, sysc.soc_low
         opts[K.O_OM_HI], opts[K.O_OM_LO] = sysc.omega
         opts[K.O_U0], opts[K.O_T0_COLD], opts[K.O_T0_WARM] = (
@@ -210,6 +256,7 @@ class KernelSolver(StartSettings, BackendBase):
                           opts: np.ndarray | None = None) -> BatchSolution:
         """Run the kernel on parameter vectors ``P`` (days, np) from ``x0`` (days, nx) or
         the cold start, with the option vector ``opts`` (default :meth:`_opts`)."""
+        self._ready()
         t_start = time.perf_counter()
         opts = self._opts() if opts is None else opts
         m, days = self.mpc, P.shape[0]
@@ -223,7 +270,7 @@ class KernelSolver(StartSettings, BackendBase):
         return BatchSolution(
             action=action, x=x, lam=lam, mu=mu, cost=cost,
             success=status == K.CONVERGED,
-            status=tuple(_STATUS[status].tolist()),
+            status=tuple(_status_names()[status].tolist()),
             iterations=iters, p=P,
             solve_time=time.perf_counter() - t_start, backend=self.name,
         )
@@ -243,6 +290,7 @@ class KernelSolver(StartSettings, BackendBase):
             interior, or the KKT matrix is singular or ill-conditioned (``cond`` above
             ``config.kkt_cond_max`` or an adjoint backward error above 1e-6).
         """
+        self._ready()
         solution = BatchSolution.of(solution)
         m = self.mpc
         days = len(solution)
@@ -276,20 +324,3 @@ class KernelSolver(StartSettings, BackendBase):
                 reasons.append("")
                 ok[d] = True
         return Sensitivity(grad, ok, cond, tuple(reasons))
-
-
-def main(argv: list[str] | None = None) -> int:
-    """``python -m mpcrl_lite.mpc.backends.kernel --warm``: fill numba's cache."""
-    parser = argparse.ArgumentParser(description="Compile the MPC kernels into numba's cache.")
-    parser.add_argument("--warm", action="store_true", help="compile (or load) every kernel")
-    args = parser.parse_args(argv)
-    if not args.warm:
-        parser.print_help()
-        return 0
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    warm_up(verbose=True)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

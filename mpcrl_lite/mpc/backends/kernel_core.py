@@ -3,6 +3,13 @@ r"""Compiled (numba) kernels of :class:`~mpcrl_lite.mpc.backends.kernel.KernelSo
 The same barrier interior point as :class:`~mpcrl_lite.mpc.backends.batch.BatchSolver` (same start,
 Mehrotra predictor-corrector then pure Newton steps at ``t = tau``, same stopping rule), run
 problem by problem in compiled loops: nothing here allocates inside the Newton iteration.
+
+Why one module of ~1,300 lines: it is one algorithm (the start, the Newton iteration and its
+factorisations, the stopping rule and the KKT sensitivity of the same barrier problem) whose
+parts call each other inside compiled loops, and numba's on-disk cache checks only the source
+file of a compiled function, not the files of the functions it calls. Split over several files,
+an edit of one part could leave another part's cached machine code stale; in one file, any edit
+recompiles everything (``python -m mpcrl_lite.cli.warm``).
 The notation follows :mod:`mpcrl_lite.mpc.backends.batch`'s docstring: per problem ``n`` agents,
 ``N`` stages; ``X`` (5, n, N) holds ``b, s, soc, sigma_hi, sigma_lo``; ``L`` (n, N) the
 dynamics multipliers; inequality arrays (``S``, ``mu``, ...) are flat, ``m = 8 n N + 2 N``

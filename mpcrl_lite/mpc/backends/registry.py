@@ -51,10 +51,12 @@ REGISTRY: dict[str, Callable[[MPC, MPCConfig], SolverBackend]] = {
 }
 
 
-def _auto_backend(theta: Theta | None) -> str:
-    """The compiled interior point for a convex QP (``phi1, T1 >= 0``), IPOPT otherwise."""
+def _auto_backend(theta: Theta | None, mpc: MPC | None = None) -> str:
+    """The compiled interior point for a convex QP (``phi1, T1 >= 0``) whose batteries share
+    one input bound ``U_bar`` (the compiled back-ends' formulation), IPOPT otherwise."""
     convex = theta is None or theta.is_convex()
-    return "kernel" if convex else "ipopt"
+    shared = mpc is None or len(set(mpc.system.battery("U_bar"))) == 1
+    return "kernel" if convex and shared else "ipopt"
 
 
 def make_solver(
@@ -63,8 +65,8 @@ def make_solver(
     """The back-end named by ``config.backend``, built for ``mpc``.
 
     ``'auto'`` chooses the compiled interior point when the MPC is a convex QP for ``theta``
-    (``phi1, T1 >= 0``; always true with ``LearningConfig.keep_well_posed``) and IPOPT
-    otherwise; the choice is logged at INFO level and readable from ``solver.name``.
+    (``phi1, T1 >= 0``; always true with ``LearningConfig.keep_well_posed``) and every battery
+    has the same ``U_bar``, and IPOPT otherwise; the choice is logged at INFO level and readable from ``solver.name``.
 
     Raises
     ------
@@ -74,7 +76,7 @@ def make_solver(
     config = config or MPCConfig()
     backend = config.backend
     if backend == AUTO:
-        backend = _auto_backend(theta)
+        backend = _auto_backend(theta, mpc)
         log.info("MPC back-end 'auto' chose %r", backend)
     if backend not in REGISTRY:
         known = tuple(name for name in BACKENDS if name == AUTO or name in REGISTRY)

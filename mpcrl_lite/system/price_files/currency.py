@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import math
 
-import pandas as pd
-
+from ..._util.lazy import lazy_module
 from ...config import EUR_NOK_RATE
+
+pd = lazy_module("pandas")  # imported when a file is first read
 
 __all__ = ["CURRENCIES", "convert"]
 

@@ -11,10 +11,11 @@ The EUR price is used (the model's currency is NOK, converted from EUR, see
 
 from __future__ import annotations
 
-import pandas as pd
-
+from ..._util.lazy import lazy_module
 from .areas import canonical, find_column
 from .series import guess_decimal, hourly, parse_numbers, read_table
+
+pd = lazy_module("pandas")  # imported when a file is first read
 
 __all__ = ["NAME", "read"]
 

@@ -5,14 +5,15 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-import pandas as pd
-
+from ..._util.lazy import lazy_module
 from . import energidataservice, entsoe, entsoe_legacy, nordpool_portal, pandas_series
 from .areas import canonical, find_column
 from .currency import convert
 from .detect import FORMATS, detect_format
 from .nordpool_elspot import load_nordpool_csv, nordpool_areas
 from .series import hourly, read_text
+
+pd = lazy_module("pandas")  # imported when a file is first read
 
 __all__ = ["load_prices"]
 

@@ -13,11 +13,13 @@ import datetime as _dt
 import re
 
 import numpy as np
-import pandas as pd
 
+from ..._util.lazy import lazy_module
 from ..._util.validate import InputTypeError, check_instance, check_int
 from ...config import HOURS_PER_DAY
 from .series import LOCAL_TZ
+
+pd = lazy_module("pandas")  # imported when a file is first read
 
 __all__ = ["daily_matrix", "month_matrix", "parse_month"]
 

@@ -13,9 +13,11 @@ import re
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
+from ..._util.lazy import lazy_module
 from .series import LOCAL_TZ
+
+pd = lazy_module("pandas")  # imported when a file is first read
 
 __all__ = ["load_nordpool_csv", "nordpool_areas"]
 

@@ -13,10 +13,11 @@ from __future__ import annotations
 
 import re
 
-import pandas as pd
-
+from ..._util.lazy import lazy_module
 from .areas import canonical, find_column
 from .series import guess_decimal, hourly, localize, parse_numbers, period_minutes, read_table
+
+pd = lazy_module("pandas")  # imported when a file is first read
 
 __all__ = ["NAME", "read"]
 

@@ -9,10 +9,12 @@ each value's period runs to the next index entry, the last one as long as the sh
 from __future__ import annotations
 
 import numpy as np
-import pandas as pd
 
+from ..._util.lazy import lazy_module
 from .areas import canonical
 from .series import hourly
+
+pd = lazy_module("pandas")  # imported when a file is first read
 
 __all__ = ["NAME", "read"]
 

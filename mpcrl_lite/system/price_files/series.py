@@ -33,7 +33,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
+
+from ..._util.lazy import lazy_module
+
+pd = lazy_module("pandas")  # imported when a file is first read
 
 __all__ = ["LOCAL_TZ", "PriceFileWarning", "hourly", "localize", "parse_numbers", "period_minutes",
            "read_table", "read_text"]

@@ -1,0 +1,292 @@
+"""Monthly commits in O(1): the months between a run's first and last commit append to the
+journal ``history.jsonl`` and keep ``history.json``; every directory a run leaves on the way
+reads back as the History of that month, a kill at any write of the journal resumes to the
+uninterrupted run, a changed journal is refused and an interrupted append is ignored."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mpcrl_lite import LearningConfig, MPCConfig, SystemConfig
+from mpcrl_lite._util import jsonio
+from mpcrl_lite.cli.main import main
+from mpcrl_lite.decentralized.learner import DecentralizedExperiment
+from mpcrl_lite.learning import rundir
+from mpcrl_lite.learning.experiment import Experiment
+from mpcrl_lite.learning.history import History
+from mpcrl_lite.learning.rundir import RunDirError
+from mpcrl_lite.sim.record import RECORD_ARRAYS
+from mpcrl_lite.studies.lockstep import run_lockstep
+
+SMALL = SystemConfig(N=6)
+
+
+def plain_history(history: History) -> str:
+    """Everything a History holds, timings included, as exact JSON (floats by repr)."""
+    data = {k: getattr(history, k) for k in History.STORED_SERIES}
+    data["theta_final"], data["backend"] = history.theta_final, history.backend
+    data["configs"] = history.configs()
+    return json.dumps(jsonio.plain(data), sort_keys=True)
+
+
+def assert_same_history(got: History, want: History) -> None:
+    assert plain_history(got) == plain_history(want)
+    for month in ("first_month", "last_month"):
+        for key in RECORD_ARRAYS:
+            np.testing.assert_array_equal(getattr(getattr(got, month), key),
+                                          getattr(getattr(want, month), key))
+
+
+def snapshots(tmp_path: Path, out: Path, seen: list):
+    """A callback that copies ``out`` after every month and keeps the History then."""
+    def snapshot(month, history, learner):
+        copy = shutil.copytree(out, tmp_path / f"month{month + 1}")
+        seen.append((copy, History.from_files(history.to_files())))
+    return snapshot
+
+
+@pytest.mark.parametrize("learner", [Experiment, DecentralizedExperiment])
+def test_every_monthly_directory_reads_back_as_that_month(learner, tmp_path):
+    out, seen = tmp_path / "run", []
+    learning = LearningConfig(days_per_month=1, months=5, seed=3, eval_every=2)
+    run = learner(SMALL, MPCConfig(), learning, callbacks=[snapshots(tmp_path, out, seen)])
+    run.run(out=out, progress=False)
+    staged_json = set()
+    for months, (copy, history) in enumerate(seen, start=1):
+        manifest = json.loads((copy / "manifest.json").read_text())
+        journal = months not in (1, 5)  # the first and the last commit write the whole History
+        assert (rundir.JOURNAL in manifest["files"]) is journal
+        assert (copy / rundir.JOURNAL).exists() is journal
+        assert manifest["format"] == (rundir.FORMAT_APPEND if journal else rundir.FORMAT)
+        assert manifest["months_done"] == months
+        if journal:  # history.json is the first month's, kept as it was
+            staged_json.add(manifest["files"]["history.json"]["staged"])
+            lines = (copy / rundir.JOURNAL).read_bytes().splitlines()
+            assert len(lines) == months - 1
+            assert json.loads((copy / "history.json").read_text())["J"] == history.J[:1]
+        assert_same_history(History.load(copy), history)
+    assert len(staged_json) == 1
+    assert_same_history(History.load(out), run.history)
+    assert sorted(p.name for p in out.iterdir()) == sorted(
+        ["manifest.json", "history.json", "history.npz", "checkpoint.json"])
+
+
+def test_the_bytes_written_per_month_do_not_grow(tmp_path):
+    """What a month commits (its journal line, the npz, the checkpoint) is the same size in
+    month 3 and month 9: the cost of a commit does not grow with the months done."""
+    out, seen = tmp_path / "run", []
+    learning = LearningConfig(days_per_month=1, months=10, seed=1, eval_every=1)
+    Experiment(SMALL, MPCConfig(), learning, callbacks=[snapshots(tmp_path, out, seen)]).run(
+        out=out, progress=False)
+    lines = (seen[8][0] / rundir.JOURNAL).read_bytes().splitlines(keepends=True)
+    sizes = [len(line) for line in lines]
+    assert len(sizes) == 8 and max(sizes) < 1.1 * min(sizes)
+    for name in ("history.npz", "checkpoint.json"):
+        size = [json.loads((seen[m][0] / "manifest.json").read_text())["files"][name]["size"]
+                for m in (2, 8)]
+        assert abs(size[1] - size[0]) < 0.02 * size[0], name
+
+
+def learn_args(out: Path, months: int, *extra: str) -> list[str]:
+    return ["learn", "--months", str(months), "--days", "1", "--out", str(out), "--quiet",
+            "--no-figures", *extra]
+
+
+def learn_in_child(argv: list[str], env: dict[str, str]) -> int:
+    pid = os.fork()
+    if pid == 0:
+        code = 70
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, 1)
+            os.dup2(devnull, 2)
+            os.environ.update(env)
+            rundir._writes = 0
+            code = main(argv)
+        finally:
+            os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    return status
+
+
+def test_a_kill_at_any_write_of_a_journaled_run_resumes_identically(tmp_path, capsys,
+                                                                      monkeypatch):
+    """A 4-month run (two months appended): killed after (or half-way through) each of its
+    writes, then resumed: the results equal the uninterrupted run's, and every directory a
+    kill leaves reads as a History of the months its manifest records."""
+    reference = tmp_path / "reference"
+    appends: list[int] = []
+    real = rundir._append_file
+
+    def spy(path, offset, data):
+        appends.append(rundir._writes + 1)
+        return real(path, offset, data)
+
+    monkeypatch.setattr(rundir, "_append_file", spy)
+    start = rundir._writes
+    assert main(learn_args(reference, 4)) == 0
+    writes = rundir._writes - start
+    appends = [i - start for i in appends]
+    monkeypatch.undo()
+    assert len(appends) == 2
+    want = History.load(reference)
+    checkpoint = json.loads((reference / "checkpoint.json").read_text())
+    points = [(rundir.KILL_AFTER_WRITE_ENV, i) for i in range(1, writes + 1)]
+    points += [(rundir.KILL_MID_WRITE_ENV, i) for i in appends]
+    for hook, i in points:
+        out = tmp_path / f"{hook[-10:]}-{i}"
+        status = learn_in_child(learn_args(out, 4), {hook: str(i)})
+        assert os.WIFSIGNALED(status) and os.WTERMSIG(status) == signal.SIGKILL, (hook, i)
+        if (out / "manifest.json").exists():
+            months = History.load(out).months
+            assert months == rundir.read(out, ["history.json"]).months_done
+            assert want.J[:months] == History.load(out).J
+        capsys.readouterr()
+        assert main(learn_args(out, 4, "--resume")) == 0, (hook, i, capsys.readouterr().err)
+        got = History.load(out)
+        for key in History.STORED_SERIES:
+            if key not in ("wall_time_s", "update_info"):
+                assert getattr(got, key) == getattr(want, key), (hook, i, key)
+        assert got.theta_final == want.theta_final
+        assert json.loads((out / "checkpoint.json").read_text()) == checkpoint, (hook, i)
+        assert not (out / rundir.JOURNAL).exists()
+        shutil.rmtree(out)
+
+
+def journaled_run(tmp_path: Path) -> Path:
+    """A directory as a run leaves it after its third month (of five): a journal of two."""
+    out, seen = tmp_path / "run", []
+    learning = LearningConfig(days_per_month=1, months=5, seed=2)
+    Experiment(SMALL, MPCConfig(), learning, callbacks=[snapshots(tmp_path, out, seen)]).run(
+        out=out, progress=False)
+    return seen[2][0]
+
+
+def test_an_interrupted_append_is_ignored_and_cut(tmp_path):
+    run = journaled_run(tmp_path)
+    want = History.load(run)
+    with open(run / rundir.JOURNAL, "ab") as f:  # what a kill half-way through an append leaves
+        f.write(b'{"months": 4, "ser')
+    assert_same_history(History.load(run), want)
+    learning = LearningConfig(days_per_month=1, months=5, seed=2)
+    exp = Experiment(SMALL, MPCConfig(), learning)
+    exp.run(months=4, out=run, resume=True, progress=False)
+    reference = Experiment(SMALL, MPCConfig(), learning)
+    reference.run(months=4, progress=False)
+    assert exp.history.J == reference.history.J
+    assert History.load(run).J == reference.history.J
+
+
+@pytest.mark.parametrize("change", ["byte", "shorter"])
+def test_a_changed_journal_is_refused(tmp_path, capsys, change):
+    run = journaled_run(tmp_path)
+    path = run / rundir.JOURNAL
+    data = path.read_bytes()
+    path.write_bytes(data.replace(b'"months": 2', b'"months": 7') if change == "byte"
+                     else data[:-10])
+    before = {p.name: p.read_bytes() for p in run.iterdir()}
+    message = "history.jsonl does not match its sha256"
+    with pytest.raises(RunDirError, match=message):
+        History.load(run)
+    status = main(learn_args(run, 5, "--resume"))
+    assert status == 2 and message in capsys.readouterr().err
+    assert {p.name: p.read_bytes() for p in run.iterdir()} == before
+
+
+def test_a_stale_journal_next_to_a_whole_history_is_ignored_and_removed(tmp_path):
+    """A kill after a whole commit, before the old journal was removed."""
+    run = journaled_run(tmp_path)
+    stale = (run / rundir.JOURNAL).read_bytes()
+    done = tmp_path / "done"
+    shutil.copytree(tmp_path / "run", done)  # the finished run (no journal)
+    (done / rundir.JOURNAL).write_bytes(stale)
+    want = History.load(tmp_path / "run")
+    assert_same_history(History.load(done), want)
+    rundir.read(done, ["history.json"], repair=True)
+    assert not (done / rundir.JOURNAL).exists()
+
+
+def test_lockstep_writes_the_files_of_the_runs_alone(tmp_path):
+    def runs(callbacks):
+        return [Experiment(SystemConfig(N=6, noise_var=v), MPCConfig(),
+                           LearningConfig(days_per_month=2, months=4, seed=s),
+                           callbacks=[c])
+                for (s, v), c in zip([(1, 0.5), (2, 0.3)], callbacks, strict=True)]
+
+    seen: list[list] = [[], []]
+    alone = runs([snapshots(tmp_path / f"alone{i}", tmp_path / f"a{i}", seen[i])
+                  for i in range(2)])
+    for i, run in enumerate(alone):
+        run.run(out=tmp_path / f"a{i}", progress=False)
+    stacked_seen: list[list] = [[], []]
+    stacked = runs([snapshots(tmp_path / f"stacked{i}", tmp_path / f"s{i}", stacked_seen[i])
+                    for i in range(2)])
+    run_lockstep(stacked, outs=[tmp_path / "s0", tmp_path / "s1"])
+    for i in range(2):
+        for (a, _), (s, _) in zip(seen[i], stacked_seen[i], strict=True):
+            got, want = History.load(s), History.load(a)
+            assert got.J == want.J and got.theta_final == want.theta_final
+            assert sorted(p.name for p in s.iterdir()) == sorted(p.name for p in a.iterdir())
+            manifest = [json.loads((d / "manifest.json").read_text()) for d in (s, a)]
+            assert manifest[0]["format"] == manifest[1]["format"]
+            assert sorted(manifest[0]["files"]) == sorted(manifest[1]["files"])
+
+
+def test_a_background_commit_that_fails_stops_the_run_at_the_next_month(tmp_path,
+                                                                         monkeypatch):
+    """Months between the first and the last are written while the next one computes: a
+    full disk during one of them is raised by the next checkpoint (an OSError, the previous
+    commit intact), and the run resumes to the uninterrupted results."""
+    import errno
+
+    learning = LearningConfig(days_per_month=1, months=4, seed=5)
+    reference = Experiment(SMALL, MPCConfig(), learning)
+    reference.run(out=tmp_path / "reference", progress=False)
+    real = os.fsync
+    outcomes = set()
+    for i in (1, 3, 6, 9):
+        out = tmp_path / f"full{i}"
+        calls = []
+
+        def full(fd, _calls=calls, _i=i):
+            _calls.append(fd)
+            if len(_calls) == _i:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            return real(fd)
+
+        monkeypatch.setattr(os, "fsync", full)
+        exp = Experiment(SMALL, MPCConfig(), learning)
+        try:
+            exp.run(out=out, progress=False)
+            outcomes.add("finished")
+        except rundir.RunWriteError as err:
+            assert "No space left on device" in str(err)
+            outcomes.add("stopped")
+            # the month that failed was committed in the background: the run went on to
+            # compute the next one, and stopped at its checkpoint
+            committed = rundir.read(out, ["history.json"]).months_done if (
+                out / "manifest.json").exists() else 0
+            assert exp.history.months == committed + 2
+        monkeypatch.undo()
+        resumed = Experiment(SMALL, MPCConfig(), learning)
+        resumed.run(out=out, resume=True, progress=False)
+        assert_same_history_but_timings(History.load(out), reference.history)
+    assert "stopped" in outcomes
+
+
+def assert_same_history_but_timings(got: History, want: History) -> None:
+    for key in History.STORED_SERIES:
+        if key not in ("wall_time_s", "update_info"):
+            assert getattr(got, key) == getattr(want, key), key
+    assert got.theta_final == want.theta_final
+    for month in ("first_month", "last_month"):
+        for key in RECORD_ARRAYS:
+            np.testing.assert_array_equal(getattr(getattr(got, month), key),
+                                          getattr(getattr(want, month), key))

@@ -1,0 +1,69 @@
+"""Importing the package pays only for what it uses: the heavy libraries (statistics, data
+frames, plotting, the distributed scheduler, the widgets, the compiler) load where they are
+used, never with the package, its public names or the learner's module."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+#: Libraries that no import of the package, its face or the learner may bring in.
+HEAVY = ("scipy.stats", "pandas", "matplotlib", "dask", "ipywidgets")
+
+
+def loaded_after(code: str) -> list[str]:
+    """The modules of :data:`HEAVY` (and numba, scipy.linalg) in ``sys.modules`` after
+    running ``code`` in a fresh interpreter."""
+    probe = (f"{code}\nimport json, sys\n"
+             "print(json.dumps(sorted(m for m in sys.modules if m.split('.')[0] in "
+             "('scipy', 'pandas', 'matplotlib', 'dask', 'ipywidgets', 'numba'))))")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"},
+                         check=True, timeout=300).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def heavy(modules: list[str]) -> list[str]:
+    return [m for m in modules if any(m == h or m.startswith(h + ".") for h in HEAVY)]
+
+
+@pytest.mark.parametrize("code", [
+    "import mpcrl_lite",
+    "import mpcrl_lite.learning.experiment",
+    "from mpcrl_lite import Experiment, History, LearningConfig, MPCConfig, SystemConfig, Theta",
+    "import mpcrl_lite.mpc.backends.registry",
+    # what `learn --no-figures` imports: the figures' names, not matplotlib
+    "import mpcrl_lite.figures.paper\nimport mpcrl_lite.cli.commands.learn",
+])
+def test_importing_loads_no_heavy_library(code):
+    modules = loaded_after(code)
+    assert heavy(modules) == []
+    assert not any(m == "numba" or m.startswith("numba.") for m in modules)  # first use only
+
+
+def test_the_probe_sees_a_heavy_import():
+    """The check above can fail: importing pandas shows in it."""
+    assert "pandas" in heavy(loaded_after("import mpcrl_lite\nimport pandas"))
+
+
+def test_a_solver_loads_numba_at_its_first_solve_only():
+    """Building a KernelSolver (as Experiment() does) loads no compiler; its first solve
+    loads the kernels, checks them against the formulation and gives the usual solution."""
+    modules = loaded_after(
+        "import sys\n"
+        "import numpy as np\n"
+        "from mpcrl_lite import SystemConfig, Theta\n"
+        "from mpcrl_lite.mpc.backends.kernel import KernelSolver\n"
+        "from mpcrl_lite.mpc.formulation import MPC\n"
+        "system = SystemConfig(N=4)\n"
+        "solver = KernelSolver(MPC(system))\n"
+        "assert 'numba' not in sys.modules and not solver._checked\n"
+        "buy = np.linspace(20.0, 80.0, 4)\n"
+        "sol = solver.solve(np.full(3, 0.5), buy, 0.9 * buy, Theta.nominal(system))\n"
+        "assert sol.success and solver._checked and 'numba' in sys.modules")
+    assert "numba" in modules and heavy(modules) == []
