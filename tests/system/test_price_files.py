@@ -378,3 +378,14 @@ def test_study_runs_on_a_price_file_through_the_sweep_base(tmp_path, capsys):
     assert config["prices"]["month"] == "2025-11" and config["learning"]["days_per_month"] == 2
     history = json.loads(next(out.rglob("history.json")).read_text())
     assert history["prices_origin"]["format"] == "nordpool_portal"
+
+
+def test_baselines_record_the_origin_of_file_prices(tmp_path, capsys):
+    path, _, _ = write(tmp_path, "eds_hourly", ("2025-11-01", "2025-12-01"))
+    out = tmp_path / "bl"
+    code = main(["baselines", "--prices", str(path), "--area", "DK2", "--month", "2025-11",
+                 "--days", "1", "--eur-rate", "11.5", "--quiet", "--out", str(out)])
+    assert code == 0, capsys.readouterr().err
+    origin = json.loads((out / "baselines.json").read_text())["scenario"]["prices_origin"]
+    assert origin["format"] == "energidataservice" and origin["area"] == "DK2"
+    assert origin["eur_rate"] == 11.5 and origin["days"] == 1
