@@ -389,3 +389,18 @@ def test_baselines_record_the_origin_of_file_prices(tmp_path, capsys):
     origin = json.loads((out / "baselines.json").read_text())["scenario"]["prices_origin"]
     assert origin["format"] == "energidataservice" and origin["area"] == "DK2"
     assert origin["eur_rate"] == 11.5 and origin["days"] == 1
+
+
+def test_a_preamble_before_the_header_keeps_the_line_numbers_and_times_without_seconds(tmp_path):
+    path = F.nordpool_portal(tmp_path / "p.csv", "2025-11-01", "2025-11-02", 60)
+    lines = path.read_text().splitlines()
+    short = [lines[0]] + [r.replace(":00:00;", ":00;").replace(":00:00", ":00") for r in lines[1:]]
+    cells = short[3].split(";")
+    short[3] = ";".join(cells[:2] + ["x"] + cells[3:])
+    path.write_text("\n".join(["Day-ahead prices, exported 2025-11-02", "", *short]) + "\n")
+    with pytest.raises(ValueError, match=r"line 6 \(01\.11\.2025 02:00\): cannot read price 'x'"):
+        load_prices(path, "NO3")
+    short[3] = ";".join(cells)
+    path.write_text("\n".join(short) + "\n")
+    np.testing.assert_allclose(load_prices(path, "NO3").to_numpy(),
+                               [F.price(t) for t in F.periods("2025-11-01", "2025-11-02", 60)])

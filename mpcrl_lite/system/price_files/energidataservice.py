@@ -22,11 +22,11 @@ __all__ = ["NAME", "read"]
 NAME = "energidataservice"
 
 
-def read(text: str, area: str, where: str) -> pd.Series:
+def read(text: str, area: str, where: str, offset: int = 0) -> pd.Series:
     """One area's prices in EUR/MWh (see the module docstring)."""
     first = text.split("\n", 1)[0]
     sep = ";" if first.count(";") >= first.count(",") else ","
-    frame, labels = read_table(text, sep, where)
+    frame, labels = read_table(text, sep, where, offset)
     cols = list(frame.columns)
     if "HourUTC" in cols:
         time, price, minutes = "HourUTC", "SpotPriceEUR", 60

@@ -16,7 +16,7 @@ import re
 
 from ..._util.lazy import lazy_module
 from .areas import canonical, find_column
-from .series import hourly, localize, parse_numbers, period_minutes, read_table
+from .series import hourly, localize, parse_numbers, period_minutes, read_table, separator
 
 pd = lazy_module("pandas")  # imported when a file is first read
 
@@ -34,9 +34,9 @@ def _times(text: pd.Series) -> pd.Series:
     return pd.to_datetime(text, format="%d/%m/%Y %H:%M:%S", errors="coerce")
 
 
-def read(text: str, area: str, where: str) -> pd.Series:
+def read(text: str, area: str, where: str, offset: int = 0) -> pd.Series:
     """One area's day-ahead prices (see the module docstring)."""
-    frame, labels = read_table(text, ",", where)
+    frame, labels = read_table(text, separator(text), where, offset)
     cols = list(frame.columns)
     mtu = next((c for c in cols if c.startswith("MTU")), None)
     price = next((c for c in cols if c.startswith("Day-ahead Price")), None)

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..._util.lazy import lazy_module
 from .areas import canonical, find_column
-from .series import hourly, localize, parse_numbers, period_minutes, read_table
+from .series import hourly, localize, parse_numbers, period_minutes, read_table, separator
 
 pd = lazy_module("pandas")  # imported when a file is first read
 
@@ -31,10 +31,10 @@ _MTU = re.compile(
 _CURRENCY = re.compile(r"\[(?P<cur>[A-Za-z]{3})/MWh\]")
 
 
-def read(text: str, area: str, where: str) -> pd.Series:
+def read(text: str, area: str, where: str, offset: int = 0) -> pd.Series:
     """The prices of the file's one area (see the module docstring); ``area`` must name it
     (any alias) or be None."""
-    frame, labels = read_table(text, ",", where)
+    frame, labels = read_table(text, separator(text), where, offset)
     cols = list(frame.columns)
     if len(cols) < 2 or not cols[0].startswith("MTU") or not cols[1].startswith("Day-ahead"):
         raise ValueError(f"{where}: expected an ENTSO-E header '\"MTU (CET/CEST)\",\"Day-ahead "

@@ -98,7 +98,5 @@ def load_prices(source: str | os.PathLike | pd.Series, area: str | None = None,
         body = "\n".join(text.split("\n")[header:])
         if area is None and found != "entsoe_legacy":
             raise ValueError(f"{where}: a {found} file; expected area= (e.g. 'NO3')")
-        series = _READERS[found](body, area, where)
-        if header:  # line numbers in messages counted from the header
-            series.attrs["header_line"] = header + 1
+        series = _READERS[found](body, area, where, offset=header)
     return convert(series, currency, eur_rate)

@@ -15,7 +15,16 @@ import re
 
 from ..._util.lazy import lazy_module
 from .areas import canonical, find_column
-from .series import guess_decimal, hourly, localize, parse_numbers, period_minutes, read_table
+from .series import (
+    guess_decimal,
+    hourly,
+    local_times,
+    localize,
+    parse_numbers,
+    period_minutes,
+    read_table,
+    separator,
+)
 
 pd = lazy_module("pandas")  # imported when a file is first read
 
@@ -25,10 +34,10 @@ NAME = "nordpool_portal"
 _PRICE = re.compile(r"^(?P<area>.+?)\s+Price\s*\((?P<cur>[A-Za-z]{3})\)\s*$")
 
 
-def read(text: str, area: str, where: str) -> pd.Series:
+def read(text: str, area: str, where: str, offset: int = 0) -> pd.Series:
     """One area's prices (see the module docstring); ``area`` is any name of
     :mod:`~mpcrl_lite.system.price_files.areas`."""
-    frame, labels = read_table(text, ";", where)
+    frame, labels = read_table(text, separator(text), where, offset)
     cols = list(frame.columns)
     if len(cols) < 3 or not cols[0].startswith("Delivery Start") \
             or not cols[1].startswith("Delivery End"):
@@ -41,8 +50,8 @@ def read(text: str, area: str, where: str) -> pd.Series:
             areas[found["area"].strip()] = (c, found["cur"].upper())
     column = find_column(area, list(areas), where)
     name, currency = areas[column]
-    start = pd.to_datetime(frame[cols[0]].str.strip(), format="%d.%m.%Y %H:%M:%S", errors="coerce")
-    end = pd.to_datetime(frame[cols[1]].str.strip(), format="%d.%m.%Y %H:%M:%S", errors="coerce")
+    formats = ("%d.%m.%Y %H:%M:%S", "%d.%m.%Y %H:%M")
+    start, end = local_times(frame[cols[0]], formats), local_times(frame[cols[1]], formats)
     for times, col in ((start, cols[0]), (end, cols[1])):
         if times.isna().any():
             i = int(times.isna().to_numpy().nonzero()[0][0])

@@ -38,8 +38,8 @@ from ..._util.lazy import lazy_module
 
 pd = lazy_module("pandas")  # imported when a file is first read
 
-__all__ = ["LOCAL_TZ", "PriceFileWarning", "hourly", "localize", "parse_numbers", "period_minutes",
-           "read_table", "read_text"]
+__all__ = ["LOCAL_TZ", "PriceFileWarning", "guess_decimal", "hourly", "local_times", "localize",
+           "parse_numbers", "period_minutes", "read_table", "read_text", "separator"]
 
 #: Local time zone of the Nordic exports (CET/CEST), and of the series returned.
 LOCAL_TZ = "Europe/Oslo"
@@ -67,9 +67,10 @@ def read_text(path: str | Path) -> str:
     return "\n".join(line.rstrip("\r\n") for line in io.StringIO(text, newline=None))
 
 
-def read_table(text: str, sep: str, where: str) -> tuple[pd.DataFrame, list[str]]:
+def read_table(text: str, sep: str, where: str, offset: int = 0) -> tuple[pd.DataFrame, list[str]]:
     """A separated table of strings (header on the first line, quotes removed) and a label
-    ``'line L'`` per row; lines that are empty or only separators are skipped."""
+    ``'line L'`` per row (``offset`` lines before the header in the file); lines that are
+    empty or only separators are skipped."""
     try:
         frame = pd.read_csv(io.StringIO(text), sep=sep, dtype=str, keep_default_na=False,
                             skip_blank_lines=False, skipinitialspace=True)
@@ -78,8 +79,26 @@ def read_table(text: str, sep: str, where: str) -> tuple[pd.DataFrame, list[str]
             from None
     frame.columns = [str(c).strip() for c in frame.columns]
     keep = (frame.apply(lambda col: col.astype(str).str.strip()) != "").any(axis=1).to_numpy()
-    labels = [f"line {i + 2}" for i in np.flatnonzero(keep)]
+    labels = [f"line {i + 2 + offset}" for i in np.flatnonzero(keep)]
     return frame[keep].reset_index(drop=True), labels
+
+
+def separator(text: str) -> str:
+    """``';'`` or ``','``: the one the header line uses more."""
+    first = text.split("\n", 1)[0]
+    return ";" if first.count(";") >= first.count(",") else ","
+
+
+def local_times(cells: pd.Series, formats: tuple[str, ...]) -> pd.Series:
+    """Wall-clock times read with the first of ``formats`` that reads them all, else as ISO
+    8601; NaT where none does."""
+    text = cells.astype(str).str.strip()
+    for fmt in formats:
+        times = pd.to_datetime(text, format=fmt, errors="coerce")
+        if not times.isna().any():
+            return times
+    iso = pd.to_datetime(text, format="ISO8601", errors="coerce")
+    return iso if iso.notna().sum() >= times.notna().sum() else times
 
 
 def guess_decimal(cells: pd.Series) -> str:
