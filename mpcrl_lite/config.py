@@ -145,6 +145,7 @@ from ._util.validate import (  # noqa: F401
 __all__ = [
     "BACKENDS",
     "EARLIER_BEHAVIOUR",
+    "EUR_NOK_RATE",
     "EXPLORATION_BOUNDS",
     "FORECASTS",
     "HESSIANS",
@@ -164,6 +165,7 @@ __all__ = [
     "CoordinationConfig",
     "LearningConfig",
     "MPCConfig",
+    "PriceFileConfig",
     "SystemConfig",
     "check_grid_bound",
     "check_ranges",
@@ -171,6 +173,14 @@ __all__ = [
 
 #: Unit of every price in the project (see the module docstring for why).
 PRICE_UNIT = "NOK/MWh"
+
+#: NOK per EUR used to convert a price file in EUR/MWh to :data:`PRICE_UNIT` when no rate is
+#: given (``--eur-rate``, ``load_prices(..., eur_rate=)``): the European Central Bank's euro
+#: reference rate for the Norwegian krone, monthly average of November 2025 (11.7402; ECB
+#: statistical data warehouse, series EXR.M.NOK.EUR.SP00.A). The monthly averages of 2025
+#: ranged from about 11.5 to 11.9, so a run on another month should pass its own rate; the
+#: rate used is recorded in the run's History and summary.json.
+EUR_NOK_RATE = 11.7402
 
 #: Clock hours in one day of price data; an episode (``SystemConfig.hours_per_day``) lasts at
 #: most this long, since the price matrices (:class:`mpcrl_lite.system.prices.Prices`) are indexed by
@@ -354,7 +364,11 @@ class SystemConfig(_Config):
     sample_time_h: float = 1.0
     """Sampling time in hours (informational: the dynamics are written per sample)."""
     sell_ratio: float = 0.5
-    """Selling price = ``sell_ratio`` x buying price (the paper uses 0.5)."""
+    """Selling price = ``sell_ratio`` x buying price (the paper uses 0.5). For a negative
+    buying price (common in 2025, never in the paper's month) ``sell_ratio`` x price would be
+    *above* the buying price, so that a battery could earn by buying and selling at once; the
+    spread is kept instead: ``phi_s = phi_b - (1 - sell_ratio) |phi_b|``, i.e.
+    ``(2 - sell_ratio) phi_b`` for ``phi_b < 0`` (``mpcrl_lite.system.prices.sell_prices``)."""
     price_scale: float = 1.0
     """Multiplier on the price series (1.0 keeps NOK/MWh; a classroom knob)."""
     soc0: float | tuple[float, ...] = 0.6
@@ -805,3 +819,42 @@ class CoordinationConfig(_Config):
         set_("tol", check_real("tol", self.tol, 0.0, 1e-2, low_open=True))
         set_("max_iter", check_int("max_iter", self.max_iter, 1))
         set_("local_grid_factor", check_real("local_grid_factor", self.local_grid_factor, 10.0))
+
+
+@dataclass(frozen=True)
+class PriceFileConfig(_Config):
+    """A month of prices from a file, for runs set up by configuration (the sweep's and the
+    study's ``prices`` section; the commands' ``--prices/--area/--month/--currency/--eur-rate/
+    --price-format``). ``file=''`` (the default) is the shipped month.
+
+    Read by :meth:`mpcrl_lite.system.prices.Prices.from_file` through
+    :func:`mpcrl_lite.system.price_files.load.load_prices`.
+    """
+
+    file: str = ""
+    """The price file (any format ``load_prices`` reads); empty: the shipped month."""
+    area: str = ""
+    """Its bidding zone by any of its names (``'NO3'``, ``'Tr.heim'``, ``'BZN|NO3'``); empty:
+    the format's default (Tr.heim for Nord Pool's old export)."""
+    month: str = ""
+    """The month to use, ``'YYYY-MM'`` (required with ``file``)."""
+    currency: str = "NOK"
+    """The model's currency: NOK (:data:`PRICE_UNIT`, a EUR file converted at ``eur_rate``)."""
+    eur_rate: float = EUR_NOK_RATE
+    """NOK per EUR for a EUR file (default :data:`EUR_NOK_RATE`, its source stated there)."""
+    format: str = ""
+    """A format to force (``mpcrl_lite.system.price_files.detect.FORMATS``); empty: from the
+    file's header."""
+
+    def __post_init__(self) -> None:
+        set_ = self._set
+        for name in ("file", "area", "month", "currency", "format"):
+            value = getattr(self, name)
+            if not isinstance(value, str):
+                raise TypeError(f"{name}={value!r}: expected a string")
+        if self.currency != "NOK":
+            raise ValueError(f"currency={self.currency!r}: expected 'NOK' (the penalties are in "
+                             f"{PRICE_UNIT}; a EUR file is converted at eur_rate)")
+        set_("eur_rate", check_real("eur_rate", self.eur_rate, 0.0, low_open=True))
+        if self.file and not self.month:
+            raise ValueError(f"month='': expected 'YYYY-MM' with file={self.file!r}")

@@ -119,6 +119,7 @@ class Experiment(Learner):
         self.updater = self.UPDATER.from_configs(self.learning, self.system)
         self.rng = np.random.default_rng(self.learning.seed)
         self.history = History(self.system, self.mpc_config, self.learning, backend=self.solver.name)
+        self.history.prices_origin = dict(getattr(self.prices, "origin", {}) or {})
 
     # -- one learning step ----------------------------------------------------------------
     def learning_step(self, record: MonthRecord) -> tuple[np.ndarray, int, dict[str, Any]]:

@@ -42,7 +42,11 @@ LAYERS: list[set[str]] = [
 SUBLAYERS: dict[str, list[set[str]]] = {
     "_util": [{"budget", "gym_registration", "jit", "jsonio", "lazy", "resources", "references",
                "stats", "validate", "version"}],
-    "system": [{"prices", "battery"}, {"forecast"}],
+    "system": [{"price_files", "battery"}, {"prices"}, {"forecast"}],
+    "system.price_files": [{"areas", "series"},
+                           {"currency", "detect", "energidataservice", "entsoe", "entsoe_legacy",
+                            "month", "nordpool_elspot", "nordpool_portal", "pandas_series"},
+                           {"load"}],
     "mpc": [{"formulation"}, {"solution"}, {"sensitivity"}, {"backends"}, {"q_kernel"}, {"value"}],
     "mpc.backends": [{"batch_linalg", "kernel_core"}, {"batch_kkt"}, {"batch_adjoint"},
                      {"batch", "ipopt", "kernel"}, {"registry"}],

@@ -43,6 +43,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="a tune output directory of the study's class: split each seed's "
                         "regret into the learner's part and the class's part")
     _a.add_system_file(p)
+    _a.add_price_args(p)
     p.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
     p.add_argument("--workers", type=_a.nonneg_int, default=None, help="local workers (0: serial)")
     p.add_argument("--lockstep", type=_a.positive_int, default=None, metavar="K",
@@ -73,6 +74,10 @@ def run(args: argparse.Namespace) -> int:
         base["learning.learner"] = args.learner
     if args.hessian is not None:
         base["learning.hessian"] = args.hessian
+    prices = _a.month_prices(args, _a.SYSTEM, args.days)  # checked before any work
+    if prices is not None:
+        base.update(_a.price_base(args))
+        base["learning.days_per_month"] = prices.days
     try:
         summary = run_study(
             args.seeds, args.months, args.out, seed_start=args.seed_start, base=base,
