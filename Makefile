@@ -20,10 +20,13 @@ $(STAMP): environment-requirements.txt pyproject.toml
 setup: $(STAMP)
 
 ## main job: execute every notebook into reports/ (executed .ipynb + offline HTML + summary.json)
-## REPORT_PROFILE=classroom (or ci) runs the smaller parameter profiles.
+## REPORT_PROFILE=classroom (or ci) runs the smaller parameter profiles. The prose's claims
+## (notebooks/claims.yaml) are checked against the run; the run times go into the table that
+## README.md, notebooks/README.md and notebooks/TEACHING.md share (tools/update_run_times.py).
 REPORT_PROFILE ?= full
 report: $(STAMP)
 	$(BIN)/python -m mpcrl_lite report --out reports --profile $(REPORT_PROFILE)
+	$(BIN)/python tools/update_run_times.py reports/summary.json
 
 ## the whole test suite: lint (ruff), unit tests and notebook tests
 test: $(STAMP)

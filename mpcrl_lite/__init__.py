@@ -7,8 +7,9 @@ Configuration and parameters
     ``SystemConfig``, ``MPCConfig``, ``LearningConfig``: every number and choice (Table I and
     the open ones); ``Theta``: the MPC parameters, named parts per battery.
 The system (:mod:`mpcrl_lite.system`)
-    ``Prices``: a month of buying and selling prices; ``load_nordpool_csv``: a Nord Pool
-    export as prices; ``until_midnight``: the forecast that stops at midnight (an extension);
+    ``Prices``: a month of buying and selling prices; ``load_prices``: day-ahead prices from the files
+    of Nord Pool, ENTSO-E or Energi Data Service; ``load_nordpool_csv``: Nord Pool's old
+    export; ``until_midnight``: the forecast that stops at midnight (an extension);
     ``step``: one hour of the true batteries (paper eq. 1).
 The MPC (:mod:`mpcrl_lite.mpc`)
     ``MPC``: the paper's MPC (eq. 9) in CasADi; ``make_solver``: a solver back-end for it;
@@ -55,7 +56,8 @@ _HOMES: dict[str, str] = {
     "LearningConfig": "config",
     "Theta": "theta",
     "Prices": "system.prices",
-    "load_nordpool_csv": "system.prices",
+    "load_nordpool_csv": "system.price_files.nordpool_elspot",
+    "load_prices": "system.price_files.load",
     "until_midnight": "system.forecast",
     "step": "system.battery",
     "MPC": "mpc.formulation",
@@ -102,6 +104,7 @@ __all__ = [
     "evaluate_mpc",
     "lagrangian_bound",
     "load_nordpool_csv",
+    "load_prices",
     "lstd_q",
     "make_solver",
     "plot_day",
@@ -152,5 +155,7 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from .studies.sweep.api import run_sweep
     from .system.battery import step
     from .system.forecast import until_midnight
-    from .system.prices import Prices, load_nordpool_csv
+    from .system.price_files.load import load_prices
+    from .system.price_files.nordpool_elspot import load_nordpool_csv
+    from .system.prices import Prices
     from .theta import Theta

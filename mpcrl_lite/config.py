@@ -145,9 +145,12 @@ from ._util.validate import (  # noqa: F401
 __all__ = [
     "BACKENDS",
     "EARLIER_BEHAVIOUR",
+    "EUR_NOK_RATE",
     "EXPLORATION_BOUNDS",
     "FORECASTS",
+    "HESSIANS",
     "HOURS_PER_DAY",
+    "LEARNERS",
     "OPTIMIZERS",
     "PAPER_EXPLORATION_STD",
     "PAPER_STEP_SIZE",
@@ -162,6 +165,7 @@ __all__ = [
     "CoordinationConfig",
     "LearningConfig",
     "MPCConfig",
+    "PriceFileConfig",
     "SystemConfig",
     "check_grid_bound",
     "check_ranges",
@@ -169,6 +173,14 @@ __all__ = [
 
 #: Unit of every price in the project (see the module docstring for why).
 PRICE_UNIT = "NOK/MWh"
+
+#: NOK per EUR used to convert a price file in EUR/MWh to :data:`PRICE_UNIT` when no rate is
+#: given (``--eur-rate``, ``load_prices(..., eur_rate=)``): the European Central Bank's euro
+#: reference rate for the Norwegian krone, monthly average of November 2025 (11.7402; ECB
+#: statistical data warehouse, series EXR.M.NOK.EUR.SP00.A). The monthly averages of 2025
+#: ranged from about 11.5 to 11.9, so a run on another month should pass its own rate; the
+#: rate used is recorded in the run's History and summary.json.
+EUR_NOK_RATE = 11.7402
 
 #: Clock hours in one day of price data; an episode (``SystemConfig.hours_per_day``) lasts at
 #: most this long, since the price matrices (:class:`mpcrl_lite.system.prices.Prices`) are indexed by
@@ -352,7 +364,11 @@ class SystemConfig(_Config):
     sample_time_h: float = 1.0
     """Sampling time in hours (informational: the dynamics are written per sample)."""
     sell_ratio: float = 0.5
-    """Selling price = ``sell_ratio`` x buying price (the paper uses 0.5)."""
+    """Selling price = ``sell_ratio`` x buying price (the paper uses 0.5). For a negative
+    buying price (common in 2025, never in the paper's month) ``sell_ratio`` x price would be
+    *above* the buying price, so that a battery could earn by buying and selling at once; the
+    spread is kept instead: ``phi_s = phi_b - (1 - sell_ratio) |phi_b|``, i.e.
+    ``(2 - sell_ratio) phi_b`` for ``phi_b < 0`` (``mpcrl_lite.system.prices.sell_prices``)."""
     price_scale: float = 1.0
     """Multiplier on the price series (1.0 keeps NOK/MWh; a classroom knob)."""
     soc0: float | tuple[float, ...] = 0.6
@@ -531,6 +547,13 @@ class MPCConfig(_Config):
 
 #: Names of the DPG update rules (:data:`mpcrl_lite.learning.update_rules.UPDATE_RULES`).
 OPTIMIZERS = ("sgd", "adam", "natural")
+#: The learners of the centralized MPC (:attr:`LearningConfig.learner`): ``'dpg'``, the
+#: paper's deterministic policy gradient with the LSTD compatible critic, and ``'q'``, LSTD
+#: Q-learning with the MPC itself as the action-value function (:mod:`mpcrl_lite.learning.qlearning`).
+LEARNERS = ("dpg", "q")
+#: The curvature of a Q-learning update (:attr:`LearningConfig.hessian`): ``'none'`` (a
+#: first-order step with ``optimizer``), ``'approx'`` (Gauss-Newton) or ``'full'``.
+HESSIANS = ("none", "approx", "full")
 #: Feature sets of the critic's value baseline by name, with a short description
 #: (built by :func:`mpcrl_lite.learning.lstd.value_features`).
 VALUE_FEATURE_SETS: dict[str, str] = {
@@ -667,6 +690,29 @@ class LearningConfig(_Config):
     ``History.J_eval`` is the mean of the draws' J and ``J_eval_ci_low``/``_high`` its 95 %
     confidence interval over the draws. Files without the field were written with 1."""
 
+    learner: str = "dpg"
+    """Which learner updates theta (:data:`LEARNERS`): ``'dpg'``, the paper's deterministic
+    policy gradient with the LSTD compatible critic, or ``'q'``, LSTD Q-learning with the
+    MPC as the action-value function (the TD errors of the month's transitions fitted by the
+    MPC's own Q; :mod:`mpcrl_lite.learning.qlearning`). The Q learner also learns the level
+    of Q (``T3``, one value shared by the batteries; ``phi3`` stays), whatever
+    ``learn_constants`` says, and does not support
+    ``optimizer='natural'`` or ``max_policy_change`` (both need the policy's sensitivity)."""
+    hessian: str = "approx"
+    """``learner='q'`` only (:data:`HESSIANS`): ``'none'`` is a first-order step with
+    ``optimizer`` on the TD gradient; ``'approx'`` (the default) and ``'full'`` are Newton
+    steps ``theta - step_size H^-1 g`` with the Gauss-Newton ``H = mean(dQ dQ')`` or the full
+    Hessian of the TD loss ``mean(dQ dQ' - delta d2Q)``, made positive definite by adding a
+    multiple of the identity (Nocedal & Wright, Algorithm 3.3), of the length
+    ``newton_step`` (``step_size`` is the first-order step's). A ``to_dict`` of a DPG
+    config leaves the Q-learning fields out (files of DPG runs read as before they existed)."""
+    newton_step: float = 0.3
+    """``learner='q'`` with ``hessian`` other than ``'none'``: the fraction of the
+    (regularised) Newton step taken per month. Measured on the paper's system over 20 months
+    (seed 0): 0.1 learns steadily but slowly, 0.3 reaches the DPG's level of J_eval, 1.0
+    (the full step) throws theta where the MPC no longer solves; the ``'full'`` Hessian is
+    less stable than Gauss-Newton at the same step."""
+
     def __post_init__(self) -> None:
         set_ = self._set
         set_("step_size", check_real("step_size", self.step_size, 0.0))
@@ -703,7 +749,26 @@ class LearningConfig(_Config):
         set_("eval_every", check_int("eval_every", self.eval_every, 0))
         set_("eval_seed", check_int("eval_seed", self.eval_seed, 0))
         set_("eval_draws", check_int("eval_draws", self.eval_draws, 1))
+        set_("learner", check_choice("learner", self.learner, LEARNERS))
+        set_("hessian", check_choice("hessian", self.hessian, HESSIANS))
+        set_("newton_step", check_real("newton_step", self.newton_step, 0.0, low_open=True))
+        if self.learner == "q" and (self.optimizer == "natural" or self.max_policy_change):
+            raise ValueError(
+                f"learner='q' with optimizer={self.optimizer!r}, max_policy_change="
+                f"{self.max_policy_change!r}: both need the policy sensitivity, which "
+                "Q-learning does not compute; expected optimizer 'adam' or 'sgd' and no "
+                "max_policy_change")
         check_ranges("learning", self)
+
+    def to_dict(self) -> dict[str, Any]:
+        """As for every config; a DPG config (``learner='dpg'``, the Q-learning fields at
+        their defaults) leaves out ``learner``, ``hessian`` and ``newton_step``, so its files
+        are those of before the fields."""
+        out = super().to_dict()
+        if self.learner == "dpg" and self.hessian == "approx" and self.newton_step == 0.3:
+            for key in ("learner", "hessian", "newton_step"):
+                out.pop(key)
+        return out
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> LearningConfig:
@@ -754,3 +819,42 @@ class CoordinationConfig(_Config):
         set_("tol", check_real("tol", self.tol, 0.0, 1e-2, low_open=True))
         set_("max_iter", check_int("max_iter", self.max_iter, 1))
         set_("local_grid_factor", check_real("local_grid_factor", self.local_grid_factor, 10.0))
+
+
+@dataclass(frozen=True)
+class PriceFileConfig(_Config):
+    """A month of prices from a file, for runs set up by configuration (the sweep's and the
+    study's ``prices`` section; the commands' ``--prices/--area/--month/--currency/--eur-rate/
+    --price-format``). ``file=''`` (the default) is the shipped month.
+
+    Read by :meth:`mpcrl_lite.system.prices.Prices.from_file` through
+    :func:`mpcrl_lite.system.price_files.load.load_prices`.
+    """
+
+    file: str = ""
+    """The price file (any format ``load_prices`` reads); empty: the shipped month."""
+    area: str = ""
+    """Its bidding zone by any of its names (``'NO3'``, ``'Tr.heim'``, ``'BZN|NO3'``); empty:
+    the format's default (Tr.heim for Nord Pool's old export)."""
+    month: str = ""
+    """The month to use, ``'YYYY-MM'`` (required with ``file``)."""
+    currency: str = "NOK"
+    """The model's currency: NOK (:data:`PRICE_UNIT`, a EUR file converted at ``eur_rate``)."""
+    eur_rate: float = EUR_NOK_RATE
+    """NOK per EUR for a EUR file (default :data:`EUR_NOK_RATE`, its source stated there)."""
+    format: str = ""
+    """A format to force (``mpcrl_lite.system.price_files.detect.FORMATS``); empty: from the
+    file's header."""
+
+    def __post_init__(self) -> None:
+        set_ = self._set
+        for name in ("file", "area", "month", "currency", "format"):
+            value = getattr(self, name)
+            if not isinstance(value, str):
+                raise TypeError(f"{name}={value!r}: expected a string")
+        if self.currency != "NOK":
+            raise ValueError(f"currency={self.currency!r}: expected 'NOK' (the penalties are in "
+                             f"{PRICE_UNIT}; a EUR file is converted at eur_rate)")
+        set_("eur_rate", check_real("eur_rate", self.eur_rate, 0.0, low_open=True))
+        if self.file and not self.month:
+            raise ValueError(f"month='': expected 'YYYY-MM' with file={self.file!r}")

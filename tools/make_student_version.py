@@ -1,6 +1,8 @@
 #!/usr/bin/env python
 """Write the student version of the notebooks: every cell tagged ``solution`` is replaced by an
-empty exercise cell, and all outputs are cleared.
+empty exercise cell, all outputs are cleared, and the launch line opens the student copy
+(Binder at ``student/``; :func:`mpcrl_lite.publish.launch.student_launch_line`), not the
+teacher's notebook with its solutions.
 
 Usage::
 
@@ -22,13 +24,23 @@ from pathlib import Path
 import nbformat
 
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from mpcrl_lite.publish.launch import LAUNCH_MARKER, student_launch_line
+
 NOTEBOOK_DIR = ROOT / "notebooks"
 PLACEHOLDER = "# Your solution here.\n"
 
 
-def student_version(nb: nbformat.NotebookNode) -> nbformat.NotebookNode:
-    """A copy of ``nb`` without solutions and outputs."""
+def student_version(nb: nbformat.NotebookNode, stem: str | None = None
+                    ) -> nbformat.NotebookNode:
+    """A copy of ``nb`` without solutions and outputs; with ``stem``, its launch line (first
+    cell) is the student one."""
     out = nbformat.from_dict(nb)
+    if stem is not None and out.cells and out.cells[0].cell_type == "markdown":
+        paragraphs = out.cells[0].source.split("\n\n")
+        out.cells[0].source = "\n\n".join(
+            student_launch_line(stem) if p.startswith(LAUNCH_MARKER) else p for p in paragraphs)
     cells = []
     for cell in out.cells:
         tags = list(cell.get("metadata", {}).get("tags", []))
@@ -62,7 +74,7 @@ def main(argv: list[str] | None = None) -> list[Path]:
     args.out.mkdir(parents=True, exist_ok=True)
     written = []
     for path in paths:
-        nb = student_version(nbformat.read(path, as_version=4))
+        nb = student_version(nbformat.read(path, as_version=4), path.stem)
         nbformat.validate(nb)
         target = args.out / path.name
         nbformat.write(nb, target)

@@ -90,6 +90,8 @@ class Scenario:
             "days": self.days,
             "seed": self.seed,
             "prices": self.prices.source,
+            **({"prices_origin": dict(self.prices.origin)}
+               if getattr(self.prices, "origin", None) else {}),
             "noise_shape": list(self.noise.shape),
             "noise_mean": float(self.noise.mean()),
             "noise_std": float(self.noise.std()),

@@ -8,7 +8,8 @@ The controls made here avoid both:
   ``<input type="range">`` (through :mod:`anywidget`) with a visible ``<label for=...>``, an
   ``aria-label``, an ``aria-valuetext`` that reads the shown value, and a tooltip. It sends
   its value when released (or per key press), never while dragged, unless
-  ``continuous_update`` is set; values increase from left to right;
+  ``continuous_update`` is set; values increase from left to right. The keys that move it
+  (arrows, Home, End, Page Up/Down) stay with it: the notebook's shortcuts never see them;
 * drop-downs and number boxes are the ipywidgets ones, whose views tie the label to the
   input (``<label for=...>``), with their tooltip always set.
 
@@ -56,6 +57,16 @@ function render({ model, el }) {
   readout.htmlFor = id;
   readout.setAttribute("aria-hidden", "true");  // the slider itself reads its value
   el.classList.add("mpcrl-step-slider");
+  // The keys that move a range input belong to it, not to the notebook around it. JupyterLab
+  // and Notebook 7 (Lumino) match no shortcut on a key whose target is marked so -- Notebook 7
+  // reads keys in the capture phase, before the input -- and the moving keys stop here for
+  // hosts that listen to the bubbling key (the arrows select cells in command mode).
+  input.setAttribute("data-lm-suppress-shortcuts", "true");
+  const MOVING = new Set(["ArrowLeft", "ArrowRight", "ArrowUp", "ArrowDown", "Home", "End",
+                          "PageUp", "PageDown"]);
+  input.addEventListener("keydown", (event) => {
+    if (MOVING.has(event.key)) event.stopPropagation();
+  });
   el.append(label, input, readout);
 
   const index = () => {

@@ -50,7 +50,7 @@ from ..mpc.solution import SolverBackend
 from ..sim.closed_loop import Policy, rollout, run_month
 from ..sim.record import MonthRecord, Record
 from ..system.battery import project_action
-from ..system.prices import Prices
+from ..system.prices import Prices, sell_prices
 from ..theta import Theta
 
 __all__ = [
@@ -414,7 +414,7 @@ def policy_curve(
             socs[:, 0] = x
         else:
             buys[:, 0] = x
-            sells[:, 0] = month.sell_ratio * x
+            sells[:, 0] = sell_prices(x, month.sell_ratio)
         sol = solver.solve_batch(socs, buys, sells, theta)
         actions, success = np.array(sol.action), np.array(sol.success)
     actions = np.where(success[:, None], actions, np.nan)

@@ -43,6 +43,7 @@ from __future__ import annotations
 import html
 import io
 import math
+import re
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -53,6 +54,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from ..config import HOURS_PER_DAY, PRICE_UNIT, VALUE_FEATURE_SETS, MPCConfig, SystemConfig
+from ..figures.describe import describe_figure
 from ..figures.plots import (
     plot_day,
     plot_policy_curve,
@@ -84,6 +86,7 @@ from .explorers import (
     simulate_day,
     value_fit,
 )
+from .picture import Picture
 
 # The data helpers and figure-first drawing functions lived here before; their names stay.
 __all__ = ["DayExplorer", "Explorer", "LSTDExplorer", "PriceDayPicker", "RuleExplorer", "TauExplorer", "day_explorer", "lstd_explorer", "price_day_picker", "rule_explorer", "tau_explorer"]
@@ -124,7 +127,7 @@ class Explorer(widgets.VBox):
         # one canvas (and renderer) for all updates: its text metrics stay cached
         FigureCanvasAgg(self.figure)
         self._layout: tuple[tuple, list] | None = None
-        self.image = widgets.Image(
+        self.image = Picture(
             format="png", width=str(round(figsize[0] * self.css_px_per_inch)),
             layout=widgets.Layout(max_width="100%", height="auto", align_self="flex-start"),
         )
@@ -162,6 +165,12 @@ class Explorer(widgets.VBox):
         """One line of HTML about the latest result."""
         return ""
 
+    def alt_text(self) -> str:
+        """What the figure shows, in words (:func:`~mpcrl_lite.figures.describe.describe_figure`:
+        title, panels, series, data ranges), then the status line's numbers."""
+        summary = html.unescape(re.sub(r"<[^>]+>", "", self.describe())).strip()
+        return f"{describe_figure(self.figure)} {summary}".strip()
+
     def _png(self) -> bytes:
         """The figure as PNG. The constrained layout (about half the drawing time) is
         computed again only when the texts that set the margins have changed; otherwise the
@@ -196,6 +205,7 @@ class Explorer(widgets.VBox):
         self.draw()
         if self.render:
             self.image.value = self._png()
+            self.image.alt = self.alt_text()
         self.updates += 1
         self.last_update_s = time.perf_counter() - t0
         self.status.value = (f"<span role='status'>{self.describe()} "

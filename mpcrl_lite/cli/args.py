@@ -15,14 +15,18 @@ import numpy as np
 
 from ..config import (
     BACKENDS,
+    EUR_NOK_RATE,
     FORECASTS,
     PAPER_TAU,
+    PRICE_UNIT,
     LearningConfig,
     MPCConfig,
     SystemConfig,
     check_grid_bound,
 )
 from ..learning import rundir
+from ..system.price_files.currency import CURRENCIES
+from ..system.price_files.detect import FORMATS
 
 
 class Parser(argparse.ArgumentParser):
@@ -156,12 +160,25 @@ def add_forecast(p: argparse.ArgumentParser, help_text: str | None = None) -> No
 
 
 def add_price_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--prices", type=Path, default=None, metavar="EXPORT.csv",
-                   help="a Nord Pool price export (default: the shipped November 2020 month)")
+    """``--prices FILE --area AREA --month YYYY-MM [--currency] [--eur-rate] [--price-format]``:
+    the one set of price options (read by :func:`month_prices`)."""
+    p.add_argument("--prices", type=Path, default=None, metavar="FILE",
+                   help="day-ahead prices from a file of Nord Pool (data portal or old export), "
+                        "ENTSO-E or Energi Data Service, the format read from its header "
+                        "(default: the shipped November 2020 month)")
     p.add_argument("--area", default=None,
-                   help="area column of --prices (default Tr.heim)")
+                   help="bidding zone of --prices by any of its names (NO3 = Tr.heim = Molde = "
+                        "BZN|NO3, DK2, ...; default Tr.heim for Nord Pool's old export)")
     p.add_argument("--month", default=None, metavar="YYYY-MM",
                    help="month of --prices to use (every hour of every day must have a price)")
+    p.add_argument("--currency", choices=CURRENCIES, default=None,
+                   help="currency of the model's prices (default NOK, the unit of the "
+                        "penalties: a EUR file is converted at --eur-rate)")
+    p.add_argument("--eur-rate", type=finite_float, default=None, metavar="NOK_PER_EUR",
+                   help=f"NOK per EUR for a EUR file (default {EUR_NOK_RATE:g}: the ECB "
+                        "reference rate, November 2025 average)")
+    p.add_argument("--price-format", choices=FORMATS[:-1], default=None,
+                   help="force the format of --prices instead of reading it from the header")
 
 
 def add_force(p: argparse.ArgumentParser) -> None:
@@ -224,23 +241,48 @@ def write_bytes(path: Path, data: bytes) -> None:
 
 
 def month_prices(args: argparse.Namespace, system: SystemConfig, days: int | None):
-    """The month of ``--prices/--area/--month`` (None without ``--prices``), checked."""
+    """The month of ``--prices/--area/--month`` (None without ``--prices``), checked; the one
+    place every command reads its price options."""
     from . import inputs as cli_inputs
 
-    if args.prices is None:
-        given = [f for f, v in (("--area", args.area), ("--month", args.month)) if v is not None]
+    given = [f for f, v in (("--area", getattr(args, "area", None)),
+                            ("--month", getattr(args, "month", None)),
+                            ("--currency", getattr(args, "currency", None)),
+                            ("--eur-rate", getattr(args, "eur_rate", None)),
+                            ("--price-format", getattr(args, "price_format", None)))
+             if v is not None]
+    if getattr(args, "prices", None) is None:
         if given:
             raise UsageError(f"{' and '.join(given)} given without --prices; expected "
-                             "--prices EXPORT.csv with them")
+                             "--prices FILE with them")
         return None
     if args.month is None:
         raise UsageError(f"--prices {args.prices} given without --month; expected --month "
-                         "YYYY-MM (the month of the export to use)")
+                         "YYYY-MM (the month of the file to use)")
+    if args.eur_rate is not None and args.eur_rate <= 0:
+        raise UsageError(f"--eur-rate {args.eur_rate:g}: expected a positive number of NOK "
+                         "per EUR")
+    currency = args.currency or "NOK"
+    if currency != "NOK":
+        raise UsageError(f"--currency {currency}: the model's penalties are in NOK "
+                         f"({PRICE_UNIT}); expected NOK (a EUR file is converted at --eur-rate)")
     try:
-        area = args.area if args.area is not None else "Tr.heim"
-        return cli_inputs.month_prices(args.prices, area, args.month, system, days)
+        return cli_inputs.month_prices(args.prices, args.area, args.month, system, days,
+                                       currency=currency, eur_rate=args.eur_rate,
+                                       fmt=args.price_format)
     except ValueError as err:
         raise UsageError(str(err)) from None
+
+
+def price_base(args: argparse.Namespace) -> dict[str, Any]:
+    """The price options as sweep base-config keys (``prices.file``, ``prices.area``, ...),
+    for the commands that run through a sweep (``study``); empty without ``--prices``."""
+    keys = {"file": "prices", "area": "area", "month": "month", "currency": "currency",
+            "eur_rate": "eur_rate", "format": "price_format"}
+    if getattr(args, "prices", None) is None:
+        return {}
+    return {f"prices.{k}": (str(Path(getattr(args, a)).resolve()) if k == "file" else getattr(args, a))
+            for k, a in keys.items() if getattr(args, a, None) is not None}
 
 
 def budget(what: str, n: int, days: int, runs: int = 1, sensitivities: bool = False,

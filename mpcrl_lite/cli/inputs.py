@@ -1,4 +1,4 @@
-"""What the command line checks before any work: prices from a Nord Pool export, the size of
+"""What the command line checks before any work: prices from a price file, the size of
 the work against the machine, and the output directory.
 
 Every check raises a ``ValueError`` whose message is one line naming the bad value and what
@@ -12,9 +12,9 @@ from here) refuse work beyond the machine's memory or the time limit.
 
 from __future__ import annotations
 
-import calendar
 import os
 import re
+import warnings
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -28,10 +28,13 @@ from .._util.budget import (  # noqa: F401 (importable from here)
     check_budget,
     estimate,
 )
-from ..config import SystemConfig
+from ..config import PRICE_UNIT, SystemConfig
 from ..learning.rundir import RunDirError, check_output_dir, inspect
 from ..studies.sweep.grid import load_yaml
-from ..system.prices import Prices, load_nordpool_csv, nordpool_areas
+from ..system.price_files.load import load_prices
+from ..system.price_files.month import parse_month
+from ..system.price_files.series import PriceFileWarning
+from ..system.prices import Prices
 
 # check_budget, estimate, Budget, available_memory and TIME_LIMIT_S/_ENV live in
 # mpcrl_lite._util.budget and stay importable from here.
@@ -50,56 +53,68 @@ def _one_line(text: str) -> str:
 
 
 # -- prices -------------------------------------------------------------------------------
-def month_prices(path: str | os.PathLike, area: str, month: str, system: SystemConfig,
-                 days: int | None = None) -> Prices:
-    """The prices of one calendar ``month`` (``'YYYY-MM'``) of ``area`` in a Nord Pool
-    export, as the buying price matrix for ``system`` (its ``sell_ratio``, scaled by its
-    ``price_scale`` like :meth:`Prices.default`).
+def month_prices(path: str | os.PathLike, area: str | None, month: str, system: SystemConfig,
+                 days: int | None = None, currency: str = "NOK", eur_rate: float | None = None,
+                 fmt: str | None = None) -> Prices:
+    """The prices of one calendar ``month`` (``'YYYY-MM'``) of ``area`` in a price file of
+    any format :func:`~mpcrl_lite.system.price_files.load.load_prices` reads, as the buying
+    price matrix for ``system`` (its ``sell_ratio``, scaled by its ``price_scale`` like
+    :meth:`Prices.default`).
 
     Parameters
     ----------
     path, area
-        The export and the area column (see :func:`~mpcrl_lite.system.prices.load_nordpool_csv`).
+        The file and the area (any name of :mod:`~mpcrl_lite.system.price_files.areas`;
+        None: the format's default, see ``load_prices``).
     month
         ``'YYYY-MM'``; every hour of every day of the month must have a price.
     system
         Supplies ``sell_ratio`` and ``price_scale``.
     days
         The first ``days`` days of the month only (default all of them).
+    currency, eur_rate, fmt
+        The currency of the model (NOK: a EUR file is converted at ``eur_rate``, default
+        :data:`~mpcrl_lite.config.EUR_NOK_RATE`), and a format to force.
 
     Returns
     -------
     Prices
         Shape ``(days, 24)``; clock-change days mapped onto 24 hours as
-        :func:`~mpcrl_lite.system.prices.daily_matrix` describes.
+        :func:`~mpcrl_lite.system.prices.daily_matrix` describes; ``origin`` records the file.
 
     Raises
     ------
     ValueError
         One line naming the file, area, month or hour that is wrong.
     """
-    found = _MONTH.match(str(month))
-    if not found or not 1 <= int(found.group(2)) <= 12:
-        raise ValueError(f"--month {month!r}: expected a calendar month as YYYY-MM, e.g. 2020-11")
-    year, number = int(found.group(1)), int(found.group(2))
-    length = calendar.monthrange(year, number)[1]
+    try:
+        length = parse_month(month)[1]
+    except ValueError:
+        raise ValueError(f"--month {month!r}: expected a calendar month as YYYY-MM, e.g. "
+                         "2025-11") from None
     if days is not None and days > length:
         raise ValueError(f"--days {days}: {month} has {length} days; expected at most {length}")
     if not Path(path).is_file():
-        raise ValueError(f"--prices {path}: no such file; expected a Nord Pool price export (CSV)")
+        raise ValueError(f"--prices {path}: no such file; expected a price file (CSV, see "
+                         "README 'Prices from your own files')")
     try:
-        areas = nordpool_areas(path)
+        with warnings.catch_warnings():  # hours without a price: refused below if in the month
+            warnings.simplefilter("ignore", PriceFileWarning)
+            series = load_prices(path, area, currency=currency, format=fmt, eur_rate=eur_rate)
     except (OSError, ValueError, TypeError) as err:
-        raise ValueError(_one_line(f"--prices {path}: {err}")) from None
-    if area not in areas:
-        raise ValueError(f"--area {area!r} is not in {path}; expected one of {areas}")
+        text = str(err)
+        if text.startswith("area "):
+            raise ValueError(_one_line(f"--{text}")) from None
+        text = text.removeprefix(f"{path}: ")
+        raise ValueError(_one_line(f"--prices {path}: {text}")) from None
     try:
-        series = load_nordpool_csv(path, area)
-        prices = Prices.from_series(series, f"{month}-01", length, sell_ratio=system.sell_ratio)
+        if series.attrs.get("unit") != PRICE_UNIT:
+            raise ValueError(f"prices in {series.attrs.get('unit')}; expected {PRICE_UNIT} "
+                             "(--currency NOK)")
+        prices = Prices.from_month(series, month, system)
     except (OSError, ValueError, TypeError) as err:
         raise ValueError(_one_line(f"--prices {path} --area {area} --month {month}: {err}")) \
             from None
-    prices = prices.scaled(system.price_scale) if system.price_scale != 1.0 else prices
     return prices.take(days) if days is not None and days < length else prices
 
 

@@ -254,6 +254,7 @@ class DecentralizedExperiment(Learner):
                          for i in range(self.system.n)]
         self.rng = np.random.default_rng(self.learning.seed)
         self.history = History(self.system, self.mpc_config, self.learning, backend=self.backend)
+        self.history.prices_origin = dict(getattr(self.prices, "origin", {}) or {})
 
     def _local(self, battery: int) -> SystemConfig:
         """Battery ``battery``'s own local system (its alpha scales its updater's steps)."""

@@ -40,6 +40,7 @@ from .style import (
     CURRENCY,
     FIRST_COLOR,
     LAST_COLOR,
+    MIN_POINTS_FOR_A_LINE,
     agent_color,
     axes_or_new,
     day_axis,
@@ -228,14 +229,15 @@ def fig2_performance(
     the draws' J), it is drawn as a second line with square markers; it is not disturbed by
     each month's own noise and shows the trend. Where the history holds its 95 % confidence
     interval over the K draws (``J_eval_ci_low``, ``J_eval_ci_high``; K >= 2), the interval is
-    drawn as a band around it.
+    drawn as a band around it. With fewer than :data:`MIN_POINTS_FOR_A_LINE` evaluations they
+    are drawn as points with error bars, without a line between them.
 
     Parameters
     ----------
     history : History
     rolling : int or None, default 10
-        Also draw the mean of the last ``rolling`` months (only when there are more months
-        than that); ``None`` or 1 draws none.
+        Also draw the mean of ``rolling`` consecutive months, centred on them (only when
+        there are more months than that); ``None`` or 1 draws none.
     ax : Axes, optional
 
     Returns
@@ -255,9 +257,12 @@ def fig2_performance(
     J = np.asarray(history.J, dtype=float)
     ax.plot(x, J, color="0.35", lw=1.2, marker="o", ms=3, gid="J", label="J per month")
     if rolling is not None and 1 < rolling < months:
-        mean = np.convolve(J, np.ones(rolling) / rolling, mode="valid")
-        ax.plot(x[rolling - 1:], mean, color="black", lw=2.2, gid="J_rolling",
-                label=f"mean of last {rolling} months")
+        # centred: each mean is drawn at the middle of its months, so it neither lags behind
+        # a falling J nor sits above it
+        window = np.ones(rolling) / rolling
+        mean = np.convolve(J, window, mode="valid")
+        ax.plot(np.convolve(x, window, mode="valid"), mean, color="black", lw=2.2,
+                gid="J_rolling", label=f"mean of {rolling} months (centred)")
     if history.J_eval:
         if len(history.eval_month) != len(history.J_eval):
             raise ValueError(
@@ -268,12 +273,22 @@ def fig2_performance(
         draws = history.learning.eval_draws
         low = np.asarray(getattr(history, "J_eval_ci_low", []), dtype=float)
         high = np.asarray(getattr(history, "J_eval_ci_high", []), dtype=float)
+        J_eval = np.asarray(history.J_eval, dtype=float)
+        # with fewer than MIN_POINTS_FOR_A_LINE evaluations a line (and a band) between them
+        # would draw a trend nobody measured: points with error bars instead
+        few = x_eval.size < MIN_POINTS_FOR_A_LINE
         if low.shape == high.shape == x_eval.shape and np.isfinite(low).any():
-            ax.fill_between(x_eval, low, high, color="0.6", alpha=0.35, lw=0, zorder=1,
-                            gid="J_eval_ci", label=f"95 % CI over the {draws} draws")
+            if few:
+                bars = ax.errorbar(x_eval, J_eval, yerr=[J_eval - low, high - J_eval], fmt="none",
+                                   ecolor="0.35", capsize=4, lw=1.4, zorder=2,
+                                   label=f"95 % CI over the {draws} draws")
+                bars.lines[2][0].set_gid("J_eval_ci")
+            else:
+                ax.fill_between(x_eval, low, high, color="0.6", alpha=0.35, lw=0, zorder=1,
+                                gid="J_eval_ci", label=f"95 % CI over the {draws} draws")
         label = ("evaluation (fixed draw)" if draws == 1
                  else f"evaluation (mean of {draws} fixed draws)")
-        ax.plot(x_eval, np.asarray(history.J_eval, dtype=float), color="black", ls="--",
+        ax.plot(x_eval, J_eval, color="black", ls="none" if few else "--",
                 lw=1.4, marker="s", ms=4.5, mfc="white", mec="black", mew=1.0, zorder=2.5,
                 gid="J_eval", label=label)
     _first_and_last(ax, x, J)
@@ -550,6 +565,12 @@ def fig7_theta(history: History, part: str = "delta", ax: Axes | None = None) ->
     _agent_series(ax, x, values, f"theta_{part}", tex, lw=1.6)
     _month_axis(ax, months, f"${tex}$ ({_PART_UNIT[part]})", f"Convergence of ${tex}^i$",
                 legend_size=9)
+    if values.shape[1] > 1 and np.allclose(values, values[:, :1], rtol=1e-12, atol=0.0):
+        # tied agents (LearningConfig.tie_agents): the lines coincide, the last one drawn hides
+        # the others; say so where the reader looks for them
+        ax.text(0.02, 0.04, f"all {values.shape[1]} agents share one value (tie_agents): "
+                "their lines coincide", transform=ax.transAxes, fontsize=9, gid="tied_note",
+                bbox={"facecolor": "white", "edgecolor": "0.7", "alpha": 0.9})
     ax.ticklabel_format(axis="y", style="sci", scilimits=(-3, 4), useMathText=True)
     return fig
 

@@ -46,7 +46,7 @@ from .._util.validate import check_int
 from ..config import HOURS_PER_DAY, PRICE_UNIT, SystemConfig
 from ..mpc.formulation import Plan
 from ..sim.record import Record
-from ..system.prices import Prices
+from ..system.prices import Prices, sell_prices
 from .style import (
     FIRST_COLOR,
     LAST_COLOR,
@@ -138,7 +138,7 @@ def plot_day(
         buy, sell, unit = prices.buy[day], prices.sell[day], prices.unit
     else:
         buy = record.buy[:, day]
-        sell, unit = system.sell_ratio * buy, PRICE_UNIT
+        sell, unit = sell_prices(buy, system.sell_ratio), PRICE_UNIT
     fig, (ax_soc, ax_a, ax_p, ax_price) = axes_or_new(
         axes, (4, 1), (8.5, 9.5), "axes", fig=fig, sharex=True,
         gridspec_kw={"height_ratios": [1.25, 1.25, 0.9, 0.9]},
@@ -222,7 +222,7 @@ def plot_price_window(
     t = np.arange(2 * HOURS_PER_DAY + 1)
     ax.plot(t, steps(two), drawstyle="steps-post", color="0.15", lw=1.6, gid="buy",
             label=r"buy $\phi_b$")
-    ax.plot(t, steps(prices.sell_ratio * two), drawstyle="steps-post", color="0.15", lw=1.1,
+    ax.plot(t, steps(sell_prices(two, prices.sell_ratio)), drawstyle="steps-post", color="0.15", lw=1.1,
             ls="--", gid="sell", label=r"sell $\phi_s$")
     ax.axvspan(hour, hour + N, color=LAST_COLOR, alpha=0.15, lw=0, gid="window",
                label=f"MPC window\nat {hour:02d}:00, N = {N} h")
@@ -272,12 +272,13 @@ def plot_plan(
         ax_a.plot(j, steps(plan.b[:, i] - plan.s[:, i]), drawstyle="steps-post",
                   color=agent_color(i), lw=1.5 + 0.8 * (n - 1 - i), gid=f"net_power[{i + 1}]")
     ax_a.set_ylabel("planned b − s (MW)")
-    p_bar_line(ax_p, system.P_bar)
+    # the sold sum often sits exactly at P_bar: wide lines under thin dashes show both
+    p_bar_line(ax_p, system.P_bar, lw=1.0)
     sum_b, sum_s = plan.b.sum(axis=1), plan.s.sum(axis=1)
-    ax_p.plot(j, steps(sum_b), drawstyle="steps-post", color=FIRST_COLOR, lw=1.5, gid="sum_b",
-              label=r"$\sum_i b^i_j$ (bought)")
-    ax_p.plot(j, steps(sum_s), drawstyle="steps-post", color=LAST_COLOR, lw=1.5, gid="sum_s",
-              label=r"$\sum_i s^i_j$ (sold)")
+    ax_p.plot(j, steps(sum_b), drawstyle="steps-post", color=FIRST_COLOR, lw=3.0, gid="sum_b",
+              alpha=0.85, label=r"$\sum_i b^i_j$ (bought)")
+    ax_p.plot(j, steps(sum_s), drawstyle="steps-post", color=LAST_COLOR, lw=3.0, gid="sum_s",
+              alpha=0.85, label=r"$\sum_i s^i_j$ (sold)")
     headroom(ax_p, system.P_bar, sum_b.max(), sum_s.max())
     ax_p.set_ylabel("grid (MW)")
     legend_beside(ax_p)

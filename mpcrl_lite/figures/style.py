@@ -51,6 +51,7 @@ __all__ = [
     "CURRENCY",
     "FIRST_COLOR",
     "LAST_COLOR",
+    "MIN_POINTS_FOR_A_LINE",
     "agent_color",
     "axes_or_new",
     "day_axis",
@@ -82,6 +83,9 @@ REF_GREY = "0.45"
 ZONE_GREY = "0.92"
 #: Days drawn when a figure is not told which.
 DEFAULT_DAYS = 5
+#: A series with fewer points than this is drawn as points, without a line between them: a
+#: line through two evaluations draws a trend nobody measured.
+MIN_POINTS_FOR_A_LINE = 3
 #: Fraction of the axes height kept free above the highest line of a limited quantity.
 HEADROOM = 0.25
 
@@ -169,10 +173,11 @@ def soc_reference(ax: Axes, system: SystemConfig, label: bool = True) -> None:
     ax.yaxis.set_major_locator(_ticker.MultipleLocator(0.2))
 
 
-def p_bar_line(ax: Axes, P_bar: float) -> None:
+def p_bar_line(ax: Axes, P_bar: float, lw: float = 1.3) -> None:
     """The grid limit ``P_bar``, dashed black, drawn above the data (the grid power often
-    sits exactly at the limit)."""
-    ax.axhline(P_bar, color="black", ls="--", lw=1.3, gid="P_bar", zorder=4,
+    sits exactly at the limit: draw a series that may sit there wider than ``lw``, so that
+    it shows on both sides of the dashes)."""
+    ax.axhline(P_bar, color="black", ls="--", lw=lw, gid="P_bar", zorder=4,
                label=rf"$\bar P$ = {P_bar:g} MW")
 
 

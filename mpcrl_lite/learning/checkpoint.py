@@ -105,11 +105,13 @@ class Checkpointing:
     FORMATS: ClassVar[dict[str, str]] = {
         "mpcrl_lite.Checkpoint/1": "centralized",
         "mpcrl_lite.DecentralizedCheckpoint/1": "decentralized",
+        "mpcrl_lite.QCheckpoint/1": "q-learning",
     }
     #: How each kind is resumed (for the message when the wrong learner is used).
     RESUME_WITH: ClassVar[dict[str, str]] = {
         "centralized": "Experiment, `learn` without --decentralized",
         "decentralized": "DecentralizedExperiment, `learn --decentralized`",
+        "q-learning": "QLearningExperiment, `learn --learner q`",
     }
 
     system: SystemConfig
@@ -135,8 +137,15 @@ class Checkpointing:
 
     def configs_hash(self) -> str:
         """sha256 of the configurations, ``learning.months`` left out (a resume may extend
-        the run)."""
-        return rundir.config_sha256(_plain_configs(self.configs()))
+        the run); computed once per set of configuration objects (they are frozen)."""
+        configs = self.configs()
+        key = tuple((name, id(cfg)) for name, cfg in configs.items())
+        known = getattr(self, "_configs_hash", None)
+        if known is None or known[0] != key:
+            # the objects are kept with their hash, so that their ids stay theirs
+            known = self._configs_hash = (key, rundir.config_sha256(_plain_configs(configs)),
+                                          tuple(configs.values()))
+        return known[1]
 
     def checkpoint_state(self) -> dict[str, Any]:
         """The content of ``checkpoint.json``."""

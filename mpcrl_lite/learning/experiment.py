@@ -98,6 +98,8 @@ class Experiment(Learner):
     KIND = "centralized"
     FORMAT = "mpcrl_lite.Checkpoint/1"
     DESC = "learning"
+    #: The optimizer's class (built with ``from_configs(learning, system)``).
+    UPDATER: Any = DPGUpdater
 
     def __init__(
         self,
@@ -114,9 +116,10 @@ class Experiment(Learner):
         self.callbacks = list(callbacks)
         self.mpc = MPC(self.system)
         self.solver = make_solver(self.mpc, self.mpc_config, self.theta)
-        self.updater = DPGUpdater.from_configs(self.learning, self.system)
+        self.updater = self.UPDATER.from_configs(self.learning, self.system)
         self.rng = np.random.default_rng(self.learning.seed)
         self.history = History(self.system, self.mpc_config, self.learning, backend=self.solver.name)
+        self.history.prices_origin = dict(getattr(self.prices, "origin", {}) or {})
 
     # -- one learning step ----------------------------------------------------------------
     def learning_step(self, record: MonthRecord) -> tuple[np.ndarray, int, dict[str, Any]]:
@@ -225,7 +228,7 @@ class Experiment(Learner):
     def restore_learner_state(self, state: dict[str, Any], where: str) -> Callable[[], None]:
         """Check theta and the optimizer state of a checkpoint; return their application."""
         theta = parse_theta(state["theta"], self.system.n, where)
-        updater = DPGUpdater.from_configs(self.learning, self.system)
+        updater = self.UPDATER.from_configs(self.learning, self.system)
         try:
             updater.load_state_dict(state["updater"])
         except (TypeError, ValueError, KeyError, AttributeError) as err:

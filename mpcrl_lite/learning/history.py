@@ -101,6 +101,10 @@ class History:
     first_month: Record | None = None
     last_month: Record | None = None
     backend: str = ""
+    prices_origin: dict[str, Any] = field(default_factory=dict)
+    """Where the month's prices come from when read from a file (``Prices.origin``: file,
+    format, area, month, currency, conversion rate); empty for the shipped month, and then
+    not written, so such runs' files are as before (and files without it read back empty)."""
 
     SERIES = (
         "J", "J_per_agent", "grad_norm", "theta", "hours_soc_below_0_1",
@@ -225,6 +229,7 @@ class History:
             "wall_time_s": self.wall_time_s,
             "backend": self.backend,
             **{k: getattr(self, k) for k in self.EVAL_SERIES + self.EVAL_CI_SERIES},
+            **({"prices_origin": dict(self.prices_origin)} if self.prices_origin else {}),
         }
 
     # -- storage --------------------------------------------------------------------------
@@ -271,6 +276,7 @@ class History:
             "theta_final": self.theta_final,
             "backend": self.backend,
             **{k: getattr(self, k) for k in self.STORED_SERIES},
+            **({"prices_origin": dict(self.prices_origin)} if self.prices_origin else {}),
         }
         return {rundir.HISTORY_JSON: jsonio.dumps(meta), rundir.HISTORY_NPZ: self.npz_bytes()}
 
@@ -361,7 +367,7 @@ class History:
             series[key] = _nan_for_null(series[key])
         hist = cls(system=system, mpc=mpc, learning=learning,
                    theta_final=_nan_for_null(theta_final), backend=str(meta.get("backend", "")),
-                   **series)
+                   prices_origin=dict(meta.get("prices_origin") or {}), **series)
         hist._load_months(files.get(rundir.HISTORY_NPZ), Path(directory) / rundir.HISTORY_NPZ)
         return hist
 

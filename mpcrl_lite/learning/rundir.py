@@ -136,7 +136,7 @@ LOCK = ".mpcrl_lite.lock"
 #: Where a commit's new files are written before the manifest names them.
 STAGING = ".run"
 #: What a run directory holds: a learner's run or a History on its own.
-KINDS = ("history", "centralized", "decentralized")
+KINDS = ("history", "centralized", "decentralized", "q-learning")
 #: The files a run directory may hold under their visible names.
 RUN_FILES = (HISTORY_JSON, HISTORY_NPZ, CHECKPOINT, JOURNAL)
 #: How to recover from a directory that does not verify (appended to the error messages).

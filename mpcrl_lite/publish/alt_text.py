@@ -1,8 +1,10 @@
 """Text alternatives for the figures of the notebooks, derived from their titles.
 
 A screen reader, a page that fails to load its images and a search all need words for a
-figure. The words are already there: every figure of the package has a title (``suptitle``) or
-titled panels. :func:`describe_figure` turns them into one sentence, and the IPython extension
+figure. The words are already there: every figure of the package has a title (``suptitle``,
+with its key numbers) or titled panels, legends and data.
+:func:`~mpcrl_lite.figures.describe.describe_figure` turns them into a paragraph (title,
+panels, series, data ranges), and the IPython extension
 in this module attaches that sentence to every figure a notebook displays, as the ``alt``
 metadata of its image output (``{"image/png": {"alt": ...}}``), which the HTML export writes into
 the ``alt`` attribute of the picture (:mod:`mpcrl_lite.publish.html_export`).
@@ -17,45 +19,12 @@ from typing import Any
 
 from matplotlib.figure import Figure
 
-__all__ = ["IMAGE_MIMES", "describe_figure", "load_ipython_extension"]
+from ..figures.describe import describe_figure
+
+__all__ = ["IMAGE_MIMES", "load_ipython_extension"]  # describe_figure: figures.describe
 
 #: Image outputs that get an ``alt`` entry in their metadata.
 IMAGE_MIMES = ("image/png", "image/jpeg", "image/svg+xml")
-
-
-def _clean(text: str) -> str:
-    """One line of plain text: TeX dollars and braces dropped, white space collapsed."""
-    text = text.replace("$", "").replace("\\", "").replace("{", "").replace("}", "")
-    return " ".join(text.split())
-
-
-def describe_figure(fig: Figure) -> str:
-    """One sentence naming what ``fig`` shows: its title, then the titles of its panels.
-
-    Panels without a title are described by their axis labels (``'soc against hour'``); a
-    figure with no words at all is described by its number of panels, so the result is never
-    empty.
-    """
-    title = _clean(fig._suptitle.get_text()) if fig._suptitle is not None else ""
-    panels = []
-    for ax in fig.get_axes():
-        if not ax.get_visible() or ax.get_label() == "<colorbar>":
-            continue
-        words = [_clean(ax.get_title(loc)) for loc in ("left", "center", "right")]
-        name = "; ".join(w for w in words if w)
-        if not name:
-            ylabel, xlabel = _clean(ax.get_ylabel()), _clean(ax.get_xlabel())
-            name = f"{ylabel} against {xlabel}" if ylabel and xlabel else ylabel or xlabel
-        if name and name not in panels:
-            panels.append(name)
-    if title and panels:
-        return f"Figure: {title}. Panels: {', '.join(panels)}."
-    if title:
-        return f"Figure: {title}."
-    if panels:
-        return f"Figure: {', '.join(panels)}."
-    count = len(fig.get_axes())
-    return f"Figure with {count} untitled panel{'s' if count != 1 else ''}."
 
 
 def _with_alt(format_function):

@@ -14,6 +14,9 @@ that load nothing from the network:
   :mod:`mpcrl_lite.publish.alt_text` derived from the figure's title while the notebook ran, or a
   generic one.
 * **Launch badges** and other images from the web in markdown cells become plain links.
+* **Reading**: the page is titled after the notebook (:func:`page_title`), its colours meet
+  WCAG AA contrast (4.5:1) and links in running text are underlined; every font MathJax asks
+  for is in the local copy.
 * No require.js, no widget embedder, no mermaid loader; :func:`remote_resources` lists
   anything that would still reach the network and :func:`write_html` refuses to write such a
   page.
@@ -38,6 +41,7 @@ __all__ = [
     "copy_mathjax",
     "mathjax_source",
     "mathjax_tags",
+    "page_title",
     "remote_resources",
     "static_widgets",
     "to_html",
@@ -68,6 +72,9 @@ _TEMPLATE = r"""
 {%- block html_head_js_mathjax -%}
 {{ resources.mpcrl_mathjax }}
 {%- endblock html_head_js_mathjax -%}
+{%- block html_head_css -%}
+<style type="text/css">{{ resources.mpcrl_css }}</style>
+{%- endblock html_head_css -%}
 {% block data_png scoped %}
 <div class="jp-RenderedImage jp-OutputArea-output {{ extra_class }}">
 <img src="data:image/png;base64,{{ output.data['image/png'] | escape_html }}"
@@ -90,6 +97,36 @@ alt="{{ alt | escape_html }}">
 """
 
 _DEFAULT_ALT = "Figure without a title (see the code cell above for what it plots)."
+
+#: Colours of the light theme that fall below WCAG AA (4.5:1) on the code cells' background
+#: (#f5f5f5) or on white, replaced by darker tones of the same hue (each at least 5:1 on
+#: #f5f5f5), the cell prompts at full opacity, and links in running text underlined (WCAG
+#: 1.4.1: not told apart by colour alone).
+_ACCESSIBLE_CSS = """
+:root {
+  --jp-mirror-editor-atom-color: #3c3cc4;
+  --jp-mirror-editor-bracket-color: #66663d;
+  --jp-mirror-editor-comment-color: #2f6464;
+  --jp-mirror-editor-error-color: #c00000;
+  --jp-mirror-editor-hr-color: #666666;
+  --jp-mirror-editor-meta-color: #8a1ccf;
+  --jp-mirror-editor-operator-color: #8a1ccf;
+  --jp-mirror-editor-number-color: #006600;
+  --jp-mirror-editor-quote-color: #006b00;
+  --jp-mirror-editor-variable-3-color: #00664a;
+  --jp-cell-inprompt-font-color: #1f5f99;
+  --jp-cell-outprompt-font-color: #a3432a;
+  --jp-cell-prompt-not-active-font-color: #616161;
+  --jp-cell-prompt-not-active-opacity: 1;
+}
+.jp-InputPrompt, .jp-OutputPrompt { opacity: 1; }
+.jp-InputPrompt { color: #1f5f99; }
+.jp-OutputPrompt { color: #a3432a; }
+.jp-RenderedHTMLCommon a, .jp-RenderedHTMLCommon a:link, .jp-RenderedHTMLCommon a:visited,
+.mpcrl-static-widget a, .mpcrl-static-widget a:link, .mpcrl-static-widget a:visited {
+  text-decoration: underline;
+}
+"""
 
 
 # MathJax 2 set up as in JupyterLab: $...$ and $$...$$, AMS numbering, STIX web fonts.
@@ -136,18 +173,38 @@ def mathjax_source() -> Path:
 def copy_mathjax(folder: str | Path) -> Path:
     """Copy the parts of MathJax the pages use into ``folder/mathjax`` (once) and return it."""
     target = Path(folder) / MATHJAX_DIRNAME
-    if (target / "MathJax.js").is_file():
-        return target
     source = mathjax_source()
     ignore = shutil.ignore_patterns(*_MATHJAX_SKIP)
-    for part in _MATHJAX_PARTS:
+    for part in () if (target / "MathJax.js").is_file() else _MATHJAX_PARTS:
         src = source / part
         if src.is_dir():
             shutil.copytree(src, target / part, ignore=ignore, dirs_exist_ok=True)
         elif src.is_file():
             (target / part).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy2(src, target / part)
+    for missing, stand_in in _FONT_STAND_INS.items():
+        if not (target / missing).is_file() and (source / stand_in).is_file():
+            (target / missing).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(source / stand_in, target / missing)
     return target
+
+
+#: Fonts that MathJax asks for but jupyter-server-mathjax does not ship, and the shipped font
+#: that stands in. The MathML that MathJax hides in the page for screen readers styles
+#: double-struck (``\mathbb E``), script, calligraphic (``\mathcal N``) and fraktur letters
+#: with the TeX fonts ``MathJax_AMS``, ``MathJax_Script``, ..., which the package leaves out;
+#: the STIX faces of the same alphabets stand in. Browsers read the font format from the
+#: file's content, not its name.
+_STIX = "fonts/HTML-CSS/STIX-Web/woff/STIXMathJax_"
+_FONT_STAND_INS = {
+    f"fonts/HTML-CSS/TeX/otf/MathJax_{tex}.otf": f"{_STIX}{stix}.woff"
+    for tex, stix in (("AMS-Regular", "DoubleStruck-Regular"),
+                      ("Script-Regular", "Script-Regular"),
+                      ("Caligraphic-Regular", "Script-Regular"),
+                      ("Caligraphic-Bold", "Script-BoldItalic"),
+                      ("Fraktur-Regular", "Fraktur-Regular"),
+                      ("Fraktur-Bold", "Fraktur-Bold"))
+}
 
 
 # -- widgets -----------------------------------------------------------------------------------
@@ -192,10 +249,12 @@ def _static_widget_output(view: dict[str, Any], plain: str, models: dict) -> dic
     controls, labels, images = [], [], []
     for model in parts:
         kind, state = model.get("model_name", ""), model.get("state", {})
-        if kind == "ImageModel":
+        if kind == "ImageModel" or (kind == "AnyModel" and "alt" in state):
+            # an ipywidgets Image, or the explorers' picture (classroom.picture.Picture)
             data = _png_of(model)
             if data and state.get("format", "png") == "png":
-                images.append((data, state.get("tooltip") or state.get("description") or ""))
+                images.append((data, state.get("alt") or state.get("tooltip")
+                               or state.get("description") or ""))
         elif kind in ("HTMLModel", "HTMLMathModel", "LabelModel"):
             if state.get("value"):
                 labels.append(state["value"] if kind != "LabelModel"
@@ -228,8 +287,8 @@ def static_widgets(nb):
     """A copy of the executed notebook ``nb`` whose widget outputs are static pictures.
 
     Each output showing a widget view becomes an HTML figure: the PNG of every image the
-    widget contained when the notebook ran (the explorers draw their figure into an
-    ``ipywidgets.Image``), the values of its controls, its text labels and a note that the
+    widget contained when the notebook ran (the explorers draw their figure into a
+    :class:`~mpcrl_lite.classroom.picture.Picture`, whose alt text the picture keeps), the values of its controls, its text labels and a note that the
     controls need a live notebook. The stored widget state is dropped from the copy.
     """
     out = copy.deepcopy(nb)
@@ -282,10 +341,33 @@ def to_html(nb, mathjax_url: str = f"{MATHJAX_DIRNAME}/MathJax.js") -> str:
     exporter = HTMLExporter(template_name="lab", template_file=_TEMPLATE_NAME,
                             extra_loaders=[DictLoader({_TEMPLATE_NAME: _TEMPLATE})])
     page = unlink_remote_images(static_widgets(nb))
+    page.setdefault("metadata", {})["title"] = page_title(page)
     body, _ = exporter.from_notebook_node(
         nbformat.from_dict(page), resources={"mpcrl_default_alt": _DEFAULT_ALT,
-                                             "mpcrl_mathjax": mathjax_tags(mathjax_url)})
+                                             "mpcrl_mathjax": mathjax_tags(mathjax_url),
+                                             "mpcrl_css": _ACCESSIBLE_CSS})
     return body
+
+
+def page_title(nb, suffix: str = "mpcrl_lite") -> str:
+    """The page's ``<title>``: the notebook's own title (its first ``# `` heading, as plain
+    text: markdown and TeX marks dropped), then ``suffix``; a notebook's ``metadata.title``
+    wins."""
+    title = (nb.get("metadata") or {}).get("title")
+    if not title:
+        for cell in nb.get("cells", []):
+            if cell.get("cell_type") != "markdown":
+                continue
+            source = cell.get("source", "")
+            source = "".join(source) if isinstance(source, list) else source
+            heading = next((line[2:] for line in source.splitlines() if line.startswith("# ")),
+                           None)
+            if heading:
+                title = re.sub(r"[`*_$\\]", "", re.sub(r"\[([^\]]*)\]\([^)]*\)", r"\1",
+                                                        heading)).strip()
+                break
+    title = title or "Notebook"
+    return f"{title} · {suffix}" if suffix and suffix not in title else title
 
 
 def write_html(nb, path: str | Path, assets: str | Path | None = None) -> Path:

@@ -24,7 +24,9 @@ __all__ = [
     "NOTEBOOK_FOLDER",
     "PAPER_MARKER",
     "REPOSITORY",
+    "STUDENT_FOLDER",
     "apply_launch_cells",
+    "binder_folder_url",
     "binder_repo_url",
     "binder_url",
     "colab_url",
@@ -32,6 +34,7 @@ __all__ = [
     "install_requirement",
     "launch_badges",
     "paper_line",
+    "student_launch_line",
 ]
 
 #: ``owner/name`` of the public GitHub repository that Colab and Binder open.
@@ -40,6 +43,9 @@ REPOSITORY = "mpcrl-lite/mpcrl_lite"
 BRANCH = "main"
 #: Folder of the notebooks inside the repository.
 NOTEBOOK_FOLDER = "notebooks"
+#: Folder of the student version (solutions removed): written by ``make student`` and by
+#: Binder's ``binder/postBuild``, not kept in the repository.
+STUDENT_FOLDER = "student"
 #: First words of a notebook's launch line (how the tools find it in the first cell).
 LAUNCH_MARKER = "[![Open in Colab]"
 #: First words of the citation paragraph that ends a notebook's first cell.
@@ -71,10 +77,29 @@ def binder_repo_url(repository: str = REPOSITORY, branch: str = BRANCH) -> str:
     return f"https://mybinder.org/v2/gh/{repository}/{branch}"
 
 
-def binder_url(notebook: str, repository: str = REPOSITORY, branch: str = BRANCH) -> str:
-    """Open ``notebook`` in JupyterLab on Binder (built from ``binder/``)."""
-    return (f"{binder_repo_url(repository, branch)}?urlpath=lab/tree/{NOTEBOOK_FOLDER}/"
+def binder_url(notebook: str, repository: str = REPOSITORY, branch: str = BRANCH,
+               folder: str = NOTEBOOK_FOLDER) -> str:
+    """Open ``notebook`` in JupyterLab on Binder (built from ``binder/``), from ``folder``
+    (the teacher's ``notebooks/`` or the :data:`STUDENT_FOLDER`)."""
+    return (f"{binder_repo_url(repository, branch)}?urlpath=lab/tree/{folder}/"
             f"{_stem(notebook)}.ipynb")
+
+
+def binder_folder_url(folder: str = STUDENT_FOLDER, repository: str = REPOSITORY,
+                      branch: str = BRANCH) -> str:
+    """Binder's JupyterLab opened at ``folder`` (default the student version)."""
+    return f"{binder_repo_url(repository, branch)}?urlpath=lab/tree/{folder}"
+
+
+def student_launch_line(notebook: str, repository: str = REPOSITORY,
+                        branch: str = BRANCH) -> str:
+    """The launch line of the student copy of ``notebook``: a Binder badge that opens the
+    student copy (Binder writes ``student/`` when it builds), and how to open it on Colab,
+    which opens only files kept in the repository: upload this one."""
+    return (f"[![Launch on Binder]({_BINDER_BADGE})]"
+            f"({binder_url(notebook, repository, branch, STUDENT_FOLDER)}) "
+            "(the student version, without solutions). On Colab: *File → Upload notebook* "
+            "with this file; its first cell installs the package.")
 
 
 def launch_badges(notebook: str, repository: str = REPOSITORY, branch: str = BRANCH) -> str:

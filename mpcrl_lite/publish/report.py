@@ -35,6 +35,7 @@ from .._util.jsonio import plain
 from .._util.resources import package_folder
 from .._util.validate import InputTypeError, check_choice
 from ..learning import rundir
+from .claims import check_claims
 from .html_export import copy_mathjax, write_html
 
 __all__ = [
@@ -43,6 +44,7 @@ __all__ = [
     "KERNEL_EXTENSIONS",
     "NOTEBOOK_DIR",
     "PROFILES",
+    "ClaimError",
     "check_parameters",
     "execute_notebook",
     "notebook_parameters",
@@ -277,7 +279,9 @@ def run_report(
 ) -> dict[str, Any]:
     """Execute the notebooks into ``out`` (``.ipynb`` + offline ``.html``, MathJax in
     ``out/mathjax``) and write ``out/summary.json`` with each notebook's key numbers,
-    parameters and run time."""
+    parameters and run time, and the check of the prose's claims for ``profile``
+    (:mod:`mpcrl_lite.publish.claims`): a claim that does not hold raises :class:`ClaimError`
+    once everything is written."""
     out = Path(rundir.refuse_empty(out))
     params = profile_parameters(profile)
     paths = notebook_paths(notebooks)
@@ -303,4 +307,16 @@ def run_report(
                 "results": read_summary(nb),
             }
             rundir.write_json(out / "summary.json", summary)
+        # what the prose claims about these runs (notebooks/claims.yaml), checked last
+        summary["claims"] = check_claims(
+            {stem: entry["results"] for stem, entry in summary["notebooks"].items()}, profile)
+        rundir.write_json(out / "summary.json", summary)
+        if summary["claims"]["failed"]:
+            raise ClaimError(f"{len(summary['claims']['failed'])} claim(s) of the notebooks' prose "
+                             "do not hold for this run (notebooks/claims.yaml): "
+                             + "; ".join(summary["claims"]["failed"]))
         return summary
+
+
+class ClaimError(ValueError):
+    """A sentence of a notebook states a number that its run does not give."""

@@ -120,26 +120,52 @@ def extract_paper_figures(nb, folder: str | Path) -> list[dict[str, str]]:
     return found
 
 
-def collect_study(report: str | Path, folder: str | Path) -> list[dict[str, Any]]:
-    """Copy the results tables of the parameter study (``report/sweep_runs/*/results.csv``
-    and ``sweep.json``, except the notebook's ``*check*`` sweeps) into ``folder/<sweep>/``;
-    returns one dict per sweep with its name, files and table (a :class:`pandas.DataFrame`)."""
+def collect_study(report: str | Path, folder: str | Path,
+                  study: dict[str, Any] | None = None) -> list[dict[str, Any]]:
+    """Copy the results tables of the parameter study (``report/sweep_runs/*/results.csv``,
+    except the notebook's ``*check*`` sweeps) into ``folder/<sweep>/``; returns one dict per
+    sweep with its name, files and table (a :class:`pandas.DataFrame`).
+
+    With ``study`` (the results of notebook 07's summary: ``months``, ``days``, ``P_bars``,
+    ``noise_vars``, ``seeds``) only the study the notebook ran is kept: its sweep folder
+    (``months=M,days=D``) and, of its table, the finished runs of its own grid. Rows added to
+    the same folder by an exercise (another seed) or left ``pending`` by it are not the
+    study's results and are dropped, from the page and from the copied table.
+    """
     import pandas as pd
 
     studies = []
     for results in sorted(Path(report).glob(f"{_STUDY_FOLDER}/*/results.csv")):
         if "check" in results.parent.name:  # the notebook's consistency checks, not the study
             continue
+        table = pd.read_csv(results)
+        if study is not None:
+            if results.parent.name != f"months={study['months']},days={study['days']}":
+                continue
+            table = _study_rows(table, study)
         target = Path(folder) / results.parent.name
         target.mkdir(parents=True, exist_ok=True)
-        files = []
-        for name in ("results.csv", "sweep.json"):
-            if (results.parent / name).is_file():
-                shutil.copy2(results.parent / name, target / name)
-                files.append(name)
-        studies.append({"name": results.parent.name, "files": files,
-                        "table": pd.read_csv(results)})
+        table.to_csv(target / "results.csv", index=False)
+        files = ["results.csv"]
+        if study is None and (results.parent / "sweep.json").is_file():
+            shutil.copy2(results.parent / "sweep.json", target / "sweep.json")
+            files.append("sweep.json")
+        studies.append({"name": results.parent.name, "files": files, "table": table})
     return studies
+
+
+def _study_rows(table, study: dict[str, Any]):
+    """The finished runs of the study's grid: its grid limits, noise variances and seeds."""
+    import numpy as np
+
+    keep = table["status"].eq("done") if "status" in table else np.ones(len(table), bool)
+    for column, values in (("P_bar", study.get("P_bars")), ("noise_var", study.get("noise_vars"))):
+        if values is not None and column in table:
+            keep &= np.isclose(table[column].to_numpy(float)[:, None],
+                               np.asarray(values, float)[None, :]).any(axis=1)
+    if study.get("seeds") is not None and "seed" in table:
+        keep &= table["seed"] < int(study["seeds"])
+    return table[keep].reset_index(drop=True)
 
 
 _STYLE = """
@@ -155,7 +181,7 @@ figure { display: inline-block; margin: 0.5rem 1rem 1rem 0; max-width: 29rem; }
 figure img { max-width: 100%; border: 1px solid #ddd; }
 figcaption { font-size: 0.9rem; color: #444; }
 code { background: #f4f4f4; padding: 0 0.2rem; }
-a { color: #0b5cad; }
+a { color: #0b5cad; text-decoration: underline; }
 .small { font-size: 0.9rem; color: #444; }
 """
 
@@ -206,8 +232,11 @@ def render_index(entries: list[NotebookEntry], summary: dict[str, Any],
         parts.append(f'<p>Drawn by <a href="notebooks/{PAPER_FIGURES_NOTEBOOK}.html">notebook '
                      f"05</a> from its learning run ({_e(profile)} profile).</p>")
         for fig in figures:
-            parts.append(f'<figure><img src="figures/{_e(fig["file"])}" alt="{_e(fig["alt"])}">'
-                         f"<figcaption><code>{_e(fig['name'])}</code>: {_e(fig['alt'])}"
+            # the thumbnail opens the full-size picture
+            parts.append(f'<figure><a href="figures/{_e(fig["file"])}">'
+                         f'<img src="figures/{_e(fig["file"])}" alt="{_e(fig["alt"])}"></a>'
+                         f"<figcaption><code>{_e(fig['name'])}</code>: {_e(fig['alt'])} "
+                         f'(<a href="figures/{_e(fig["file"])}">full size</a>)'
                          "</figcaption></figure>")
     else:
         parts.append(f"<p>Not in this build (notebook <code>{PAPER_FIGURES_NOTEBOOK}</code> was "
@@ -224,6 +253,7 @@ def render_index(entries: list[NotebookEntry], summary: dict[str, Any],
             parts.append(f"<h3><code>{_e(study['name'])}</code></h3><p>{links}</p>")
             parts.append(table[columns].to_html(index=False, float_format=lambda x: f"{x:.1f}",
                                                 border=0))
+            parts.append(f'<p class="small">{_e(_study_note(study["name"], profile))}</p>')
     else:
         parts.append(f"<p>Not in this build (notebook <code>{_STUDY_NOTEBOOK}</code> was not "
                      "executed).</p>")
@@ -239,6 +269,18 @@ def render_index(entries: list[NotebookEntry], summary: dict[str, Any],
                      f"<td class=\"small\">{_e(results)}</td></tr>")
     parts += ["</tbody></table>", "</main>", "</body>", "</html>", ""]
     return "\n".join(parts)
+
+
+def _study_note(name: str, profile: str) -> str:
+    """How to read a study table: its run size, and what so short a run can show."""
+    sizes = dict(part.split("=", 1) for part in name.split(",") if "=" in part)
+    months, days = sizes.get("months", "?"), sizes.get("days", "?")
+    return (f"One row per run of the study ({profile} profile): each run learned {months} "
+            f"months of {days} days from theta0 and was evaluated on the same 10 noise draws. "
+            "A run this short shows where learning stands after so few months, not what a "
+            "grid limit or a noise level is worth: a run that has not settled yet can cost far "
+            "more than the nominal MPC. The notebook's defaults (30 months of 30 days) and "
+            "benchmarks/README.md give the comparison over longer runs.")
 
 
 def _short(value: Any) -> str:
@@ -293,7 +335,9 @@ def _write_site(out: Path, source: Path, stems: list[str], summary: dict[str, An
     (out / "summary.json").write_text(json.dumps(kept, indent=1))
     figures = (extract_paper_figures(executed[PAPER_FIGURES_NOTEBOOK], out / "figures")
                if PAPER_FIGURES_NOTEBOOK in executed else [])
-    studies = collect_study(source, out / "study") if _STUDY_NOTEBOOK in executed else []
+    study = summary.get("notebooks", {}).get(_STUDY_NOTEBOOK, {}).get("results") or None
+    studies = (collect_study(source, out / "study", study) if _STUDY_NOTEBOOK in executed
+               else [])
     index = out / "index.html"
     page = render_index(entries, kept, figures, studies)
     remote = remote_resources(page)

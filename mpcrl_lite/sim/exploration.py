@@ -95,7 +95,7 @@ class GaussianExploration:
 
 def check_margin(margin: float, system: SystemConfig) -> float:
     """``margin`` as a float in ``[0, min(U_bar, P_bar) / 2]``, else an error naming it."""
-    limit = 0.5 * min(system.common("U_bar", "the exploration"), system.P_bar)
+    limit = 0.5 * min(min(system.battery("U_bar")), system.P_bar)
     return check_real("margin", margin, 0.0, limit)
 
 
@@ -131,7 +131,8 @@ def exploration_center(pi: np.ndarray, system: SystemConfig, margin: float) -> n
     margin = check_margin(margin, system)
     if margin == 0.0:
         return pi
-    inner = system.common("U_bar", "the exploration") - margin
+    inner = (system.U_bar if isinstance(system.U_bar, float)
+             else np.array(system.U_bar)) - margin  # each battery's own
     c = np.clip(pi, -inner, inner)
     room = system.P_bar - margin
     for sign in (1.0, -1.0):
@@ -200,9 +201,9 @@ def bounded_exploration(
     # compiled (mpcrl_lite.sim.exploration_kernel): per day, pi projected onto the feasible set,
     # the radial step (and the slide along the grid faces), the result projected once more
     # as a guard against rounding (base + step is feasible up to ~1e-16)
-    return kernel.explore_rows(np.ascontiguousarray(pi), np.ascontiguousarray(e),
-                        system.common("U_bar", "the exploration"), system.P_bar,
-                        bounds == "symmetric")
+    upper = np.array(system.battery("U_bar"), dtype=float)  # each battery's own bound
+    return kernel.explore_rows(np.ascontiguousarray(pi), np.ascontiguousarray(e), upper,
+                               system.P_bar, bounds == "symmetric")
 
 
 class Projection:

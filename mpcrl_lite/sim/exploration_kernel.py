@@ -48,18 +48,19 @@ def _np_clip(x, lo, hi):
 
 @_jit
 def _capped_simplex(y, upper, total, out):
-    """Projection of ``y >= 0`` (n,) onto ``{0 <= x_i <= upper, sum x_i <= total}`` into
-    ``out``: ``model._project_capped_simplex`` for one row."""
+    """Projection of ``y >= 0`` (n,) onto ``{0 <= x_i <= upper_i, sum x_i <= total}`` into
+    ``out``: ``model._project_capped_simplex`` for one row (``upper`` (n,): each battery's
+    bound)."""
     n = y.shape[0]
     s = 0.0
     for i in range(n):
-        out[i] = _np_min(y[i], upper)
+        out[i] = _np_min(y[i], upper[i])
         s = out[i] if i == 0 else s + out[i]
     if not s > total:
         return
     kinks = np.empty(2 * n)
     for i in range(n):
-        kinks[i] = y[i] - upper
+        kinks[i] = y[i] - upper[i]
         kinks[n + i] = y[i]
     kinks.sort()
     j = 0
@@ -67,7 +68,7 @@ def _capped_simplex(y, upper, total, out):
     for k in range(2 * n):
         g = 0.0
         for i in range(n):
-            v = _np_clip(y[i] - kinks[k], 0.0, upper)
+            v = _np_clip(y[i] - kinks[k], 0.0, upper[i])
             g = v if i == 0 else g + v
         if g <= total:
             j = k
@@ -78,16 +79,16 @@ def _capped_simplex(y, upper, total, out):
         j = 1
         g_prev = 0.0
         for i in range(n):
-            v = _np_clip(y[i] - kinks[0], 0.0, upper)
+            v = _np_clip(y[i] - kinks[0], 0.0, upper[i])
             g_prev = v if i == 0 else g_prev + v
         g_here = 0.0
         for i in range(n):
-            v = _np_clip(y[i] - kinks[1], 0.0, upper)
+            v = _np_clip(y[i] - kinks[1], 0.0, upper[i])
             g_here = v if i == 0 else g_here + v
     t0, t1 = kinks[j - 1], kinks[j]
     tau = t0 + (g_prev - total) * (t1 - t0) / (g_prev - g_here)
     for i in range(n):
-        out[i] = _np_clip(y[i] - tau, 0.0, upper)
+        out[i] = _np_clip(y[i] - tau, 0.0, upper[i])
 
 
 @_jit
@@ -142,7 +143,7 @@ def _radial(base, e, upper, total, out, neg_base, neg_e, kinks, ts):
     n = base.shape[0]
     t = np.inf
     for i in range(n):
-        room = _np_max(upper - abs(base[i]), 0.0)
+        room = _np_max(upper[i] - abs(base[i]), 0.0)
         q = room / abs(e[i]) if e[i] != 0.0 else np.inf
         t = q if i == 0 else _np_min(t, q)
         neg_base[i] = -base[i]
@@ -191,7 +192,8 @@ def _along_grid_faces(base, e, total, out):
 
 @_jit
 def project_rows(a, upper, total):
-    """:func:`mpcrl_lite.system.battery.project_action` of every row of ``a`` (days, n)."""
+    """:func:`mpcrl_lite.system.battery.project_action` of every row of ``a`` (days, n);
+    ``upper`` (n,) holds each battery's input bound."""
     days, n = a.shape
     out = np.empty((days, n))
     buy, sell, pb, ps = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
@@ -204,7 +206,7 @@ def project_rows(a, upper, total):
 def explore_rows(pi, e, upper, total, symmetric):
     """The commanded action for the policy's ``pi`` and the exploration ``e`` (days, n):
     :func:`mpcrl_lite.sim.exploration.bounded_exploration` with ``bounds='symmetric'`` (when
-    ``symmetric``) or ``'radial'``."""
+    ``symmetric``) or ``'radial'``; ``upper`` (n,) holds each battery's input bound."""
     days, n = pi.shape
     out = np.empty((days, n))
     base, step, along, clipped = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
@@ -217,7 +219,7 @@ def explore_rows(pi, e, upper, total, symmetric):
         if symmetric:
             _along_grid_faces(base, e[d], total, along)
             for i in range(n):
-                room = _np_max(upper - abs(base[i]), 0.0)
+                room = _np_max(upper[i] - abs(base[i]), 0.0)
                 clipped[i] = _np_clip(along[i], -room, room)
             _radial(base, clipped, upper, total, other, neg_base, neg_e, kinks, ts)
             s_step, s_other = 0.0, 0.0
@@ -237,9 +239,10 @@ def explore_rows(pi, e, upper, total, symmetric):
 def warm_up() -> None:
     """Run both functions on a tiny input: compiles them or loads them from the cache."""
     a = np.array([[0.4, -0.2, 0.9]])
-    project_rows(a, 1.0, 1.0)
+    upper = np.ones(3)
+    project_rows(a, upper, 1.0)
     for symmetric in (False, True):
-        explore_rows(a, 0.1 * a, 1.0, 1.0, symmetric)
+        explore_rows(a, 0.1 * a, upper, 1.0, symmetric)
 
 
 def ensure_compiled() -> None:

@@ -428,8 +428,10 @@ def run_study(
         if J_star is None and target == "causal":
             # every run shares the system and the month (only the seed varies)
             run = load_grid(grid).runs[0]
-            found = _study_target(out, run.system,
-                                  Prices.month(run.system, run.learning.days_per_month))
+            month = (Prices.from_file(run.prices, run.system, run.learning.days_per_month)
+                     if run.prices.file else Prices.month(run.system,
+                                                          run.learning.days_per_month))
+            found = _study_target(out, run.system, month)
             J_star, method, note = found["J_star"], found["method"], found["note"]
         elif J_star is None:
             note = "target='best_seen': judged against the best J_eval reached"

@@ -9,8 +9,10 @@ Three layers, each usable alone:
 * :func:`load_default_profile` -- the month shipped in ``data/`` as a ``(30, 24)`` array,
   rebuilt from daily aggregates as ``price[d, h] = daily_mean[d] + daily_std[d] * shape[h]``
   (see ``data/README.md`` for the provenance).
-* :func:`load_nordpool_csv` and :func:`daily_matrix` -- read a Nord Pool "Elspot Prices" export
-  into an hourly, time-zone-aware :class:`pandas.Series`, and cut it into local-time days.
+* the price files (:mod:`mpcrl_lite.system.price_files`): :func:`~mpcrl_lite.system.price_files.load.load_prices`
+  reads the day-ahead prices of today's sources into an hourly, time-zone-aware
+  :class:`pandas.Series`; :func:`load_nordpool_csv` (the old Nord Pool export) and
+  :func:`daily_matrix` (a series cut into local-time days) are importable here too.
 * :class:`Prices` -- a ``(days, 24)`` buying price matrix with the selling ratio, and the MPC's
   forecast window: at hour ``k`` the MPC sees the prices of hours ``k .. k+N-1``, reading on
   into the next day's prices after midnight; the month repeats, so its last day is followed by
@@ -20,30 +22,38 @@ Three layers, each usable alone:
 from __future__ import annotations
 
 import datetime as _dt
-import io
-import re
-from dataclasses import dataclass
+import warnings
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
+from types import MappingProxyType
+from typing import Any
 
 import numpy as np
 
 from .._util.lazy import lazy_module
 from .._util.resources import candidate_folders, package_folder
-from .._util.validate import InputTypeError, check_instance, check_int, check_real
-from ..config import HOURS_PER_DAY, PRICE_LIMIT, PRICE_UNIT, SystemConfig
+from .._util.validate import check_instance, check_int, check_real
+from ..config import HOURS_PER_DAY, PRICE_LIMIT, PRICE_UNIT, PriceFileConfig, SystemConfig
+from .price_files.load import load_prices
+from .price_files.month import _as_date, daily_matrix, month_matrix
+from .price_files.nordpool_elspot import load_nordpool_csv, nordpool_areas
+from .price_files.series import LOCAL_TZ, PriceFileWarning
 
 #: pandas, imported when a CSV file is first read (it reads and parses every price file)
 pd = lazy_module("pandas")
 
-__all__ = ["DATA_DIR", "LOCAL_TZ", "Prices", "daily_matrix", "load_default_profile", "load_nordpool_csv", "nordpool_areas"]
+# The old Nord Pool reader and the day matrix moved to price_files; their names stay importable
+# here (``from mpcrl_lite.system.prices import load_nordpool_csv``).
+_MOVED = (LOCAL_TZ, daily_matrix, load_nordpool_csv, nordpool_areas)
+
+__all__ = ["DATA_DIR", "Prices", "load_default_profile", "sell_prices"]
 
 #: Folder of the shipped data, found through the package (never through the working directory):
 #: ``mpcrl_lite/data`` in an installed wheel, the repository's ``data/`` in a checkout.
 DATA_DIR: Path = package_folder("data")
 
-#: Local time zone of Nord Pool's Nordic exports (CET/CEST).
-LOCAL_TZ = "Europe/Oslo"
 
 _SHAPE_FILE = "no3_nov2020_intraday_shape.csv"
 _DAILY_FILE = "no3_nov2020_daily.csv"
@@ -52,9 +62,23 @@ _DEFAULT_SOURCE = (
     "(data/README.md)"
 )
 
-# How many lines to search for the header ";Hours;..." before giving up.
-_HEADER_SEARCH_LINES = 20
-_HOURS_RE = re.compile(r"^\s*(\d{1,2})\s*-\s*(\d{1,2})\s*$")
+
+
+def sell_prices(buy: np.ndarray, sell_ratio: float) -> np.ndarray:
+    """Selling prices of buying prices ``buy``: the paper's ``phi_s = r phi_b`` (``r`` =
+    ``sell_ratio``) where ``phi_b >= 0``, and ``phi_s = (2 - r) phi_b`` where ``phi_b < 0``.
+
+    Both are ``phi_s = phi_b - (1 - r) |phi_b|``: selling is never worth more than buying
+    (the spread ``(1 - r) |phi_b|`` is never negative). With ``r phi_b`` also for negative
+    prices (common in 2025) selling would be worth more than buying -- ``phi_b = -10`` would
+    sell at ``-5`` -- and a battery could earn money by buying and selling the same energy in
+    the same hour. For ``phi_b >= 0`` the value is ``sell_ratio * buy``, bit for bit.
+    """
+    buy = np.asarray(buy, dtype=float)
+    spread = sell_ratio * buy
+    if (buy < 0).any():
+        return np.where(buy < 0, (2.0 - sell_ratio) * buy, spread)
+    return spread
 
 
 # ----------------------------------------------------------------------------------------------
@@ -109,350 +133,6 @@ def load_default_profile() -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------------
-# Nord Pool exports
-# ----------------------------------------------------------------------------------------------
-
-
-def _read_export(path: str | Path) -> tuple[Path, list[str], pd.DataFrame, np.ndarray]:
-    """Header names, the data rows (all cells as stripped strings) and their line numbers.
-
-    Every data row must have exactly as many cells as the header line (a trailing ``;``
-    counts as a cell): the areas are addressed by position, so a missing or extra ``;`` would
-    move prices to another area's column, and with a trailing ``;`` a row that lacks one cell
-    cannot be told from a row whose last area is empty.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"Nord Pool export {path} not found")
-    not_export = (
-        f"{path} is not a Nord Pool price export: expected a ';'-separated file whose header "
-        "line has an empty first cell, then 'Hours', then area names (e.g. ';Hours;SYS;...;"
-        "Tr.heim;...')"
-    )
-    raw = path.read_bytes()
-    try:
-        text = raw.decode("utf-8-sig")  # drops the byte-order mark
-    except UnicodeDecodeError as err:
-        line = raw[: err.start].count(b"\n") + 1
-        raise ValueError(
-            f"{not_export}; line {line} is not UTF-8 text ({err.reason})"
-        ) from None
-    # Universal newlines (CRLF, LF, CR) and nothing else: str.splitlines would also split at
-    # characters such as U+2028 inside a cell.
-    lines = [line.rstrip("\n") for line in io.StringIO(text, newline=None)]
-    header_row = None
-    for i, line in enumerate(lines[:_HEADER_SEARCH_LINES]):
-        cells = [c.strip() for c in line.split(";")]
-        if len(cells) >= 3 and cells[0] == "" and cells[1].lower() == "hours":
-            header_row = i
-            break
-    if header_row is None:
-        shown = min(len(lines), _HEADER_SEARCH_LINES)
-        raise ValueError(f"{not_export}; no such line among the first {shown} lines")
-    names = [c.strip() for c in lines[header_row].split(";")]
-    width = len(names)
-    # Trailing empty header cells (a trailing ';') carry no area.
-    while names and names[-1] == "":
-        names.pop()
-    rows, numbers_ = [], []
-    for number, line in enumerate(lines[header_row + 1 :], start=header_row + 2):
-        cells = [c.strip() for c in line.split(";")]
-        # Lines made only of separators (padding at the end of some exports) are not data.
-        if not any(cells):
-            continue
-        if len(cells) != width:
-            raise ValueError(
-                f"{path}: line {number} has {len(cells)} ';'-separated cells, the header "
-                f"(line {header_row + 1}) has {width}; expected one cell per header column "
-                "(a missing or extra ';' would move prices to another area)"
-            )
-        rows.append(cells[: len(names)])
-        numbers_.append(number)
-    frame = pd.DataFrame(rows, columns=range(len(names)), dtype=object).astype(str)
-    return path, names, frame, np.asarray(numbers_, dtype=int)
-
-
-def _area_list(names: list[str]) -> list[str]:
-    return list(dict.fromkeys(n for n in names[2:] if n))
-
-
-def nordpool_areas(path: str | Path) -> list[str]:
-    """Area names in the header of a Nord Pool export, in file order, each listed once.
-
-    Parameters
-    ----------
-    path : str or pathlib.Path
-        The export (see :func:`load_nordpool_csv` for the format).
-
-    Returns
-    -------
-    list of str
-        E.g. ``['SYS', 'SE1', ..., 'Molde', 'Tr.heim', 'Tromsø', 'EE', ...]``.
-    """
-    _, names, _, _ = _read_export(path)
-    return _area_list(names)
-
-
-def _parse_prices(cells: pd.Series, path: Path, area: str, where: pd.Series) -> pd.Series:
-    """Decimal-comma strings to floats; empty cells become NaN, anything else that is not a
-    finite number is an error naming the line."""
-    text = cells.str.replace(r"[\s\u00a0]", "", regex=True)
-    # A comma is the decimal mark; a '.' next to a comma can only group thousands.
-    has_comma = text.str.contains(",", regex=False)
-    text = text.where(~has_comma, text.str.replace(".", "", regex=False))
-    text = text.str.replace(",", ".", regex=False)
-    values = pd.to_numeric(text.where(text != ""), errors="coerce").astype(float)
-    bad = values.isna() & (text != "")
-    if bad.any():
-        i = bad.to_numpy().nonzero()[0][0]
-        raise ValueError(
-            f"{path}: area {area!r}, {where.iloc[i]}: cannot read price "
-            f"{cells.iloc[i]!r}; expected a number with a decimal comma such as '304,19'"
-        )
-    infinite = np.isinf(values.to_numpy())
-    if infinite.any():
-        i = infinite.nonzero()[0][0]
-        raise ValueError(
-            f"{path}: area {area!r}, {where.iloc[i]}: price {cells.iloc[i]!r} is not finite; "
-            "expected a finite number with a decimal comma such as '304,19'"
-        )
-    return values
-
-
-def load_nordpool_csv(path: str | Path, area: str = "Tr.heim") -> pd.Series:
-    """Read one area's hourly prices from a Nord Pool "Elspot Prices" export.
-
-    The format handled (as published by Nord Pool, e.g. ``elspot-prices_2020_hourly_nok.csv``):
-
-    * UTF-8 with or without a byte-order mark, CRLF or LF line ends, ``;`` as separator,
-      decimal comma (``304,19``; a ``.`` or space next to a comma is read as a thousands
-      separator).
-    * Free text lines (a title, a "last updated" note) before the header line, which has an
-      empty first cell (the date column), then ``Hours``, then area names. Areas are selected
-      by name, never by position, since other exports order their columns differently.
-    * Dates ``DD.MM.YYYY``; hours ``00 - 01`` .. ``23 - 00`` in local time (Europe/Oslo).
-    * Empty cells mean "no price" and are dropped.
-    * Every data line has exactly as many ``;``-separated cells as the header line (lines of
-      separators only are padding and skipped): areas are addressed by position, so a line
-      with a cell too many or too few would read its prices into the wrong areas.
-
-    **Repeated area names** (``EE;EE``, ``LV;LV``, ...): row by row, the first of the
-    same-named columns that holds a value is used (in Nord Pool's exports only one of them is
-    filled at a time). Two different values in one row are an error.
-
-    **Daylight saving time.** Each row's timestamp is the local start of its hour. On the
-    spring change day the ``02 - 03`` row (a clock hour that does not exist) is empty and
-    dropped, so the day has 23 hours; a value there is an error. On the autumn change day
-    ``02 - 03`` appears twice: the first row is 02:00 summer time (+02:00), the second 02:00
-    winter time (+01:00), so the day has 25 distinct hours. No value is ever moved to another
-    hour.
-
-    Parameters
-    ----------
-    path : str or pathlib.Path
-        The export file.
-    area : str, default ``"Tr.heim"``
-        Column name as written in the header (``"Tr.heim"`` is Trondheim, zone NO3;
-        ``"Molde"`` is the same zone; ``"SYS"`` is the system price).
-
-    Returns
-    -------
-    pandas.Series
-        Float prices in the export's unit (NOK/MWh for the NOK exports), one per real hour,
-        indexed by the hour's start as a time-zone-aware ``DatetimeIndex`` in Europe/Oslo,
-        strictly increasing; ``name`` is ``area``.
-
-    Raises
-    ------
-    FileNotFoundError
-        If ``path`` does not exist.
-    ValueError
-        If the file is not such an export, ``area`` is not one of its columns (the message
-        lists those available), the area has no prices, a line has more or fewer cells than
-        the header, or a date, hour or price cannot be read or a price is not finite (``inf``,
-        ``1e999``); the message names the file and the line.
-    """
-    path, names, rows, line = _read_export(path)
-    areas = _area_list(names)
-    if area not in areas:
-        raise ValueError(
-            f"{path}: unknown area {area!r}; available areas: {', '.join(areas)}"
-        )
-    if rows.empty:
-        raise ValueError(f"{path}: the export has a header but no data rows")
-    where = "line " + pd.Series(line).astype(str) + " (" + rows[0] + " " + rows[1] + ")"
-
-    columns = [i for i, name in enumerate(names) if name == area]
-    parsed = [_parse_prices(rows[i], path, area, where) for i in columns]
-    values = parsed[0]
-    for other in parsed[1:]:
-        clash = values.notna() & other.notna() & (values != other)
-        if clash.any():
-            i = clash.to_numpy().nonzero()[0][0]
-            raise ValueError(
-                f"{path}: area {area!r} appears in several columns with different prices on "
-                f"{where.iloc[i]} ({values.iloc[i]:g} vs {other.iloc[i]:g})"
-            )
-        values = values.fillna(other)
-
-    dates = pd.to_datetime(rows[0], format="%d.%m.%Y", errors="coerce")
-    if dates.isna().any():
-        i = dates.isna().to_numpy().nonzero()[0][0]
-        raise ValueError(
-            f"{path}: line {line[i]}: cannot read date {rows[0].iloc[i]!r}; "
-            "expected DD.MM.YYYY"
-        )
-    hours = rows[1].str.extract(_HOURS_RE)
-    start_h = pd.to_numeric(hours[0], errors="coerce")
-    end_h = pd.to_numeric(hours[1], errors="coerce")
-    bad = start_h.isna() | (start_h > 23) | (end_h != (start_h + 1) % 24)
-    if bad.any():
-        i = bad.to_numpy().nonzero()[0][0]
-        raise ValueError(
-            f"{path}: line {line[i]}: cannot read hour {rows[1].iloc[i]!r} on "
-            f"{rows[0].iloc[i]}; expected 'HH - HH' such as '00 - 01' or '23 - 00'"
-        )
-
-    # The first appearance of a repeated (date, hour) row is summer time, the second winter
-    # time; ranks are taken over the file's rows, before empty cells are dropped.
-    rank = pd.DataFrame({"d": rows[0], "h": start_h}).groupby(["d", "h"]).cumcount()
-    keep = values.notna().to_numpy()
-    if not keep.any():
-        raise ValueError(f"{path}: area {area!r} has no prices in this file (all cells empty)")
-    naive = pd.DatetimeIndex(dates + pd.to_timedelta(start_h, unit="h"))[keep]
-    local = naive.tz_localize(
-        LOCAL_TZ, ambiguous=(rank.to_numpy() == 0)[keep], nonexistent="NaT"
-    )
-    if local.isna().any():
-        i = np.flatnonzero(local.isna())[0]
-        raise ValueError(
-            f"{path}: area {area!r} has a price on {where[keep].iloc[i]}, an hour that does "
-            f"not exist in {LOCAL_TZ} (spring clock change); expected an empty cell"
-        )
-    if local.duplicated().any():
-        i = np.flatnonzero(local.duplicated())[0]
-        raise ValueError(
-            f"{path}: {where[keep].iloc[i]} repeats an earlier row; only the autumn "
-            "clock-change hour 02 - 03 may appear twice"
-        )
-    series = pd.Series(values.to_numpy()[keep], index=local, name=area, dtype=float)
-    series.index.name = "time"
-    return series.sort_index()
-
-
-# ----------------------------------------------------------------------------------------------
-# Cutting a series into days
-# ----------------------------------------------------------------------------------------------
-
-
-def _as_date(start: _dt.date | str | pd.Timestamp, tz: str) -> _dt.date:
-    try:
-        stamp = pd.Timestamp(start)
-    except (TypeError, ValueError):
-        raise ValueError(f"start={start!r}: expected a date or a 'YYYY-MM-DD' string") from None
-    if stamp.tzinfo is not None:
-        stamp = stamp.tz_convert(tz)
-    if stamp != stamp.normalize():
-        raise ValueError(f"start={start!r}: expected a date (midnight), not a time of day")
-    return stamp.date()
-
-
-def daily_matrix(
-    series: pd.Series,
-    start: _dt.date | str | pd.Timestamp,
-    days: int,
-    tz: str = LOCAL_TZ,
-) -> np.ndarray:
-    """Hourly prices of ``days`` consecutive local days as a day-by-clock-hour matrix.
-
-    Day ``d`` runs from local midnight of ``start + d`` to the next local midnight, and hour
-    ``h`` is the clock hour ``h:00 .. h+1:00`` of that day.
-
-    **Clock-change days** have 23 or 25 real hours and are mapped onto 24 clock hours:
-
-    * 25 hours (autumn): the two hours that both read 02:00 on the clock are averaged into
-      hour 2.
-    * 23 hours (spring): the skipped clock hour (02:00 in Europe/Oslo) takes the value of the
-      hour before it (01:00).
-
-    Every other hour is used as it is.
-
-    Parameters
-    ----------
-    series : pandas.Series
-        Hourly prices on a time-zone-aware ``DatetimeIndex`` (e.g. from
-        :func:`load_nordpool_csv`); NaN counts as missing.
-    start : datetime.date, str or pandas.Timestamp
-        First day, e.g. ``"2020-11-01"``.
-    days : int
-        Number of days, at least 1.
-    tz : str, default ``"Europe/Oslo"``
-        Time zone whose midnights delimit the days.
-
-    Returns
-    -------
-    numpy.ndarray
-        Shape ``(days, 24)``, in the series' unit.
-
-    Raises
-    ------
-    ValueError
-        If the index is not time-zone-aware or not on whole hours, ``start`` is not a date, or
-        any hour of the requested range is missing (the message names the range and the
-        series' coverage, or the first missing hours).
-    """
-    days = check_int("days", days, 1)
-    check_instance("series", series, pd.Series)
-    if not isinstance(series.index, pd.DatetimeIndex):
-        raise InputTypeError(
-            "series: expected a pandas Series with a DatetimeIndex, got an index of type "
-            f"{type(series.index).__name__}"
-        )
-    if series.index.tz is None:
-        raise ValueError(
-            "series: expected a time-zone-aware DatetimeIndex (naive local times are ambiguous "
-            "at the autumn clock change); use load_nordpool_csv or Series.tz_localize"
-        )
-    first = _as_date(start, tz)
-    last = first + _dt.timedelta(days=days)  # exclusive
-    t0 = pd.Timestamp(first).tz_localize(tz)
-    t1 = pd.Timestamp(last).tz_localize(tz)
-    span = f"{first} to {last - _dt.timedelta(days=1)} ({days} day(s), {tz})"
-
-    local = series.dropna().tz_convert(tz)
-    local = local[(local.index >= t0) & (local.index < t1)]
-    if local.empty:
-        have = series.dropna()
-        coverage = (
-            f"{have.index.min().tz_convert(tz)} .. {have.index.max().tz_convert(tz)}"
-            if len(have)
-            else "nothing"
-        )
-        raise ValueError(f"no prices from {span}; the series covers {coverage}")
-    idx = local.index
-    utc = idx.tz_convert("UTC")
-    if (utc != utc.floor("h")).any() or idx.duplicated().any():
-        raise ValueError(f"series: expected one value per whole hour in {span}")
-    expected = pd.date_range(t0, t1, freq="h", inclusive="left")
-    missing = expected.difference(idx)
-    if len(missing):
-        shown = ", ".join(str(t) for t in missing[:5]) + (" ..." if len(missing) > 5 else "")
-        raise ValueError(f"{len(missing)} hour(s) missing from {span}: {shown}")
-
-    day = (idx.tz_localize(None).normalize() - pd.Timestamp(first)).days
-    frame = pd.DataFrame({"day": day, "hour": idx.hour, "price": local.to_numpy(dtype=float)})
-    table = (
-        frame.groupby(["day", "hour"])["price"]
-        .mean()  # the repeated autumn hour
-        .unstack("hour")
-        .reindex(index=range(days), columns=range(HOURS_PER_DAY))
-    )
-    # A skipped spring hour repeats the hour before it.
-    table = table.ffill(axis=1).bfill(axis=1)
-    return table.to_numpy(dtype=float)
-
-
-# ----------------------------------------------------------------------------------------------
 # The price matrix used by the experiment
 # ----------------------------------------------------------------------------------------------
 
@@ -472,6 +152,11 @@ class Prices:
         Unit of ``buy`` (and ``sell``).
     source : str
         Where the prices come from (shown in reports and plots).
+    origin : mapping, optional
+        For prices read from a file: ``file``, ``format``, ``area``, ``column``, ``month``,
+        ``currency`` (of the file), ``unit`` and ``eur_rate`` (NOK per EUR, None if not
+        converted); empty for the shipped month. Recorded in the run's History and
+        ``summary.json``.
 
     Notes
     -----
@@ -492,6 +177,7 @@ class Prices:
     sell_ratio: float = 0.5
     unit: str = PRICE_UNIT
     source: str = "user-supplied array"
+    origin: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         try:
@@ -515,6 +201,7 @@ class Prices:
         object.__setattr__(self, "sell_ratio", check_real("sell_ratio", self.sell_ratio, 0.0))
         for name in ("unit", "source"):
             check_instance(name, getattr(self, name), str)
+        object.__setattr__(self, "origin", MappingProxyType(dict(self.origin)))
 
     def __repr__(self) -> str:
         return (
@@ -532,8 +219,9 @@ class Prices:
 
     @property
     def sell(self) -> np.ndarray:
-        """Selling prices ``phi_s = sell_ratio * phi_b``, shape ``(days, 24)``."""
-        return self.sell_ratio * self.buy
+        """Selling prices, shape ``(days, 24)``: ``phi_s = sell_ratio * phi_b`` where
+        ``phi_b >= 0`` (:func:`sell_prices` for negative prices)."""
+        return sell_prices(self.buy, self.sell_ratio)
 
     def window(self, hour: int, N: int) -> tuple[np.ndarray, np.ndarray]:
         """Buying and selling prices the MPC sees at ``hour`` over a horizon of ``N`` hours.
@@ -560,7 +248,7 @@ class Prices:
         ahead = int(hour) + np.arange(N)  # hours counted from today's midnight, (N,)
         day = (np.arange(self.days)[:, None] + ahead[None, :] // HOURS_PER_DAY) % self.days
         buy = self.buy[day, ahead[None, :] % HOURS_PER_DAY]  # (days, N)
-        return buy, self.sell_ratio * buy
+        return buy, sell_prices(buy, self.sell_ratio)
 
     def to_frame(self) -> pd.DataFrame:
         """The prices as a tidy table for plotting: one row per (day, hour).
@@ -601,6 +289,7 @@ class Prices:
             sell_ratio=self.sell_ratio,
             unit=self.unit,
             source=f"{self.source}; first {days} day(s)",
+            origin={**self.origin, "days": days} if self.origin else {},
         )
 
     def scaled(self, factor: float) -> Prices:
@@ -613,6 +302,7 @@ class Prices:
             sell_ratio=self.sell_ratio,
             unit=self.unit,
             source=f"{self.source}; scaled x{factor:g}",
+            origin={**self.origin, "scale": factor} if self.origin else {},
         )
 
     # -- constructors ----------------------------------------------------------------------
@@ -656,3 +346,63 @@ class Prices:
         name = series.name if series.name is not None else "series"
         first = _as_date(start, LOCAL_TZ)
         return cls(buy, sell_ratio=sell_ratio, source=f"{name}, {days} day(s) from {first}")
+
+    @classmethod
+    def from_month(
+        cls,
+        series: pd.Series,
+        month: str,
+        system: SystemConfig | None = None,
+        days: int | None = None,
+    ) -> Prices:
+        """Calendar ``month`` (``'YYYY-MM'``) of an hourly series (e.g. from
+        :func:`~mpcrl_lite.system.price_files.load.load_prices`) as the learning month.
+
+        Every hour of the month (its first ``days`` days) must have a price (the first
+        missing hour is named otherwise); the series must be in :data:`PRICE_UNIT`
+        (``attrs['unit']``, when present). The selling ratio and the price scale are
+        ``system``'s, as for :meth:`default`; ``origin`` records the file, format, area,
+        currency and conversion rate from the series' ``attrs``.
+        """
+        system = SystemConfig() if system is None else system
+        unit = series.attrs.get("unit", PRICE_UNIT)
+        if unit != PRICE_UNIT:
+            raise ValueError(f"prices in {unit}; expected {PRICE_UNIT} (load_prices(..., "
+                             "currency='NOK') converts EUR at a stated rate)")
+        buy = month_matrix(series, month, days)
+        keys = ("source", "format", "area", "column", "currency", "eur_rate",
+                "resolution_min")
+        origin = {k: series.attrs.get(k) for k in keys}
+        origin["file_currency"] = series.attrs.get("file_currency", origin["currency"])
+        origin["file"] = origin.pop("source")
+        origin.update(month=str(month), unit=unit, days=int(buy.shape[0]))
+        name = series.name if series.name is not None else "series"
+        if origin.get("column") and origin["column"] != name:
+            name = f"{origin['column']} ({name})"
+        where = origin["file"] or "series"
+        rate = (f", EUR x {origin['eur_rate']:g} NOK/EUR" if origin.get("eur_rate") else "")
+        prices = cls(buy, sell_ratio=system.sell_ratio, unit=unit, origin=origin,
+                     source=f"{name}, {buy.shape[0]} day(s) from {month}-01 ({where}{rate})")
+        return prices.scaled(system.price_scale)
+
+    @classmethod
+    def from_file(
+        cls,
+        config: PriceFileConfig,
+        system: SystemConfig | None = None,
+        days: int | None = None,
+    ) -> Prices:
+        """The month of a :class:`~mpcrl_lite.config.PriceFileConfig` (file, area, month,
+        currency, rate, format) through :func:`~mpcrl_lite.system.price_files.load.load_prices`
+        and :meth:`from_month`; its first ``days`` days when given (the whole month must have
+        a price every hour). Hours without a price outside the month are not reported."""
+        check_instance("config", config, PriceFileConfig)
+        if not config.file:
+            raise ValueError("config.file is empty; expected a price file (Prices.month gives "
+                             "the shipped month)")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", PriceFileWarning)
+            series = load_prices(config.file, config.area or None, currency=config.currency,
+                                 format=config.format or None, eur_rate=config.eur_rate)
+        prices = cls.from_month(series, config.month, system)
+        return prices.take(days) if days is not None and days < prices.days else prices

@@ -216,6 +216,19 @@ def test_day_explorer_is_a_widget_with_a_figure(day):
     assert "J =" in day.status.value
 
 
+def test_explorer_pictures_say_what_they_show(day):
+    """The picture's alt text carries the figure's numbers: the day's J, the grid limit P̄
+    and the panels' series, in plain text (no TeX, no HTML)."""
+    alt = day.image.alt
+    J = day.result.summary()["J"]
+    assert alt.startswith("Figure:") and f"J = {J:.1f} NOK/day" in alt
+    assert f"P̄ = {day.values['P_bar']:g} MW" in alt and "agent 1" in alt
+    assert "$" not in alt and "\\" not in alt and "<" not in alt.replace("soc < 0.1", "")
+    day.controls["P_bar"].value = 1.0
+    assert "P̄ = 1 MW" in day.image.alt and day.image.alt != alt
+    day.controls["P_bar"].value = 1.5
+
+
 def test_day_explorer_keeps_the_grid_limit_when_P_bar_changes(day):
     for p_bar in (1.0, 0.5, 2.0, 1.5):
         before = day.updates

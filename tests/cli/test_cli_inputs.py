@@ -88,7 +88,9 @@ def test_month_prices_reads_the_whole_month(export):
 @pytest.mark.parametrize("area, month, days, match", [
     ("Tr.heim", "2021-2", None, "YYYY-MM"),
     ("Tr.heim", "2021-13", None, "YYYY-MM"),
-    ("Bergen", "2021-02", None, r"--area 'Bergen' is not in .*expected one of \['Oslo', 'Tr.heim'\]"),
+    ("Bergen", "2021-02", None, (r"--area 'Bergen' is not in .* \(read as NO5\); expected one of: "
+                                    r"Oslo \(NO1\), "
+                                    r"Tr.heim \(NO3\)")),
     ("Tr.heim", "2021-03", None, "no prices from 2021-03-01"),
     ("Tr.heim", "2021-02", 29, "--days 29: 2021-02 has 28 days"),
 ])
@@ -101,7 +103,7 @@ def test_month_prices_refuses_what_is_not_there(export, area, month, days, match
 def test_a_file_that_is_not_an_export_is_refused(tmp_path):
     path = tmp_path / "prices.csv"
     path.write_text("time,price\n2021-02-01T00:00,30.25\n")
-    with pytest.raises(ValueError, match="is not a Nord Pool price export") as info:
+    with pytest.raises(ValueError, match="is not a price file this package reads") as info:
         cli_inputs.month_prices(path, "Tr.heim", "2021-02", SystemConfig())
     assert "\n" not in str(info.value)
 

@@ -98,9 +98,8 @@ def test_study_passes_the_file_as_the_sweeps_base(tmp_path, monkeypatch):
 @pytest.mark.parametrize("argv, message", [
     (["simulate", "--days", "1", "--backend", "kernel"],
      "U_bar=[2.0, 1.0, 1.0]: --backend kernel expects one value for every battery"),
-    (["learn", "--months", "1", "--days", "1"],
-     ("U_bar=[2.0, 1.0, 1.0]: the exploration (LearningConfig.exploration_bounds='symmetric') "
-     "expects one value")),
+    (["learn", "--months", "1", "--days", "1", "--backend", "batch"],
+     "U_bar=[2.0, 1.0, 1.0]: --backend batch expects one value for every battery"),
 ])
 def test_what_needs_one_input_bound_refuses_a_per_battery_one(tmp_path, capsys, argv, message):
     path = tmp_path / "u.yaml"

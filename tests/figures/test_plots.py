@@ -278,10 +278,12 @@ def test_fig2_performance(history):
     np.testing.assert_allclose(evaluation.get_xdata(), np.asarray(history.eval_month) + 1)
     K = history.learning.eval_draws
     assert K > 1 and evaluation.get_label() == f"evaluation (mean of {K} fixed draws)"
-    # the band is the confidence interval over the draws, around the mean
+    # the confidence interval over the draws, around the mean: with two evaluations an error
+    # bar on each (no band, no line between them)
+    assert len(history.J_eval) == 2 and evaluation.get_linestyle() == "None"
     band = [c for c in fig.axes[0].collections if c.get_gid() == "J_eval_ci"]
     assert len(band) == 1
-    y = band[0].get_paths()[0].vertices[:, 1]
+    y = np.concatenate([seg[:, 1] for seg in band[0].get_segments()])
     np.testing.assert_allclose([y.min(), y.max()],
                                [min(history.J_eval_ci_low), max(history.J_eval_ci_high)])
     assert all(lo < J < hi for lo, J, hi in zip(history.J_eval_ci_low, history.J_eval,
@@ -305,7 +307,9 @@ def test_fig2_rolling_mean_on_a_longer_history(history):
     rolling = one_line(fig, "J_rolling")
     expected = [np.mean(J[k - 3 : k + 1]) for k in range(3, 12)]
     np.testing.assert_allclose(rolling.get_ydata(), expected)
-    np.testing.assert_allclose(rolling.get_xdata(), np.arange(4, 13))
+    # centred: the mean of months k-3 .. k is drawn at their middle, k - 1.5 (months from 1)
+    np.testing.assert_allclose(rolling.get_xdata(), np.arange(4, 13) - 1.5)
+    assert "centred" in rolling.get_label()
     with pytest.raises(ValueError, match="rolling=0"):
         fig2_performance(longer, rolling=0)
 
@@ -434,3 +438,48 @@ def test_figures_from_a_saved_history(history, tmp_path):
 def test_public_api():
     for name in plots.__all__:
         assert hasattr(plots, name), name
+
+
+def test_fig2_draws_few_evaluations_as_points_with_error_bars(history):
+    """Two evaluations: no line and no band between them (a trend nobody measured)."""
+    two = dataclasses.replace(history, eval_month=history.eval_month[:2],
+                              J_eval=history.J_eval[:2],
+                              J_eval_ci_low=history.J_eval_ci_low[:2],
+                              J_eval_ci_high=history.J_eval_ci_high[:2])
+    fig = fig2_performance(two)
+    evaluation = one_line(fig, "J_eval")
+    assert evaluation.get_linestyle() == "None" and len(evaluation.get_xdata()) == 2
+    ax = fig.axes[0]
+    bars = [c for c in ax.collections if c.get_gid() == "J_eval_ci"]
+    assert len(bars) == 1 and len(bars[0].get_segments()) == 2  # one error bar per point
+    low, high = sorted(bars[0].get_segments()[0][:, 1])
+    assert (low, high) == pytest.approx((two.J_eval_ci_low[0], two.J_eval_ci_high[0]))
+    assert not [c for c in ax.collections if c.get_gid() == "J_eval_ci"
+                and type(c).__name__ == "FillBetweenPolyCollection"]
+
+
+def test_fig7_says_when_tied_agents_coincide(history):
+    from mpcrl_lite.theta import Theta
+
+    tied = history.theta_part("delta")
+    notes = [t for t in fig7_theta(history, "delta").axes[0].texts
+             if t.get_gid() == "tied_note"]
+    coincide = np.allclose(tied, tied[:, :1], rtol=1e-12, atol=0.0)
+    assert bool(notes) == coincide
+    if notes:
+        assert "share one value" in notes[0].get_text()
+    assert Theta  # the note depends only on the values drawn
+
+
+def test_fig2_draws_three_evaluations_as_a_line_with_a_band(history):
+    J = [float(v) for v in np.linspace(100.0, 60.0, 4)]
+    months = [0, 1, 3]
+    J_eval = [J[m] for m in months]
+    three = dataclasses.replace(history, J=J, eval_month=months, J_eval=J_eval,
+                                J_eval_ci_low=[j - 5.0 for j in J_eval],
+                                J_eval_ci_high=[j + 5.0 for j in J_eval])
+    fig = fig2_performance(three)
+    assert one_line(fig, "J_eval").get_linestyle() == "--"
+    (band,) = [c for c in fig.axes[0].collections if c.get_gid() == "J_eval_ci"]
+    y = band.get_paths()[0].vertices[:, 1]
+    np.testing.assert_allclose([y.min(), y.max()], [min(J_eval) - 5.0, max(J_eval) + 5.0])

@@ -74,7 +74,7 @@ def test_every_monthly_directory_reads_back_as_that_month(learner, tmp_path):
         assert_same_history(History.load(copy), history)
     assert len(staged_json) == 1
     assert_same_history(History.load(out), run.history)
-    assert sorted(p.name for p in out.iterdir() if p.name != rundir.LOCK) == sorted(
+    assert sorted(p.name for p in out.iterdir()) == sorted(
         ["manifest.json", "history.json", "history.npz", "checkpoint.json"])
 
 
@@ -197,6 +197,7 @@ def test_a_changed_journal_is_refused(tmp_path, capsys, change):
         History.load(run)
     status = main(learn_args(run, 5, "--resume"))
     assert status == 2 and message in capsys.readouterr().err
+    # nothing of the run touched (the command's lock file is not part of the run)
     assert {p.name: p.read_bytes() for p in run.iterdir() if p.name != rundir.LOCK} == before
 
 
@@ -233,7 +234,10 @@ def test_lockstep_writes_the_files_of_the_runs_alone(tmp_path):
         for (a, _), (s, _) in zip(seen[i], stacked_seen[i], strict=True):
             got, want = History.load(s), History.load(a)
             assert got.J == want.J and got.theta_final == want.theta_final
-            assert sorted(p.name for p in s.iterdir() if p.name != rundir.LOCK) == sorted(p.name for p in a.iterdir() if p.name != rundir.LOCK)
+            def files(d):  # the run's files (a process's lock file is not part of the run)
+                return sorted(p.name for p in d.iterdir() if p.name != rundir.LOCK)
+
+            assert files(s) == files(a)
             manifest = [json.loads((d / "manifest.json").read_text()) for d in (s, a)]
             assert manifest[0]["format"] == manifest[1]["format"]
             assert sorted(manifest[0]["files"]) == sorted(manifest[1]["files"])
@@ -290,3 +294,36 @@ def assert_same_history_but_timings(got: History, want: History) -> None:
         for key in RECORD_ARRAYS:
             np.testing.assert_array_equal(getattr(getattr(got, month), key),
                                           getattr(getattr(want, month), key))
+
+
+def test_the_run_directory_appends_and_keeps(tmp_path):
+    """rundir.commit with keep/append: the kept entry stays as it was, the journal is the
+    concatenation of the appends, bytes after its committed size are not part of it, and a
+    whole commit drops the journal."""
+    base = {"history.json": b'{"a": 1}', "history.npz": b"npz", "checkpoint.json": b"{}"}
+    options = {"kind": "centralized", "configs_hash": "0" * 64}
+    first = rundir.commit(tmp_path, base, months_done=1, **options)
+    manifest = first
+    for month, line in ((2, b"one\n"), (3, b"two\n")):
+        manifest = rundir.commit(tmp_path, {"checkpoint.json": b"{%d}" % month},
+                                 months_done=month, previous=manifest, keep=["history.json"],
+                                 append={rundir.JOURNAL: line}, **options)
+    assert manifest["format"] == rundir.FORMAT_APPEND
+    assert manifest["files"]["history.json"] == first["files"]["history.json"]
+    assert "history.npz" not in manifest["files"]
+    run = rundir.read(tmp_path, ["history.json", rundir.JOURNAL, "checkpoint.json"])
+    assert run.files == {"history.json": b'{"a": 1}', rundir.JOURNAL: b"one\ntwo\n",
+                         "checkpoint.json": b"{3}"}
+    with open(tmp_path / rundir.JOURNAL, "ab") as f:
+        f.write(b"thr")  # an append that never reached its commit
+    assert rundir.read(tmp_path, [rundir.JOURNAL]).files[rundir.JOURNAL] == b"one\ntwo\n"
+    again = rundir.commit(tmp_path, {"checkpoint.json": b"{4}"}, months_done=4,
+                          previous=manifest, keep=["history.json"],
+                          append={rundir.JOURNAL: b"four\n"}, **options)
+    assert (tmp_path / rundir.JOURNAL).read_bytes() == b"one\ntwo\nfour\n"
+    with pytest.raises(ValueError, match="keep"):
+        rundir.commit(tmp_path, {}, months_done=5, previous=again, keep=["history.npz"],
+                      **options)
+    rundir.commit(tmp_path, base, months_done=5, **options)
+    assert not (tmp_path / rundir.JOURNAL).exists()
+    assert json.loads((tmp_path / "manifest.json").read_text())["format"] == rundir.FORMAT

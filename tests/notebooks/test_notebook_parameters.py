@@ -41,10 +41,12 @@ FOLLOWS = {
 
 #: Parameters of a notebook's own, with no package default to follow.
 OWN = {
-    "01_battery_dynamics": {"BUY_BELOW", "SELL_ABOVE", "SOC_MIN", "SOC_MAX", "NOISE_SAMPLES"},
+    "01_battery_dynamics": {"BUY_BELOW", "SELL_ABOVE", "SOC_MIN", "SOC_MAX", "NOISE_SAMPLES",
+                            "PRICE_FILE", "PRICE_AREA", "PRICE_MONTH"},
     "02_mpc_policy": {"SMALL_P_BAR", "HOUR", "CURVE_POINTS"},
     "04_deterministic_policy_gradient": {"HOUR", "FD_STEP"},
-    "06_baselines_and_decentralized_learning": {"LEARNER_MONTHS", "N_LARGE", "CAUSAL_POLICY"},
+    "06_baselines_and_decentralized_learning": {"LEARNER_MONTHS", "N_LARGE", "CAUSAL_POLICY",
+                                                "MIXED_MONTHS"},
     "07_parameter_study": {"P_BARS", "NOISE_VARS", "SEEDS", "WORKERS"},
 }
 

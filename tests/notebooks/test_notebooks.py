@@ -23,6 +23,14 @@ import nbref
 import papermill
 import pytest
 
+from mpcrl_lite.publish.claims import check_claims, load_claims
+from mpcrl_lite.publish.launch import (
+    NOTEBOOK_FOLDER,
+    STUDENT_FOLDER,
+    binder_url,
+    launch_badges,
+    student_launch_line,
+)
 from mpcrl_lite.publish.report import (
     check_parameters,
     execute_notebook,
@@ -179,6 +187,12 @@ def test_make_student_version(tmp_path):
         placeholders = [c for c in nb.cells if "exercise" in _tags(c)]
         assert len(placeholders) == len(solutions)
         assert len(nb.cells) == len(original.cells)
+        # the student copy opens the student copy: Binder at student/, never notebooks/
+        first = nb.cells[0].source
+        assert binder_url(path.stem, folder=STUDENT_FOLDER) in first
+        assert f"/{NOTEBOOK_FOLDER}/{path.stem}.ipynb" not in first
+        assert first.replace(student_launch_line(path.stem), "") == \
+            original.cells[0].source.replace(launch_badges(path.stem), "")
 
 
 # -- parameters ----------------------------------------------------------------------------
@@ -284,6 +298,20 @@ def test_notebook_matches_reference_outputs(stem, executed):
     assert not problems, (
         f"{stem}: outputs differ from tests/notebook_refs/{stem}.json (if intended, run "
         "tools/update_notebook_refs.py):\n" + "\n".join(map(str, problems[:10])))
+
+
+@pytest.mark.notebook
+@pytest.mark.parametrize("stem", sorted(load_claims()))
+def test_prose_claims_hold_for_the_ci_profile(stem, executed):
+    """The claims of notebooks/claims.yaml that hold in the ci profile (defaults of the
+    package, run sizes) are true of the ci run; ``make report`` checks the full profile's."""
+    claims = {stem: load_claims()[stem]}
+    wanted = [c for c in claims[stem] if "ci" in c.profiles]
+    summaries = {name: read_summary(executed(name)) for name in
+                 {stem, *(c.summary_of for c in wanted)}}
+    result = check_claims(summaries, "ci", claims)
+    assert result["checked"] == len(wanted) and not result["unchecked"]
+    assert not result["failed"], "\n".join(result["failed"])
 
 
 @pytest.mark.parametrize("stem", STEMS)

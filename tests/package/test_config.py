@@ -68,6 +68,9 @@ BAD = [
     (LearningConfig, "months", "12", "an integer >= 1, got str"),
     (LearningConfig, "days_per_month", 0, "an integer >= 1"),
     (LearningConfig, "eval_draws", 0, "an integer >= 1"),
+    (LearningConfig, "learner", "td", "one of 'dpg', 'q'"),
+    (LearningConfig, "hessian", "exact", "one of 'none', 'approx', 'full'"),
+    (LearningConfig, "newton_step", 0.0, "a value in (0, inf)"),
     (LearningConfig, "exploration_std", -0.1, "a value in [0, inf)"),
     (LearningConfig, "ridge", -1e-6, "a value in [0, inf)"),
     (LearningConfig, "value_features", "quadratic",
@@ -301,7 +304,8 @@ def test_fuzz_a_config_is_valid_or_one_clear_error(config, data):
             made = config(**kwargs)
         except (ValueError, TypeError) as err:
             message = str(err)
-            assert any(message.startswith((f"{n}=", f"{n}:")) for n in names), message
+            # the field, or one battery's entry of a per-battery field (alpha[1]=...)
+            assert any(message.startswith((f"{n}=", f"{n}:", f"{n}[")) for n in names), message
             assert len(message.splitlines()) == 1, message
             event(f"refused: {type(err).__name__}")
             return
@@ -379,3 +383,9 @@ def test_prices_the_model_cannot_mean_are_refused():
     Prices(buy)
     with pytest.raises(ValueError, match="within"):
         Prices(np.full((1, 24), 2e4)).scaled(10.0)
+
+
+def test_a_bad_battery_entry_is_named_by_its_index():
+    with pytest.raises(ValueError, match=r"^alpha\[0\]=0\.0") as err:
+        SystemConfig(alpha=(0.0, 1 / 12, 1 / 12))
+    assert len(str(err.value).splitlines()) == 1

@@ -27,6 +27,8 @@ from mpcrl_lite.publish.alt_text import _with_alt, describe_figure
 from mpcrl_lite.publish.html_export import (
     WIDGET_STATE_MIME,
     WIDGET_VIEW_MIME,
+    copy_mathjax,
+    page_title,
     remote_resources,
     static_widgets,
     to_html,
@@ -140,6 +142,49 @@ def test_static_widgets_replace_explorers_by_their_picture_and_settings():
     assert "J = 12.5 NOK" in page and "Open the notebook" in output["data"]["text/plain"]
 
 
+def test_static_widgets_keep_the_explorer_picture_alt_text():
+    """The explorers draw into a classroom.picture.Picture (an anywidget with ``alt``): its
+    picture and its own alt text reach the page."""
+    nb = _widget_notebook()
+    state = nb.metadata["widgets"][WIDGET_STATE_MIME]["state"]
+    state["image"] = {"model_name": "AnyModel",
+                      "state": {"format": "png", "alt": "Figure: MPC, day 1: J = 12.5 NOK/day."},
+                      "buffers": state["image"]["buffers"]}
+    page = static_widgets(nb).cells[1].outputs[0]["data"]["text/html"]
+    assert page.count("<img ") == 1 and 'alt="Figure: MPC, day 1: J = 12.5 NOK/day."' in page
+
+
+def test_pages_are_titled_after_their_notebook_and_meet_contrast():
+    nb = _widget_notebook()
+    nb.cells[0].source = "# 02 · The *MPC* policy, [$\\tau$](x.md)\n\ntext"
+    assert page_title(nb) == "02 · The MPC policy, tau · mpcrl_lite"
+    page = to_html(nb)
+    assert "<title>02 · The MPC policy, tau · mpcrl_lite</title>" in page
+    # the light theme's comment (#408080) and number (#080) colours fall below 4.5:1 on the
+    # code background; the page replaces them and underlines links in running text
+    assert "--jp-mirror-editor-comment-color: #2f6464" in page
+    assert "--jp-mirror-editor-number-color: #006600" in page
+    assert "--jp-cell-prompt-not-active-opacity: 1" in page
+    assert "text-decoration: underline" in page
+    untitled = nbformat.v4.new_notebook()
+    assert page_title(untitled) == "Notebook · mpcrl_lite"
+
+
+def test_the_offline_mathjax_has_every_font_it_asks_for(tmp_path):
+    """The MathML hidden for screen readers asks for the TeX fonts MathJax_AMS, _Script,
+    _Caligraphic and _Fraktur, which jupyter-server-mathjax does not ship: STIX faces stand in."""
+    folder = copy_mathjax(tmp_path)
+    config = (folder / "config" / "TeX-AMS-MML_HTMLorMML-full.js").read_text()
+    asked = set(re.findall(r"MathJax_[A-Za-z]+-[A-Za-z]+\.otf", config))
+    assert "MathJax_AMS-Regular.otf" in asked
+    for name in asked:
+        font = folder / "fonts" / "HTML-CSS" / "TeX" / "otf" / name
+        assert font.is_file() and font.read_bytes()[:4] == b"wOFF", name
+    (folder / "fonts" / "HTML-CSS" / "TeX" / "otf" / "MathJax_AMS-Regular.otf").unlink()
+    copy_mathjax(tmp_path)  # an older copy gets the missing fonts too
+    assert (folder / "fonts" / "HTML-CSS" / "TeX" / "otf" / "MathJax_AMS-Regular.otf").is_file()
+
+
 def test_unlink_remote_images_turns_badges_into_links():
     source = unlink_remote_images(_widget_notebook()).cells[0].source
     assert "[Open in Colab](https://colab.example/nb)" in source
@@ -238,7 +283,9 @@ def test_site_pages_are_offline_described_and_linked(built_site):
     assert "without encryption" not in page
     alts = [image.get("alt") or "" for image in
             _parse(built_site / "notebooks" / f"{STEMS[0]}.html").images]
-    assert "Figure: Buying price." in alts, "figures carry their title as alt text"
+    assert any(alt.startswith("Figure: buying price φ_b (NOK/MWh) against hour") and "series day 1"
+               in alt and "values from" in alt for alt in alts), \
+        f"figures carry their panels, series and data range as alt text: {alts}"
     summary = json.loads((built_site / "summary.json").read_text())
     assert list(summary["notebooks"]) == [STEMS[0]] and summary["profile"] == "ci"
     index = (built_site / "index.html").read_text(encoding="utf-8")
@@ -278,6 +325,28 @@ def test_paper_figures_and_study_tables_are_collected(tmp_path):
     assert "study/months=2,days=2/results.csv" in page and "14.0" in page
 
 
+def test_the_site_study_is_the_notebook_own_run(tmp_path):
+    """Rows an exercise added to the study's folder (another seed, a pending run) and other
+    sweeps' folders are not the study: only the finished runs of its own grid are shown."""
+    sweep = tmp_path / "report" / "sweep_runs" / "months=2,days=2"
+    sweep.mkdir(parents=True)
+    (sweep / "results.csv").write_text(
+        "P_bar,noise_var,seed,status,J_last\n"
+        "1.0,0.5,0,done,12.5\n1.0,0.5,1,done,13.0\n2.0,0.5,0,done,14.0\n2.0,0.5,1,done,15.0\n"
+        "1.0,0.5,2,done,99.0\n2.0,0.5,2,pending,\n")
+    other = tmp_path / "report" / "sweep_runs" / "months=9,days=9"
+    other.mkdir(parents=True)
+    (other / "results.csv").write_text("P_bar,noise_var,seed,status,J_last\n1.0,0.5,0,done,1\n")
+    study = {"months": 2, "days": 2, "P_bars": [1.0, 2.0], "noise_vars": [0.5], "seeds": 2}
+    studies = site_module.collect_study(tmp_path / "report", tmp_path / "study", study)
+    assert [s["name"] for s in studies] == ["months=2,days=2"]
+    table = studies[0]["table"]
+    assert table["J_last"].tolist() == [12.5, 13.0, 14.0, 15.0]
+    assert (table["status"] == "done").all() and table["seed"].max() == 1
+    copied = (tmp_path / "study" / "months=2,days=2" / "results.csv").read_text()
+    assert "99.0" not in copied and "pending" not in copied
+
+
 def test_site_command_rejects_a_bad_profile(capsys):
     with pytest.raises(SystemExit) as info:
         site_module.main(["--out", "unused", "--profile", "huge"])
@@ -308,6 +377,7 @@ def test_pages_render_offline_in_a_real_browser(built_site):
     assert 'class="MathJax_Error"' not in dom and "Math Processing Error" not in dom
     text = re.sub(r"<script.*?</script>", "", dom, flags=re.DOTALL)
     assert "$$" not in text, "no raw TeX left on the page"
-    assert dom.count("mpcrl-static-widget") == 2  # the two explorers of notebook 01
+    # the two explorers of notebook 01 (the class also names the page's style rules)
+    assert dom.count('<figure class="mpcrl-static-widget"') == 2
     index = _dump_dom((built_site / "index.html").resolve().as_uri())
     assert f'href="notebooks/{STEMS[0]}.html"' in index and "The notebook tour" in index

@@ -117,7 +117,7 @@ def test_equal_to_the_numpy_statement_to_the_last_bit(n):
     system = SystemConfig(n=n, P_bar=1.5) if n > 1 else SystemConfig(n=1, P_bar=0.6)
     rng = np.random.default_rng(n)
     for pi, e in _cases(n, rng):
-        np.testing.assert_array_equal(project_rows(pi, system.U_bar, system.P_bar),
+        np.testing.assert_array_equal(project_rows(pi, np.full(system.n, system.U_bar), system.P_bar),
                                       project_action(pi, system))
         for bounds in ("symmetric", "radial"):
             np.testing.assert_array_equal(bounded_exploration(pi, e, system, bounds),
@@ -133,7 +133,7 @@ def test_many_batteries_feasible_odd_and_near_the_numpy_statement(n):
     rng = np.random.default_rng(n)
     for pi, e in _cases(n, rng, days=1000):
         pi = pi * 0.4 * n / 1.5
-        np.testing.assert_allclose(project_rows(pi, system.U_bar, system.P_bar),
+        np.testing.assert_allclose(project_rows(pi, np.full(system.n, system.U_bar), system.P_bar),
                                    project_action(pi, system), rtol=0, atol=1e-14)
         for bounds in ("symmetric", "radial"):
             plus = bounded_exploration(pi, e, system, bounds)

@@ -347,7 +347,8 @@ SWEEP_LAYER = {
     # rundir: LEGACY_VALUES of older configs
     "studies.sweep.store": {"learning.rundir", "studies.sweep.grid"},
     "studies.sweep.table": {"learning.history", "studies.sweep.grid", "studies.sweep.store"},
-    "studies.sweep.run": {"learning.experiment", "studies.lockstep", "publish.report",
+    "studies.sweep.run": {"learning.experiment", "learning.q_experiment", "studies.lockstep",
+                          "publish.report",
                           "studies.sweep.grid", "studies.sweep.store", "studies.sweep.table"},
     "studies.sweep.schedule": {"studies.sweep.grid", "studies.sweep.run", "studies.sweep.store",
                                "studies.sweep.table"},

@@ -99,6 +99,7 @@ def run(args: argparse.Namespace) -> int:
         "months_learned": history.months,
         "days": days,
         "prices": prices.source,
+        **({"prices_origin": dict(prices.origin)} if prices.origin else {}),
         "theta_learned": history.final_theta().to_dict(),
         "system": system.to_dict(),
         "mpc": mpc_config.to_dict(),

@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any
 
 from ..._util import jsonio
-from ...config import OPTIMIZERS, LearningConfig, MPCConfig
+from ...config import HESSIANS, LEARNERS, OPTIMIZERS, LearningConfig, MPCConfig
 from ...learning import rundir
 from .. import args as _a
 from ..args import UsageError
@@ -37,6 +37,16 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help=f"DPG update rule (default {_a.LEARNING.optimizer}; sgd is the "
                         "paper's plain gradient step)")
     p.add_argument("--exploration-std", type=_a.finite_float, default=None)
+    p.add_argument("--learner", choices=LEARNERS, default=None,
+                   help="dpg: the paper's policy gradient (default); q: LSTD Q-learning with the "
+                        "MPC as the action-value function (a resumed run keeps its own)")
+    p.add_argument("--hessian", choices=HESSIANS, default=None,
+                   help=f"--learner q only: the curvature of the update (default "
+                        f"{_a.LEARNING.hessian}: Gauss-Newton; full: with the Hessian of Q; "
+                        "none: a first-order step with --optimizer and --step-size)")
+    p.add_argument("--newton-step", type=_a.finite_float, default=None,
+                   help=f"--learner q: the fraction of the Newton step (default "
+                        f"{_a.LEARNING.newton_step})")
     p.add_argument("--eval-draws", type=_a.positive_int, default=None,
                    help=f"noise draws of each evaluation (default {_a.LEARNING.eval_draws}; "
                         "runs from before the option were evaluated on 1)")
@@ -82,6 +92,18 @@ def _run_learning(out: Path) -> dict[str, Any]:
     return {}
 
 
+def _run_learner(out: Path) -> dict[str, Any]:
+    """``learner`` and ``hessian`` of the run in ``out`` ({} if there is none to read)."""
+    for name in ("checkpoint.json", "history.json"):
+        try:
+            learning = LearningConfig.from_dict(json.loads((out / name).read_text())["learning"])
+            return {"learner": learning.learner, "hessian": learning.hessian,
+                    "newton_step": learning.newton_step}
+        except (OSError, ValueError, TypeError, KeyError, AttributeError):
+            continue
+    return {}
+
+
 def _run_forecast(out: Path) -> str | None:
     """``mpc.forecast`` of the run in ``out`` (None if there is none to read: the resume then
     reports what is wrong)."""
@@ -103,6 +125,22 @@ def run(args: argparse.Namespace) -> int:
         # a resumed run keeps its evaluation draws (1 for runs from before the option)
         eval_draws = _run_eval_draws(Path(args.out))
     kept = _run_learning(Path(args.out)) if args.resume else {}  # and its learner's settings
+    if args.hessian is not None and args.learner != "q" and not (
+            args.resume and args.learner is None):
+        raise UsageError(f"--hessian {args.hessian} needs --learner q (the policy gradient has "
+                         "no Hessian option)")
+    if args.learner == "q" and args.decentralized:
+        raise UsageError("--learner q with --decentralized: the decentralized learners use the "
+                         "policy gradient; expected one of them")
+    chosen = {"learner": args.learner, "hessian": args.hessian,
+              "newton_step": args.newton_step}
+    if args.resume:  # a resumed run keeps its learner unless one is named
+        run_learner = _run_learner(Path(args.out))
+        for key, value in run_learner.items():
+            if chosen[key] is None and (key == "learner" or args.learner is None
+                                        or args.learner == run_learner.get("learner")):
+                chosen[key] = value
+    kept = {**kept, **{k: v for k, v in chosen.items() if v is not None}}
     if args.resume and args.forecast is None:  # and its MPC's forecast
         args.forecast = _run_forecast(Path(args.out))
     system, mpc_config, learning = _a.configs(
@@ -116,12 +154,6 @@ def run(args: argparse.Namespace) -> int:
             args, months=args.months, days_per_month=prices.days, step_size=args.step_size,
             optimizer=args.optimizer, exploration_std=args.exploration_std, **kept,
         )
-    if learning.exploration_std > 0 and learning.exploration_bounds != "project":
-        try:  # the zero-mean exploration's compiled kernel has one input bound
-            system.common("U_bar", "the exploration (LearningConfig.exploration_bounds="
-                          f"{learning.exploration_bounds!r})")
-        except ValueError as err:
-            raise UsageError(str(err)) from None
     _a.budget(f"--months {args.months} --days {learning.days_per_month} --n {system.n}",
             system.n, learning.days_per_month, runs=args.months, sensitivities=True,
             horizon=system.N)
@@ -166,6 +198,10 @@ def _learn(args, out, system, mpc_config, learning, prices) -> int:
         from ...decentralized.learner import DecentralizedExperiment
 
         exp = DecentralizedExperiment(system, mpc_config, learning, prices=prices)
+    elif learning.learner == "q":
+        from ...learning.q_experiment import QLearningExperiment
+
+        exp = QLearningExperiment(system, mpc_config, learning, prices=prices)
     else:
         exp = Experiment(system, mpc_config, learning, prices=prices)
     try:

@@ -83,6 +83,7 @@ def _simulate(args, out, system, mpc_config, learning, prices, days) -> int:
         "wall_time_s": elapsed,
         "ms_per_mpc_solve": 1000 * elapsed / (days * system.hours_per_day),
         "prices": prices.source,
+        **({"prices_origin": dict(prices.origin)} if prices.origin else {}),
         "theta": theta.to_dict(),
         "system": system.to_dict(),
         "mpc": mpc_config.to_dict(),

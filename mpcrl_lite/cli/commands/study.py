@@ -6,6 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
+from ...config import HESSIANS, LEARNERS
 from .. import args as _a
 from ..args import UsageError
 
@@ -42,11 +43,16 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="a tune output directory of the study's class: split each seed's "
                         "regret into the learner's part and the class's part")
     _a.add_system_file(p)
+    _a.add_price_args(p)
     p.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
     p.add_argument("--workers", type=_a.nonneg_int, default=None, help="local workers (0: serial)")
     p.add_argument("--lockstep", type=_a.positive_int, default=None, metavar="K",
                    help="runs per task, stepped together in one process (default: each "
                         "worker's share; 1: one run per task)")
+    p.add_argument("--learner", choices=LEARNERS, default=None,
+                   help="dpg (the policy gradient, default) or q (LSTD Q-learning)")
+    p.add_argument("--hessian", choices=HESSIANS, default=None,
+                   help="--learner q: the curvature of the update (see learn --help)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -62,6 +68,16 @@ def run(args: argparse.Namespace) -> int:
         base["learning.eval_draws"] = args.eval_draws
     if args.forecast is not None:
         base["mpc.forecast"] = args.forecast
+    if args.hessian is not None and args.learner != "q":
+        raise UsageError(f"--hessian {args.hessian} needs --learner q")
+    if args.learner is not None:
+        base["learning.learner"] = args.learner
+    if args.hessian is not None:
+        base["learning.hessian"] = args.hessian
+    prices = _a.month_prices(args, _a.SYSTEM, args.days)  # checked before any work
+    if prices is not None:
+        base.update(_a.price_base(args))
+        base["learning.days_per_month"] = prices.days
     try:
         summary = run_study(
             args.seeds, args.months, args.out, seed_start=args.seed_start, base=base,

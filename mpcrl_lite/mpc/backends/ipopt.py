@@ -14,6 +14,8 @@ Failures never raise mid-run: IPOPT errors, non-convergence and a polish that ca
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import casadi as ca
 import numpy as np
 
@@ -22,7 +24,7 @@ from ..formulation import MPC
 from ..sensitivity import PolicySensitivity
 from ..solution import BackendBase, BatchSolution, MPCSolution, Sensitivity
 
-__all__ = ["STATUS_POLISH_FAILED", "IpoptSolver"]
+__all__ = ["STATUS_POLISH_FAILED", "IpoptSolver", "newton_polish"]
 
 #: Status (prefix) of a problem IPOPT solved but whose Newton polish failed.
 STATUS_POLISH_FAILED = "kkt_polish_failed"
@@ -57,6 +59,60 @@ def _casadi_reason(err: RuntimeError) -> str:
     """The last clause of a CasADi error (its first lines are source locations)."""
     lines = [line for line in str(err).splitlines() if line.strip()]
     return lines[-1].rsplit(": ", 1)[-1].strip() if lines else type(err).__name__
+
+
+def newton_polish(
+    residual: ca.Function, newton: ca.Function, h_of: Callable[[np.ndarray], np.ndarray],
+    split: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]],
+    x: np.ndarray, lam: np.ndarray, p: np.ndarray, tau: float, nin: int, steps: int = 8,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool, str]:
+    """Newton steps on a barrier problem's KKT conditions (``residual(y, p, tau)`` and its
+    step ``newton(y, p, tau)``, ``y = (x, lam, mu)`` cut by ``split``, ``h_of(x)`` the
+    inequalities) from a solver's point, keeping h < 0 and mu > 0; returns
+    ``(x, lam, mu, ok, why)`` with ``ok`` when the residual is tiny and ``why`` naming an
+    evaluation failure ('' otherwise). A Newton step that CasADi cannot evaluate (its sparse
+    QR fails on a numerically singular KKT matrix, e.g. at ``tau = 1e-11``) ends the polish
+    with ``ok`` False instead of raising."""
+    h = h_of(x)
+    if not np.all(h < 0):
+        return x, lam, np.zeros(nin), False, ""
+    mu = tau / -h
+    y = np.concatenate([x, lam, mu])
+    scale = 1.0 + np.abs(p).max()
+    r = np.array(residual(y, p, tau)).ravel()
+    try:
+        for _ in range(steps):
+            if np.max(np.abs(r)) == 0.0:
+                break
+            dy = np.array(newton(y, p, tau)).ravel()
+            if not np.all(np.isfinite(dy)):
+                break
+            xs, _, mus = split(y)
+            dx, _, dmu = split(dy)
+            h = h_of(xs)
+            dh = h_of(xs + dx) - h
+            step = 1.0
+            neg = dh > 0
+            if np.any(neg):
+                step = min(step, 0.99 * np.min(-h[neg] / dh[neg]))
+            neg = dmu < 0
+            if np.any(neg):
+                step = min(step, 0.99 * np.min(-mus[neg] / dmu[neg]))
+            y_new = y + step * dy
+            r_new = np.array(residual(y_new, p, tau)).ravel()
+            if not np.max(np.abs(r_new)) < np.max(np.abs(r)):
+                break  # no more progress: at machine precision
+            # a full Newton step that gains less than two digits is at the rounding level
+            at_floor = step == 1.0 and np.max(np.abs(r_new)) > 1e-2 * np.max(np.abs(r))
+            y, r = y_new, r_new
+            if at_floor:
+                break
+    except RuntimeError as err:
+        x, lam, mu = split(y)
+        return x, lam, mu, False, f"Newton step failed ({_casadi_reason(err)})"
+    x, lam, mu = split(y)
+    ok = bool(np.all(np.isfinite(r)) and np.max(np.abs(r)) <= 1e-6 * scale)
+    return x, lam, mu, ok, ""
 
 
 class IpoptSolver(BackendBase):
@@ -131,52 +187,11 @@ class IpoptSolver(BackendBase):
     def _polish(
         self, x: np.ndarray, lam: np.ndarray, p: np.ndarray, steps: int = 8
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, bool, str]:
-        """Newton steps on the barrier KKT system from IPOPT's point, keeping h < 0 and
-        mu > 0; returns ``(x, lam, mu, ok, why)`` with ``ok`` when the residual is tiny and
-        ``why`` naming an evaluation failure ('' otherwise). A Newton step that CasADi cannot
-        evaluate (its sparse QR fails on a numerically singular KKT matrix, e.g. at
-        ``tau = 1e-11``) ends the polish with ``ok`` False instead of raising."""
-        kkt, tau = self._kkt, self.config.tau
-        _, _, h = self.mpc.evaluate(x, p)
-        if not np.all(h < 0):
-            return x, lam, np.zeros(self.mpc.nin), False, ""
-        mu = tau / -h
-        y = np.concatenate([x, lam, mu])
-        scale = 1.0 + np.abs(p).max()
-        r = np.array(kkt.residual(y, p, tau)).ravel()
-        try:
-            for _ in range(steps):
-                if np.max(np.abs(r)) == 0.0:
-                    break
-                dy = np.array(kkt.newton(y, p, tau)).ravel()
-                if not np.all(np.isfinite(dy)):
-                    break
-                xs, _, mus = kkt.split(y)
-                dx, _, dmu = kkt.split(dy)
-                _, _, h = self.mpc.evaluate(xs, p)
-                dh = self.mpc.evaluate(xs + dx, p)[2] - h
-                step = 1.0
-                neg = dh > 0
-                if np.any(neg):
-                    step = min(step, 0.99 * np.min(-h[neg] / dh[neg]))
-                neg = dmu < 0
-                if np.any(neg):
-                    step = min(step, 0.99 * np.min(-mus[neg] / dmu[neg]))
-                y_new = y + step * dy
-                r_new = np.array(kkt.residual(y_new, p, tau)).ravel()
-                if not np.max(np.abs(r_new)) < np.max(np.abs(r)):
-                    break  # no more progress: at machine precision
-                # a full Newton step that gains less than two digits is at the rounding level
-                at_floor = step == 1.0 and np.max(np.abs(r_new)) > 1e-2 * np.max(np.abs(r))
-                y, r = y_new, r_new
-                if at_floor:
-                    break
-        except RuntimeError as err:
-            x, lam, mu = kkt.split(y)
-            return x, lam, mu, False, f"Newton step failed ({_casadi_reason(err)})"
-        x, lam, mu = kkt.split(y)
-        ok = bool(np.all(np.isfinite(r)) and np.max(np.abs(r)) <= 1e-6 * scale)
-        return x, lam, mu, ok, ""
+        """Newton steps on the barrier KKT system from IPOPT's point (:func:`newton_polish`
+        with the policy problem's KKT conditions)."""
+        kkt = self._kkt
+        return newton_polish(kkt.residual, kkt.newton, lambda xs: self.mpc.evaluate(xs, p)[2],
+                             kkt.split, x, lam, p, self.config.tau, self.mpc.nin, steps)
 
     def default_guess(self) -> np.ndarray:
         """A strictly feasible interior starting point (mid-range inputs, soc at 0.5)."""

@@ -156,6 +156,7 @@ class KernelSolver(StartSettings, BackendBase):
         self.mpc = mpc
         self.config = config or MPCConfig()
         sysc = mpc.system
+        sysc.common("U_bar", "the kernel back-end (use backend='ipopt')")  # before any work
         self.n, self.N = mpc.n, mpc.N
         N = self.N
         self._method_asked = method

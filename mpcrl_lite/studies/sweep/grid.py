@@ -15,13 +15,13 @@ import itertools
 import os
 import re
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from ...config import LearningConfig, MPCConfig, SystemConfig, check_grid_bound
+from ...config import LearningConfig, MPCConfig, PriceFileConfig, SystemConfig, check_grid_bound
 
 __all__ = [
     "SECTIONS",
@@ -35,7 +35,8 @@ __all__ = [
 ]
 
 #: Grid sections and the configuration class each one sets.
-SECTIONS: dict[str, type] = {"system": SystemConfig, "mpc": MPCConfig, "learning": LearningConfig}
+SECTIONS: dict[str, type] = {"system": SystemConfig, "mpc": MPCConfig, "learning": LearningConfig,
+                             "prices": PriceFileConfig}
 
 _ID_MAX = 100
 #: Result columns a grid column must not shadow (the grid key keeps its section then).
@@ -81,13 +82,16 @@ class SweepRun:
     system: SystemConfig
     mpc: MPCConfig
     learning: LearningConfig
+    prices: PriceFileConfig = field(default_factory=PriceFileConfig)
 
     def configs(self) -> dict[str, dict[str, Any]]:
-        """The three configurations as plain dicts (as stored in ``config.json``)."""
+        """The configurations as plain dicts (as stored in ``config.json``); ``prices`` only
+        for a run on a price file (runs on the shipped month store what they did before)."""
         return {
             "system": self.system.to_dict(),
             "mpc": self.mpc.to_dict(),
             "learning": self.learning.to_dict(),
+            **({"prices": self.prices.to_dict()} if self.prices.file else {}),
         }
 
 
@@ -392,5 +396,5 @@ def load_grid(grid: Mapping[str, Any] | str | os.PathLike) -> Sweep:
                 where = "base" if key in base else f"grid point {run_id}"
                 raise GridError(one_line(f"{where} ({section}): {err}{hints}")) from None
         runs.append(SweepRun(run_id, values, overrides, configs["system"], configs["mpc"],
-                             configs["learning"]))
+                             configs["learning"], configs["prices"]))
     return Sweep(base=base, grid=axes, columns=columns, runs=tuple(runs))

@@ -143,7 +143,7 @@ def check_run_dirs(sweep: Sweep, out: Path) -> None:
             continue
         mine = run.configs()
         for section in SECTIONS:
-            old, new = saved.get(section, {}), dict(mine[section])
+            old, new = saved.get(section, {}), dict(mine.get(section, {}))
             old = dict(old) if isinstance(old, dict) else {}
             # a field added since the run was written reads as what that run did
             old = {**LEGACY_VALUES.get(section, {}), **old}

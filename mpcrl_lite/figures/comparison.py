@@ -1,0 +1,160 @@
+r"""Notebook 06's figures: every policy against the bounds, and two learners on one figure.
+
+* :func:`plot_policy_comparison` draws, for each policy of
+  :func:`mpcrl_lite.bounds.baselines.evaluate_baselines` (nominal MPC, price rule, learned
+  MPCs, the DP's policy), its mean daily cost :math:`J` on the common draw with the 95 %
+  Student-t interval over the days, against the best causal cost :math:`J^\star` and the
+  clairvoyant bound, each policy's regret :math:`J - J^\star` written beside it (for the
+  learned MPC split into the learner's and the class's part when the baselines hold the
+  regret split of a tuned class, ``causal['split']``);
+* :func:`plot_learning_curves` draws :math:`J` per month of the centralized and the
+  decentralized learner of :func:`mpcrl_lite.decentralized.learner.compare_learners` on one
+  axes (points only when there are too few months for a line to mean anything).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from .._util.stats import mean_ci
+from .style import (
+    COST_UNIT,
+    FIRST_COLOR,
+    LAST_COLOR,
+    MIN_POINTS_FOR_A_LINE,
+    REF_GREY,
+    axes_or_new,
+)
+
+if TYPE_CHECKING:
+    from matplotlib.axes import Axes
+    from matplotlib.figure import Figure
+
+__all__ = ["POLICY_LABELS", "plot_learning_curves", "plot_policy_comparison"]
+
+#: How the policies of ``evaluate_baselines`` are named on the figure.
+POLICY_LABELS = {
+    "nominal": "nominal MPC (θ0)",
+    "rule_based": "price rule",
+    "learned": "learned MPC",
+    "causal_dp": "DP policy (causal)",
+    "clairvoyant": "clairvoyant",
+}
+
+
+def _interval(per_day: Any) -> tuple[float, float, float]:
+    """Mean and 95 % interval of the daily costs (the mean twice for one day)."""
+    ci = mean_ci(np.asarray(per_day, dtype=float))
+    if ci.draws < 2:
+        return ci.mean, ci.mean, ci.mean
+    return ci.mean, ci.ci_low, ci.ci_high
+
+
+def plot_policy_comparison(baselines: Mapping[str, Any], ax: Axes | None = None,
+                           fig: Figure | None = None, title: str | None = None) -> Figure:
+    """J with 95 % intervals per policy against :math:`J^\\star` and the clairvoyant bound.
+
+    Parameters
+    ----------
+    baselines : dict
+        The result of :func:`~mpcrl_lite.bounds.baselines.evaluate_baselines`: its
+        ``policies`` (each with ``J_per_day``) and, when computed, ``causal`` (``J_star``,
+        ``regret``).
+    ax : Axes, optional
+        Drawn into; else ``fig`` (cleared) or a new figure.
+    fig : Figure, optional
+    title : str, optional
+        Default names the number of days.
+
+    Returns
+    -------
+    Figure
+        One axes: a row per causal policy (best at the top), the interval as a bar, the mean
+        as a point, ``J - J*`` beside it; vertical lines at :math:`J^\\star` and at the
+        clairvoyant's mean cost.
+    """
+    policies = dict(baselines["policies"])
+    causal = baselines.get("causal") or {}
+    clair = policies.pop("clairvoyant", None)
+    rows = sorted(policies, key=lambda name: policies[name]["J"], reverse=True)
+    fig, (ax,) = axes_or_new(ax, (1, 1), (8.0, 0.6 * len(rows) + 2.2), "ax", fig)
+    days = len(next(iter(policies.values()))["J_per_day"]) if policies else 0
+    for y, name in enumerate(rows):
+        mean, low, high = _interval(policies[name]["J_per_day"])
+        ax.errorbar([mean], [y], xerr=[[mean - low], [high - mean]], fmt="o", color=LAST_COLOR,
+                    ecolor=LAST_COLOR, capsize=4, lw=2, label="J, 95 % interval" if y == 0
+                    else None)
+        regret = causal.get("regret", {}).get(name)
+        if regret is not None:
+            text = f"J − J* = {regret:+.1f}"
+            split = causal.get("split") or {}
+            if name == "learned" and "learner" in split and "class" in split:
+                # the regret split (bounds.baselines.regret_split): what learning could still
+                # gain within the MPC class, and what the class itself costs
+                text += (f" = learner {split['learner']['mean']:+.1f}"
+                         f" + class {split['class']['mean']:+.1f}")
+            ax.annotate(text, (high, y), xytext=(6, 0), textcoords="offset points",
+                        va="center", fontsize=9)
+    if "J_star" in causal:
+        j_star = float(causal["J_star"])
+        ax.axvline(j_star, color=FIRST_COLOR, lw=1.8,
+                   label=f"J* = {j_star:.1f} (best causal policy)")
+    if clair is not None:
+        ax.axvline(float(clair["J"]), color=REF_GREY, lw=1.5, ls="--",
+                   label=f"clairvoyant bound {float(clair['J']):.1f} (knows the noise)")
+    ax.set_yticks(range(len(rows)), [POLICY_LABELS.get(n, n) for n in rows])
+    ax.set_ylim(-0.7, len(rows) - 0.3)
+    ax.invert_yaxis()
+    left, right = ax.get_xlim()
+    ax.set_xlim(left, right + 0.18 * (right - left))  # room for the regret labels
+    ax.set_xlabel(f"mean daily cost J ({COST_UNIT})")
+    ax.grid(True, axis="x", color="0.9")
+    fig.legend(loc="outside lower center", ncol=3, fontsize=9)
+    ax.set_title(title or f"Policies on one common draw of {days} days: J with 95 % intervals "
+                 "over the days", loc="left", fontsize=11)
+    return fig
+
+
+def plot_learning_curves(comparison: Mapping[str, Any], ax: Axes | None = None,
+                         fig: Figure | None = None, title: str | None = None) -> Figure:
+    """J per month of the centralized and the decentralized learner on one axes.
+
+    Parameters
+    ----------
+    comparison : dict
+        The result of :func:`~mpcrl_lite.decentralized.learner.compare_learners` (its
+        ``centralized`` and ``decentralized`` entries, each with ``J`` per month).
+    ax : Axes, optional
+        Drawn into; else ``fig`` (cleared) or a new figure.
+    fig : Figure, optional
+    title : str, optional
+
+    Returns
+    -------
+    Figure
+        Months from 1 on the x axis; with fewer than :data:`MIN_POINTS_FOR_A_LINE` months the
+        costs are points only.
+    """
+    fig, (ax,) = axes_or_new(ax, (1, 1), (8.0, 3.8), "ax", fig)
+    # the centralized points as large rings, so that the decentralized ones stay visible inside
+    # them where the two agree (the first month always: the same policy at theta0)
+    styles = {"centralized": (LAST_COLOR, "o", "-", {"ms": 10, "mfc": "none", "mew": 1.8}),
+              "decentralized": (FIRST_COLOR, "s", "--", {"ms": 5})}
+    months = 0
+    for name, (color, marker, line, size) in styles.items():
+        J = np.asarray(comparison[name]["J"], dtype=float)
+        months = max(months, J.size)
+        x = np.arange(1, J.size + 1)
+        ax.plot(x, J, marker=marker, ls=line if J.size >= MIN_POINTS_FOR_A_LINE else "none",
+                color=color, label=f"{name} learner (last month {J[-1]:.1f})", **size)
+    ax.set_xlabel("learning month")
+    ax.set_ylabel(f"J ({COST_UNIT})")
+    ax.set_xticks(np.arange(1, months + 1) if months <= 12 else ax.get_xticks())
+    ax.grid(True, color="0.9")
+    ax.legend(fontsize=9)
+    ax.set_title(title or "Centralized and decentralized learning: J per month (same prices, "
+                 "seed and exploration)", loc="left", fontsize=11)
+    return fig
