@@ -348,7 +348,7 @@ SWEEP_LAYER = {
     "studies.sweep.store": {"learning.rundir", "studies.sweep.grid"},
     "studies.sweep.table": {"learning.history", "studies.sweep.grid", "studies.sweep.store"},
     "studies.sweep.run": {"learning.experiment", "learning.q_experiment", "studies.lockstep",
-                          "publish.report",
+                          "publish.report", "system.prices",  # prices: a run on a price file
                           "studies.sweep.grid", "studies.sweep.store", "studies.sweep.table"},
     "studies.sweep.schedule": {"studies.sweep.grid", "studies.sweep.run", "studies.sweep.store",
                                "studies.sweep.table"},
