@@ -220,3 +220,29 @@ def ipopt_at(mpc: MPC) -> Callable[..., IpoptSolver]:
         return cache[key][1]
 
     return build
+
+
+# -- a command in a forked child (kill tests) ----------------------------------------------------
+def learn_in_child(argv: list[str], env: dict[str, str]) -> int:
+    """Run ``python -m mpcrl_lite`` with ``argv`` (e.g. ``learn ...``) in a forked child with
+    ``env`` set and its output silenced; returns the wait status (the kill tests read the
+    signal that ended it)."""
+    import os
+
+    from mpcrl_lite.cli.main import main
+    from mpcrl_lite.learning import rundir
+
+    pid = os.fork()
+    if pid == 0:
+        code = 70
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, 1)
+            os.dup2(devnull, 2)
+            os.environ.update(env)
+            rundir._writes = 0
+            code = main(argv)
+        finally:
+            os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    return status

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import learn_in_child
 
 from mpcrl_lite import LearningConfig, MPCConfig, SystemConfig, Theta
 from mpcrl_lite._util import jsonio
@@ -102,22 +103,6 @@ def copy_run(source: Path, target: Path) -> Path:
 
 
 # -- kills at every write ---------------------------------------------------------------------
-def learn_in_child(argv: list[str], env: dict[str, str]) -> int:
-    """Run ``learn`` in a forked child with ``env`` set; returns the wait status."""
-    pid = os.fork()
-    if pid == 0:
-        code = 70
-        try:
-            devnull = os.open(os.devnull, os.O_WRONLY)
-            os.dup2(devnull, 1)
-            os.dup2(devnull, 2)
-            os.environ.update(env)
-            rundir._writes = 0
-            code = main(argv)
-        finally:
-            os._exit(code)
-    _, status = os.waitpid(pid, 0)
-    return status
 
 
 def resume_and_judge(out: Path, reference: Path, argv: list[str], capsys) -> str:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import learn_in_child
 
 from mpcrl_lite import LearningConfig, MPCConfig, SystemConfig
 from mpcrl_lite._util import jsonio
@@ -99,21 +100,6 @@ def learn_args(out: Path, months: int, *extra: str) -> list[str]:
             "--no-figures", *extra]
 
 
-def learn_in_child(argv: list[str], env: dict[str, str]) -> int:
-    pid = os.fork()
-    if pid == 0:
-        code = 70
-        try:
-            devnull = os.open(os.devnull, os.O_WRONLY)
-            os.dup2(devnull, 1)
-            os.dup2(devnull, 2)
-            os.environ.update(env)
-            rundir._writes = 0
-            code = main(argv)
-        finally:
-            os._exit(code)
-    _, status = os.waitpid(pid, 0)
-    return status
 
 
 def test_a_kill_at_any_write_of_a_journaled_run_resumes_identically(tmp_path, capsys,
