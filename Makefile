@@ -28,10 +28,13 @@ report: $(STAMP)
 	$(BIN)/python -m mpcrl_lite report --out reports --profile $(REPORT_PROFILE)
 	$(BIN)/python tools/update_run_times.py reports/summary.json
 
-## the whole test suite: lint (ruff), unit tests and notebook tests
+## the whole test suite: lint (ruff), unit tests and notebook tests, on every core
+## (pytest-xdist; TEST_WORKERS=0 runs it in one process). Each notebook executes once, on
+## one worker (tests/notebooks/conftest.py groups its tests).
+TEST_WORKERS ?= auto
 test: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadgroup
 
 ## unit tests only (skips the notebook executions)
 test-fast: $(STAMP)
