@@ -62,7 +62,7 @@ UNEQUAL = SystemConfig(U_bar=(1.0, 0.6, 0.3), P_bar=1.2)
 def _unequal_problem(days=6, seed=1):
     """States and prices with cheap first hours (every battery buys: the grid limit and the
     small batteries' own bounds bind) and an expensive evening (they sell)."""
-    soc, buy, sell = _problem(UNEQUAL, days, seed)
+    soc, buy, _ = _problem(UNEQUAL, days, seed)
     buy[:, 6:] = 400.0
     return soc, buy, 0.9 * buy
 
@@ -122,7 +122,7 @@ def test_compiled_backends_solve_unequal_input_bounds_as_ipopt(unequal_reference
 
 
 def test_kernel_structured_adjoint_with_unequal_input_bounds(unequal_reference):
-    mpc, config, problem, ref, ref_sens = unequal_reference
+    mpc, config, problem, _, ref_sens = unequal_reference
     solver = KernelSolver(mpc, config, method="agent")
     solver.structured_adjoint = True  # all columns at once, as for many agents
     sens = solver.sensitivity(solver.solve_batch(*problem))
