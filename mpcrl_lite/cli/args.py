@@ -218,8 +218,6 @@ def configs(args: argparse.Namespace, **learning: Any):
             MPCConfig(**mpc),
             LearningConfig(seed=args.seed, **learning),
         )
-        if configs[1].backend in ("batch", "kernel"):  # their formulation has one U_bar
-            configs[0].common("U_bar", f"--backend {configs[1].backend}")
     except ValueError as err:
         raise UsageError(str(err)) from None
     return configs

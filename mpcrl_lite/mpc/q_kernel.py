@@ -86,7 +86,7 @@ class FixedActionKernel:
         soc0 = P[:, :n]
         buy, sell = P[:, n:n + N], P[:, n + N:n + 2 * N]
         soc1 = soc0 + alpha * a + delta
-        U, Pb = sysc.U_bar, sysc.P_bar
+        U, Pb = np.array(sysc.battery("U_bar")), sysc.P_bar  # each battery's own bound
         feasible = np.all((np.abs(a) < U), axis=1) & (np.maximum(a, 0).sum(1) < Pb) \
             & (np.maximum(-a, 0).sum(1) < Pb)
         # the tail: stages 1 .. N-1 from soc1
@@ -147,10 +147,11 @@ def _slack(c: float, e: np.ndarray, tau: float) -> np.ndarray:
     return big
 
 
-def _first_stage(c: np.ndarray, a: np.ndarray, U: float, P: float, tau: float,
+def _first_stage(c: np.ndarray, a: np.ndarray, U: np.ndarray, P: float, tau: float,
                  feasible: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``argmin_s sum c s - tau sum [log s + log(U - s) + log(s + a) + log(U - s - a)]
-    - tau log(P - sum(s + a)) - tau log(P - sum s)`` for every row, by damped Newton steps."""
+    - tau log(P - sum(s + a)) - tau log(P - sum s)`` for every row, by damped Newton steps
+    (``U`` (n,) each battery's input bound)."""
     lo, hi = np.maximum(0.0, -a), np.minimum(U, U - a)
     width = hi - lo
     room = np.minimum(P - np.maximum(a, 0).sum(1), P - np.maximum(-a, 0).sum(1))

@@ -322,13 +322,13 @@ class StartSettings:
     change them on either solver class or instance.
     """
 
-    #: cold start: ``b = s = u0_fraction * min(U, P / n)``
+    #: cold start: ``b^i = s^i = u0_fraction * min(U_bar^i, P_bar / n)`` (each battery's own)
     u0_fraction: float = 0.5
     #: initial barrier value ``mean(mu S)`` relative to the price scale ``1 + max |q|``
     t0_cold: float = 0.1
     t0_warm: float = 0.1
-    #: warm start: ``b, s`` of ``x0`` kept this far from their bounds (relative to
-    #: ``min(U, P / n)``) and blended with the cold start with this weight. A primal-only
+    #: warm start: ``b, s`` of ``x0`` kept this far from their bounds (relative to the
+    #: smallest ``min(U_bar^i, P_bar / n)``) and blended with the cold start with this weight. A primal-only
     #: warm start helps an interior point little (about 8 % fewer iterations on the
     #: experiment's hour-to-hour problems); a full weight makes the slowest problems slower.
     warm_margin: float = 1e-2

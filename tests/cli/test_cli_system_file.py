@@ -95,26 +95,37 @@ def test_study_passes_the_file_as_the_sweeps_base(tmp_path, monkeypatch):
     assert seen == {"system.n": 2, "system.omega": (5, 5)}
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["simulate", "--days", "1", "--backend", "kernel"],
-     "U_bar=[2.0, 1.0, 1.0]: --backend kernel expects one value for every battery"),
-    (["learn", "--months", "1", "--days", "1", "--backend", "batch"],
-     "U_bar=[2.0, 1.0, 1.0]: --backend batch expects one value for every battery"),
-])
-def test_what_needs_one_input_bound_refuses_a_per_battery_one(tmp_path, capsys, argv, message):
+def test_every_backend_runs_a_per_battery_input_bound_and_agrees(tmp_path, capsys):
     path = tmp_path / "u.yaml"
-    path.write_text("U_bar: [2, 1, 1]\nP_bar: 2.0\n")
-    out = tmp_path / "out"
-    assert main([*argv, "--out", str(out), "--system", str(path), "--quiet"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and message in err[0]
-    assert not out.exists() or not any(out.iterdir())
+    path.write_text("U_bar: [2, 1, 0.5]\nP_bar: 2.0\n")
+    J = {}
+    for backend in ("ipopt", "kernel", "batch"):
+        out = tmp_path / backend
+        assert main(["simulate", "--days", "1", "--backend", backend, "--out", str(out),
+                     "--system", str(path), "--quiet"]) == 0, capsys.readouterr().err
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["solver_failures"] == 0
+        J[backend] = summary["J"]
+    assert J["kernel"] == pytest.approx(J["ipopt"], rel=1e-8, abs=1e-8)
+    assert J["batch"] == pytest.approx(J["ipopt"], rel=1e-8, abs=1e-8)
 
 
-def test_auto_chooses_ipopt_for_per_battery_input_bounds():
+def test_auto_chooses_the_kernel_for_per_battery_input_bounds():
     from mpcrl_lite.mpc.backends.registry import make_solver
     from mpcrl_lite.mpc.formulation import MPC
 
-    solver = make_solver(MPC(SystemConfig(U_bar=(2.0, 1.0, 1.0), P_bar=2.0)))
-    assert solver.name == "ipopt"
+    assert make_solver(MPC(SystemConfig(U_bar=(2.0, 1.0, 1.0), P_bar=2.0))).name == "kernel"
     assert make_solver(MPC(SystemConfig())).name == "kernel"
+
+
+def test_the_decentralized_learner_refuses_a_per_battery_input_bound_in_one_line(tmp_path,
+                                                                                 capsys):
+    path = tmp_path / "u.yaml"
+    path.write_text("U_bar: [2, 1, 0.5]\nP_bar: 2.0\n")
+    out = tmp_path / "out"
+    assert main(["learn", "--decentralized", "--months", "1", "--days", "1", "--out", str(out),
+                 "--system", str(path), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert "U_bar=[2.0, 1.0, 0.5]: --decentralized expects one value for every battery" in err[0]
+    assert not out.exists()

@@ -127,6 +127,23 @@ def test_a_kernel_that_cannot_solve_accepted_input_names_the_input(kernel_out_of
         assert "formulation" not in str(err.value) and "'ipopt'" in str(err.value)
 
 
+def test_the_kernels_input_error_names_each_batterys_input_bound(kernel_out_of_reach):
+    from mpcrl_lite.config import SystemConfig
+    from mpcrl_lite.mpc.backends.kernel import KernelInputError
+    from mpcrl_lite.mpc.formulation import MPC
+
+    system = SystemConfig(U_bar=(1.0, 0.6, 0.3), P_bar=1.2)
+    solver = make_solver(MPC(system), MPCConfig(tau=1e-12))
+    assert solver.name == "kernel"
+    with pytest.raises(KernelInputError, match=r"tau=1e-12, .*U_bar=\(1.0, 0.6, 0.3\)"):
+        solver.solve(0.6 * np.ones(system.n), 300.0 * np.ones(system.N),
+                     150.0 * np.ones(system.N), Theta.nominal(system))
+    # at the default tau the same site solves
+    sol = make_solver(MPC(system)).solve(0.6 * np.ones(system.n), 300.0 * np.ones(system.N),
+                                         150.0 * np.ones(system.N), Theta.nominal(system))
+    assert sol.success
+
+
 def test_the_cli_reports_it_in_one_line(tmp_path, capsys, kernel_out_of_reach):
     from mpcrl_lite.cli.main import main
 

@@ -149,23 +149,25 @@ class BatchSolver(StartSettings, BackendBase):
     def _initial_point(self, data: BatchData, x0: np.ndarray | None):
         """Strictly interior primal point and multipliers on the central path of ``t0``.
 
-        Cold start: ``b = s = u0``; warm start: ``x0``'s ``b, s`` pushed into the interior
-        and blended with ``u0`` (see the class attributes). soc then follows the dynamics (so
+        Cold start: ``b^i = s^i = u0^i`` (a fraction of ``min(U_bar^i, P_bar / n)``, each
+        battery's own); warm start: ``x0``'s ``b, s`` pushed into the interior (one margin,
+        relative to the smallest ``min(U_bar^i, P_bar / n)``) and blended with ``u0`` (see the
+        class attributes). soc then follows the dynamics (so
         ``A x = e`` holds), the slack variables sit :attr:`slack_margin` above their kinks,
         ``mu = t0 / S`` and ``lam`` solves the soc rows of the dual residual exactly (a
         backward recursion from ``lam_N = 0``).
         """
         days, n, N = data.qb.shape[0], self.n, self.N
         X = np.empty((days, 5, n, N))
+        cap_u = np.minimum(self.U, self.P / n)  # (n, 1): each battery's share of the bounds
+        u0 = self.u0_fraction * cap_u
         if x0 is None:
-            u0 = self.u0_fraction * min(self.U, self.P / n)
             X[:, :2] = u0
             t0 = self.t0_cold * data.scale
         else:
             X0 = self.kkt.to_internal_x(np.asarray(x0, dtype=float))
-            margin = self.warm_margin * min(self.U, self.P / n)
+            margin = self.warm_margin * float(cap_u.min())  # one margin for every bound
             bs = np.where(np.isfinite(X0[:, :2]), X0[:, :2], margin)
-            u0 = self.u0_fraction * min(self.U, self.P / n)
             w = self.warm_weight
             X[:, :2] = w * np.clip(bs, margin, self.U - margin) + (1.0 - w) * u0
             tot = X[:, :2].sum(axis=2, keepdims=True)

@@ -57,7 +57,8 @@ mid-run). Internally arrays are agent-major, ``(days, ..., n, N)``; the results 
 :mod:`mpcrl_lite.mpc.formulation`'s orderings exactly. Per-agent inequality groups (internal index ->
 row of :mod:`mpcrl_lite.mpc.formulation`'s per-stage block of ``h``): 0 ``-b``, 1 ``b - U``, 2 ``-s``,
 3 ``s - U``, 4 ``soc - hi - sigma_hi``, 5 ``lo - soc - sigma_lo``, 6 ``-sigma_hi``,
-7 ``-sigma_lo``; the grid rows ``sum b - P``, ``sum s - P`` are stored after them.
+7 ``-sigma_lo``; the grid rows ``sum b - P``, ``sum s - P`` are stored after them. ``U`` is
+each battery's own input bound ``U_bar^i``.
 """
 
 from __future__ import annotations
@@ -164,7 +165,8 @@ class BatchKKT:
     Attributes
     ----------
     n, N : numbers of agents and stages
-    U, P, hi, lo : the bounds ``U_bar``, ``P_bar``, ``soc_high``, ``soc_low``
+    U : (n, 1) each battery's input bound ``U_bar^i`` (a column, to broadcast along stages)
+    P, hi, lo : the bounds ``P_bar``, ``soc_high``, ``soc_low``
     disc : (N,) ``gamma^j``, the weights of the stage-``j`` prices
     wsoc : (N,) weights ``gamma^{j+1}`` of the stage costs of ``soc_{j+1}`` (0 at the end)
     term : (N,) 1 at the last stage (the undiscounted terminal cost), else 0
@@ -175,14 +177,15 @@ class BatchKKT:
         sysc = mpc.system
         n, N = mpc.n, mpc.N
         self.n, self.N = n, N
-        self.U = float(sysc.common("U_bar", "the batch and kernel back-ends "
-                                    "(use backend='ipopt')"))
+        self.U = np.array(sysc.battery("U_bar"), dtype=float)[:, None]  # each battery's own
         self.P = float(sysc.P_bar)
         self.hi, self.lo = float(sysc.soc_high), float(sysc.soc_low)
         self._m_agent = 8 * n * N
         self._m = self._m_agent + 2 * N
-        offset = np.array([0.0, self.U, 0.0, self.U, self.hi, -self.lo, 0.0, 0.0])
-        self._offset = np.repeat(offset, n * N).reshape(8, n * N)
+        offset = np.zeros((8, n, N))
+        offset[1] = offset[3] = self.U
+        offset[4], offset[5] = self.hi, -self.lo
+        self._offset = offset.reshape(8, n * N)
         gam = sysc.gamma ** np.arange(N + 1, dtype=float)
         self.disc = gam[:N]  # gamma^j, weights of the stage-j prices
         stage = np.arange(N) < N - 1

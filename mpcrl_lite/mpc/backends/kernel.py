@@ -156,8 +156,9 @@ class KernelSolver(StartSettings, BackendBase):
         self.mpc = mpc
         self.config = config or MPCConfig()
         sysc = mpc.system
-        sysc.common("U_bar", "the kernel back-end (use backend='ipopt')")  # before any work
         self.n, self.N = mpc.n, mpc.N
+        #: each battery's input bound ``U_bar^i`` (n,), the kernels' bounds of ``b^i, s^i``
+        self._ubar = np.ascontiguousarray(sysc.battery("U_bar"), dtype=float)
         N = self.N
         self._method_asked = method
         gam = sysc.gamma ** np.arange(N + 1, dtype=float)
@@ -219,7 +220,6 @@ class KernelSolver(StartSettings, BackendBase):
         opts = np.empty(K.N_OPTS)
         opts[K.O_TAU], opts[K.O_TOL] = cfg.tau, cfg.tol
         opts[K.O_MAX_ITER] = cfg.max_iter if max_iter is None else max_iter
-        opts[K.O_U] = sysc.common("U_bar", "the kernel back-end (use backend='ipopt')")
         opts[K.O_P] = sysc.P_bar
         opts[K.O_HI], opts[K.O_LO] = sysc.soc_high, sysc.soc_low
         opts[K.O_OM_HI], opts[K.O_OM_LO] = sysc.omega
@@ -294,8 +294,8 @@ class KernelSolver(StartSettings, BackendBase):
         x, lam, mu = np.empty((days, m.nx)), np.empty((days, m.neq)), np.empty((days, m.nin))
         cost, action = np.empty(days), np.empty((days, self.n))
         iters, status = np.empty(days, np.int64), np.empty(days, np.int64)
-        K.solve_batch(np.ascontiguousarray(P), x0, warm, opts, self._stagew, self.n, self.N,
-                      self._method, x, lam, mu, cost, iters, status, action)
+        K.solve_batch(np.ascontiguousarray(P), x0, warm, opts, self._ubar, self._stagew, self.n,
+                      self.N, self._method, x, lam, mu, cost, iters, status, action)
         return BatchSolution(
             action=action, x=x, lam=lam, mu=mu, cost=cost,
             success=status == K.CONVERGED,
@@ -333,9 +333,9 @@ class KernelSolver(StartSettings, BackendBase):
             return np.ascontiguousarray(np.asarray(a, dtype=float).reshape(days, width))
 
         K.sensitivity_batch(P, rows(solution.x, m.nx), rows(solution.lam, m.neq),
-                            rows(solution.mu, m.nin), success, self._opts(), self._stagew,
-                            self.n, self.N, self._method, self.structured_adjoint, grad, cond,
-                            back, code)
+                            rows(solution.mu, m.nin), success, self._opts(), self._ubar,
+                            self._stagew, self.n, self.N, self._method, self.structured_adjoint,
+                            grad, cond, back, code)
         ok = np.zeros(days, dtype=bool)
         reasons = []
         for d in range(days):

@@ -97,10 +97,11 @@ SENS_OK, SENS_SKIPPED, SENS_NOT_INTERIOR, SENS_SINGULAR = 0, 1, 2, 3
 # factorisations
 STAGE, AGENT = 0, 1
 
-# rows of the option vector ``opts``
-(O_TAU, O_TOL, O_MAX_ITER, O_U, O_P, O_HI, O_LO, O_OM_HI, O_OM_LO, O_U0, O_T0_COLD,
- O_T0_WARM, O_WARM_MARGIN, O_WARM_WEIGHT, O_SLACK_MARGIN, O_SWITCH) = range(16)
-N_OPTS = 16
+# rows of the option vector ``opts`` (the input bounds ``U_bar^i``, one per battery, are the
+# separate array ``ubar`` (n,))
+(O_TAU, O_TOL, O_MAX_ITER, O_P, O_HI, O_LO, O_OM_HI, O_OM_LO, O_U0, O_T0_COLD,
+ O_T0_WARM, O_WARM_MARGIN, O_WARM_WEIGHT, O_SLACK_MARGIN, O_SWITCH) = range(15)
+N_OPTS = 15
 # rows of the per-stage weights ``stagew`` (5, N)
 W_DISC, W_WSOC, W_TERM, W_QSHI, W_QSLO = range(5)
 # rows of the per-agent-stage factor array ``F`` (11, n, N); F_IPIV, F_RAT: agent method
@@ -189,16 +190,16 @@ def _problem_data(p, n, N, stagew, opts, soc0, alpha, delta, qb, qs, hsoc, qsoc,
 
 @_jit
 def _slacks(X, U, P, hi, lo, S):
-    """``S = d - C x`` (flat)."""
+    """``S = d - C x`` (flat); ``U`` (n,) holds each battery's input bound."""
     n, N = X.shape[1], X.shape[2]
     SA, SG = _ag(S, n, N), _gr(S, n, N)
     for i in range(n):
         for j in range(N):
             b, s, soc, shi, slo = X[0, i, j], X[1, i, j], X[2, i, j], X[3, i, j], X[4, i, j]
             SA[0, i, j] = b
-            SA[1, i, j] = U - b
+            SA[1, i, j] = U[i] - b
             SA[2, i, j] = s
-            SA[3, i, j] = U - s
+            SA[3, i, j] = U[i] - s
             SA[4, i, j] = (shi - soc) + hi
             SA[5, i, j] = (soc + slo) - lo
             SA[6, i, j] = shi
@@ -214,16 +215,16 @@ def _slacks(X, U, P, hi, lo, S):
 
 
 @_jit
-def _residual(X, L, Mu, S, alpha, qb, qs, hsoc, qsoc, stagew, e, opts, scale, base, rp):
+def _residual(X, L, Mu, S, alpha, qb, qs, hsoc, qsoc, stagew, e, opts, U, scale, base, rp):
     """The slacks ``S = d - C x`` (flat), ``base = H x + q + A' lam`` (5, n, N) and
     ``rp = A x - e`` (n, N) in place; returns the scaled KKT residual
     ``max(max(|r_d|, |mu S - tau|) / scale, |r_p|)`` of the batch solver (inf if anything
-    is not finite) and ``sum(mu S)``. (Flat indices: group ``g``, agent ``i``, stage ``j``
+    is not finite) and ``sum(mu S)``; ``U`` (n,) the input bounds. (Flat indices: group ``g``, agent ``i``, stage ``j``
     at ``g n N + i N + j``, grid row ``v`` at ``8 n N + v N + j``.)"""
     n, N = L.shape
     nN = n * N
     go = 8 * nN
-    U, P, hi, lo, tau = opts[O_U], opts[O_P], opts[O_HI], opts[O_LO], opts[O_TAU]
+    P, hi, lo, tau = opts[O_P], opts[O_HI], opts[O_LO], opts[O_TAU]
     ed = 0.0
     ep = 0.0
     ec = 0.0
@@ -243,13 +244,14 @@ def _residual(X, L, Mu, S, alpha, qb, qs, hsoc, qsoc, stagew, e, opts, scale, ba
             ec = max(ec, abs(c - tau))
     for i in range(n):
         a = alpha[i]
+        u = U[i]
         for j in range(N):
             k = i * N + j
             b, sl, soc, shi, slo = X[0, i, j], X[1, i, j], X[2, i, j], X[3, i, j], X[4, i, j]
             S[k] = b
-            S[nN + k] = U - b
+            S[nN + k] = u - b
             S[2 * nN + k] = sl
-            S[3 * nN + k] = U - sl
+            S[3 * nN + k] = u - sl
             S[4 * nN + k] = (shi - soc) + hi
             S[5 * nN + k] = (soc + slo) - lo
             S[6 * nN + k] = shi
@@ -750,28 +752,33 @@ def _direction(t, has_corr, Cr, S, IS, Mu, D, base, rp, alpha, F, FG, method, SI
 
 
 @_jit
-def _initial_point(soc0, alpha, delta, hsoc, qsoc, x0, warm, opts, scale, X, L, Mu, S):
-    """Strictly interior start on the central path of ``t0`` (the batch solver's rule)."""
+def _initial_point(soc0, alpha, delta, hsoc, qsoc, x0, warm, opts, U, scale, X, L, Mu, S):
+    """Strictly interior start on the central path of ``t0`` (the batch solver's rule):
+    ``b^i = s^i`` a fraction of ``min(U[i], P / n)``, each battery's own; a warm start kept
+    one margin (relative to the smallest of these) inside the bounds."""
     n, N = L.shape
-    U, P, hi, lo = opts[O_U], opts[O_P], opts[O_HI], opts[O_LO]
-    cap_u = min(U, P / n)
-    u0 = opts[O_U0] * cap_u
+    P, hi, lo = opts[O_P], opts[O_HI], opts[O_LO]
+    cap_min = np.inf
+    for i in range(n):
+        cap_min = min(cap_min, min(U[i], P / n))
     if not warm:
         for v in range(2):
             for i in range(n):
+                u0 = opts[O_U0] * min(U[i], P / n)
                 for j in range(N):
                     X[v, i, j] = u0
         t0 = opts[O_T0_COLD] * scale
     else:
-        margin = opts[O_WARM_MARGIN] * cap_u
+        margin = opts[O_WARM_MARGIN] * cap_min
         wgt = opts[O_WARM_WEIGHT]
         for v in range(2):
             for i in range(n):
+                u0 = opts[O_U0] * min(U[i], P / n)
                 for j in range(N):
                     val = x0[j * 5 * n + v * n + i]
                     if not math.isfinite(val):
                         val = margin
-                    val = min(max(val, margin), U - margin)
+                    val = min(max(val, margin), U[i] - margin)
                     X[v, i, j] = wgt * val + (1.0 - wgt) * u0
         cap = P - n * margin
         for v in range(2):
@@ -834,10 +841,11 @@ def _data_arrays(n, N):
 
 
 @_jit
-def solve_batch(P, x0, warm, opts, stagew, n, N, method, x_out, lam_out, mu_out, cost_out,
-                iters_out, status_out, action_out):
+def solve_batch(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu_out,
+                cost_out, iters_out, status_out, action_out):
     """Solve every problem ``P[d]`` (``MPC.parameters`` layout); results in mpc's orderings.
 
+    ``ubar`` (n,) holds each battery's input bound ``U_bar^i``.
     ``x0`` (days, nx) is read only when ``warm``. Status codes: ``CONVERGED``, ``MAX_ITER``,
     ``NON_FINITE``, ``BREAKDOWN``; ``action_out`` is ``b_0 - s_0`` where converged, else 0.
     """
@@ -856,7 +864,7 @@ def solve_batch(P, x0, warm, opts, stagew, n, N, method, x_out, lam_out, mu_out,
         scale, cconst = _problem_data(P[d], n, N, stagew, opts, soc0, alpha, delta, qb, qs,
                                       hsoc, qsoc, e)
         _initial_point(soc0, alpha, delta, hsoc, qsoc, x0[d] if warm else x0[0], warm, opts,
-                       scale, X, L, Mu, S)
+                       ubar, scale, X, L, Mu, S)
         iters = 0
         status = MAX_ITER
         final = False
@@ -864,7 +872,7 @@ def solve_batch(P, x0, warm, opts, stagew, n, N, method, x_out, lam_out, mu_out,
         err_prev = np.inf
         while True:
             err, comp = _residual(X, L, Mu, S, alpha, qb, qs, hsoc, qsoc, stagew, e, opts,
-                                  scale, base, rp)
+                                  ubar, scale, base, rp)
             # at the rounding floor, or one Newton step after reaching tol (quadratic
             # convergence), or no more progress
             done = err <= floor or (err <= tol and (err_prev <= tol or err > 0.1 * err_prev))
@@ -1219,8 +1227,8 @@ def _adjoint_structured(X, L, Mu, IS, D, alpha, stagew, F, MC, MS, MM, G, Y, Q, 
 
 
 @_jit
-def sensitivity_batch(P, x, lam, mu, solved, opts, stagew, n, N, method, structured, grad,
-                      cond, back, code):
+def sensitivity_batch(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, structured,
+                      grad, cond, back, code):
     """``d pi / d theta`` at the solutions ``(x, lam, mu)`` (mpc orderings).
 
     Writes ``grad`` (days, 10 n, n), ``cond`` (``||K||_max ||Z||_max``), ``back`` (largest
@@ -1237,7 +1245,7 @@ def sensitivity_batch(P, x, lam, mu, solved, opts, stagew, n, N, method, structu
     ns = n if structured else 1
     Y, Q, RL, acc = np.empty((ns, N)), np.empty((2 * N, ns)), np.empty((N + 1, ns)), np.empty(ns)
     soc0, alpha, delta, qb, qs, hsoc, qsoc, e = _data_arrays(n, N)
-    U, Pb, hi, lo = opts[O_U], opts[O_P], opts[O_HI], opts[O_LO]
+    Pb, hi, lo = opts[O_P], opts[O_HI], opts[O_LO]
     zxf, zlf, cxf, clf, rxf, rlf = (zx.reshape(zx.size), zl.reshape(zl.size),
                                     cx.reshape(cx.size), cl.reshape(cl.size),
                                     rx.reshape(rx.size), rl.reshape(rl.size))
@@ -1251,7 +1259,7 @@ def sensitivity_batch(P, x, lam, mu, solved, opts, stagew, n, N, method, structu
             continue
         _problem_data(P[d], n, N, stagew, opts, soc0, alpha, delta, qb, qs, hsoc, qsoc, e)
         _unpack_solution(x[d], lam[d], mu[d], n, N, X, L, Mu)
-        _slacks(X, U, Pb, hi, lo, S)
+        _slacks(X, ubar, Pb, hi, lo, S)
         # ||K||_max of the KKT Jacobian (entries 1, alpha, H, mu, h)
         kmax = 1.0
         for i in range(n):
@@ -1321,7 +1329,8 @@ def warm_up() -> None:
     tiny problem, which compiles them or loads them from numba's cache."""
     n, N = 1, 2
     opts = np.zeros(N_OPTS)
-    opts[[O_TAU, O_TOL, O_MAX_ITER, O_U, O_P, O_HI, O_LO]] = (0.1, 1e-10, 50, 1.0, 1.0, 0.9, 0.1)
+    opts[[O_TAU, O_TOL, O_MAX_ITER, O_P, O_HI, O_LO]] = (0.1, 1e-10, 50, 1.0, 0.9, 0.1)
+    ubar = np.ones(n)
     opts[[O_U0, O_T0_COLD, O_T0_WARM, O_WARM_MARGIN, O_WARM_WEIGHT, O_SLACK_MARGIN,
           O_SWITCH]] = (0.5, 0.1, 0.1, 1e-2, 0.3, 0.3, 1.0)
     stagew = np.ones((5, N))
@@ -1333,13 +1342,13 @@ def warm_up() -> None:
         cost, action = np.empty(1), np.empty((1, n))
         iters, status = np.empty(1, np.int64), np.empty(1, np.int64)
         for warm in (False, True):
-            solve_batch(P, x.copy(), warm, opts, stagew, n, N, method, x, lam, mu, cost, iters,
-                        status, action)
+            solve_batch(P, x.copy(), warm, opts, ubar, stagew, n, N, method, x, lam, mu, cost,
+                        iters, status, action)
         grad, cond, back = np.empty((1, 10 * n, n)), np.empty(1), np.empty(1)
         code = np.empty(1, np.int64)
         for structured in (False, True):
-            sensitivity_batch(P, x, lam, mu, np.ones(1, np.bool_), opts, stagew, n, N, method,
-                              structured, grad, cond, back, code)
+            sensitivity_batch(P, x, lam, mu, np.ones(1, np.bool_), opts, ubar, stagew, n, N,
+                              method, structured, grad, cond, back, code)
 
 
 def cache_dir() -> str:

@@ -56,11 +56,11 @@ REGISTRY: dict[str, Callable[[MPC, MPCConfig], SolverBackend]] = {
 
 
 def _auto_backend(theta: Theta | None, mpc: MPC | None = None) -> str:
-    """The compiled interior point for a convex QP (``phi1, T1 >= 0``) whose batteries share
-    one input bound ``U_bar`` (the compiled back-ends' formulation), IPOPT otherwise."""
+    """The compiled interior point for a convex QP (``phi1, T1 >= 0``; each battery with its
+    own input bound ``U_bar^i``), IPOPT otherwise. ``mpc`` is not needed for the choice and
+    kept for the callers that pass it."""
     convex = theta is None or theta.is_convex()
-    shared = mpc is None or len(set(mpc.system.battery("U_bar"))) == 1
-    return "kernel" if convex and shared else "ipopt"
+    return "kernel" if convex else "ipopt"
 
 
 def make_solver(
@@ -69,8 +69,8 @@ def make_solver(
     """The back-end named by ``config.backend``, built for ``mpc``.
 
     ``'auto'`` chooses the compiled interior point when the MPC is a convex QP for ``theta``
-    (``phi1, T1 >= 0``; always true with ``LearningConfig.keep_well_posed``) and every battery
-    has the same ``U_bar``, and IPOPT otherwise; the choice is logged at INFO level and
+    (``phi1, T1 >= 0``; always true with ``LearningConfig.keep_well_posed``; one ``U_bar``
+    per battery or one for all), and IPOPT otherwise; the choice is logged at INFO level and
     readable from ``solver.name``. An explicit ``'kernel'`` or ``'batch'``
     (:data:`CONVEX_ONLY`) given a theta that is not convex is replaced by IPOPT too, with a
     warning.
