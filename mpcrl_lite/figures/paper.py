@@ -531,7 +531,10 @@ def fig7_theta(history: History, part: str = "delta", ax: Axes | None = None) ->
     """Paper Fig. 7: one part of theta (one entry per agent) over the months.
 
     Point ``m`` is the value used during month ``m + 1``; the last point is theta after the
-    last update (:meth:`History.theta_part`), so month 0 is ``theta_0``.
+    last update (:meth:`History.theta_part`), so month 0 is ``theta_0``. When every agent
+    holds the same value in every month (``LearningConfig.tie_agents``, the default) the
+    agents' lines would lie on top of each other, the last one hiding the rest: one line is
+    drawn instead, labelled as the tied value of all agents.
 
     Parameters
     ----------
@@ -551,7 +554,8 @@ def fig7_theta(history: History, part: str = "delta", ax: Axes | None = None) ->
 
     Notes
     -----
-    Line gids: ``"theta_<part>[i]"`` (agents counted from 1).
+    Line gids: ``"theta_<part>[i]"`` (agents counted from 1), or ``"theta_<part>[tied]"``
+    for the one line of tied agents.
     """
     if part not in PARTS:
         raise ValueError(f"part={part!r}: expected one of {PARTS}")
@@ -562,15 +566,15 @@ def fig7_theta(history: History, part: str = "delta", ax: Axes | None = None) ->
     fig, (ax,) = axes_or_new(ax, (1, 1), (7.0, 4.0), "ax")
     x = np.arange(values.shape[0])  # theta_0 at 0, then after each month's update
     tex = _PART_TEX[part]
-    _agent_series(ax, x, values, f"theta_{part}", tex, lw=1.6)
+    n = values.shape[1]
+    if n > 1 and np.allclose(values, values[:, :1], rtol=1e-12, atol=0.0):
+        # tied agents: n coinciding lines would show one colour under n legend entries
+        ax.plot(x, values[:, 0], color="0.2", lw=1.6, marker="o", ms=3,
+                gid=f"theta_{part}[tied]", label=f"${tex}^i$, all {n} agents (tied)")
+    else:
+        _agent_series(ax, x, values, f"theta_{part}", tex, lw=1.6)
     _month_axis(ax, months, f"${tex}$ ({_PART_UNIT[part]})", f"Convergence of ${tex}^i$",
                 legend_size=9)
-    if values.shape[1] > 1 and np.allclose(values, values[:, :1], rtol=1e-12, atol=0.0):
-        # tied agents (LearningConfig.tie_agents): the lines coincide, the last one drawn hides
-        # the others; say so where the reader looks for them
-        ax.text(0.02, 0.04, f"all {values.shape[1]} agents share one value (tie_agents): "
-                "their lines coincide", transform=ax.transAxes, fontsize=9, gid="tied_note",
-                bbox={"facecolor": "white", "edgecolor": "0.7", "alpha": 0.9})
     ax.ticklabel_format(axis="y", style="sci", scilimits=(-3, 4), useMathText=True)
     return fig
 

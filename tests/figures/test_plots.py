@@ -314,6 +314,19 @@ def test_fig2_rolling_mean_on_a_longer_history(history):
         fig2_performance(longer, rolling=0)
 
 
+def test_fig2_centred_mean_of_a_step_changes_at_the_step(history):
+    """J drops from 100 to 50 after month 6: the centred mean passes half-way (75) between
+    months 6 and 7, where the step is; a trailing mean would pass it two months later."""
+    J = [100.0] * 6 + [50.0] * 6
+    fig = fig2_performance(dataclasses.replace(history, J=J), rolling=4)
+    rolling = one_line(fig, "J_rolling")
+    x, y = np.asarray(rolling.get_xdata()), np.asarray(rolling.get_ydata())
+    assert x[np.flatnonzero(y == 75.0)].tolist() == [6.5]
+    assert (y[x < 6.5] > 75.0).all() and (y[x > 6.5] < 75.0).all()
+    # every mean lies within the months it averages: never above the data before the step
+    assert (y <= 100.0).all() and (y[x >= 8.5] == 50.0).all()
+
+
 def test_fig3_gradient_norm_log_scale(history):
     fig3, ax = plt.subplots()
     fig = fig3_gradient_norm(history, ax=ax)
@@ -391,15 +404,48 @@ def test_fig6_prices():
 
 
 # -- Fig. 7 ------------------------------------------------------------------------------------
+def _untied(history: History) -> History:
+    """The history with agent i's theta moved by i/10 (plus a tenth of its size): per-agent
+    values that differ in every part."""
+    n = history.system.n
+    shift = np.tile(np.arange(n) / 10.0, len(history.theta_final) // n)
+
+    def untie(t):
+        t = np.asarray(t, dtype=float)
+        return list(t + shift * (1.0 + np.abs(t)))
+
+    return dataclasses.replace(history, theta=[untie(t) for t in history.theta],
+                               theta_final=untie(history.theta_final))
+
+
 @pytest.mark.parametrize("part", ["delta", "alpha", "T1"])
 def test_fig7_theta(history, part):
-    fig = fig7_theta(history, part)
-    values = history.theta_part(part)
+    untied = _untied(history)
+    fig = fig7_theta(untied, part)
+    values = untied.theta_part(part)
     assert values.shape == (MONTHS + 1, history.system.n)
+    assert not np.allclose(values, values[:, :1])
     for i in range(history.system.n):
         line = one_line(fig, f"theta_{part}[{i + 1}]")
         np.testing.assert_allclose(line.get_ydata(), values[:, i])
         np.testing.assert_allclose(line.get_xdata(), np.arange(MONTHS + 1))
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert len(labels) == history.system.n and not any("tied" in t for t in labels)
+
+
+def test_fig7_draws_tied_agents_as_one_line_labelled_tied(history):
+    """With tie_agents (the default) every agent holds the same value: one line, one legend
+    entry that says so, instead of n entries over one visible line."""
+    assert history.learning.tie_agents
+    values = history.theta_part("delta")
+    np.testing.assert_array_equal(values, np.repeat(values[:, :1], history.system.n, axis=1))
+    fig = fig7_theta(history, "delta")
+    ax = fig.axes[0]
+    data_lines = [line for line in ax.get_lines() if (line.get_gid() or "").startswith("theta_")]
+    assert [line.get_gid() for line in data_lines] == ["theta_delta[tied]"]
+    np.testing.assert_allclose(data_lines[0].get_ydata(), values[:, 0])
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert len(labels) == 1 and f"all {history.system.n} agents (tied)" in labels[0]
 
 
 def test_fig7_unknown_part(history):
@@ -456,19 +502,6 @@ def test_fig2_draws_few_evaluations_as_points_with_error_bars(history):
     assert (low, high) == pytest.approx((two.J_eval_ci_low[0], two.J_eval_ci_high[0]))
     assert not [c for c in ax.collections if c.get_gid() == "J_eval_ci"
                 and type(c).__name__ == "FillBetweenPolyCollection"]
-
-
-def test_fig7_says_when_tied_agents_coincide(history):
-    from mpcrl_lite.theta import Theta
-
-    tied = history.theta_part("delta")
-    notes = [t for t in fig7_theta(history, "delta").axes[0].texts
-             if t.get_gid() == "tied_note"]
-    coincide = np.allclose(tied, tied[:, :1], rtol=1e-12, atol=0.0)
-    assert bool(notes) == coincide
-    if notes:
-        assert "share one value" in notes[0].get_text()
-    assert Theta  # the note depends only on the values drawn
 
 
 def test_fig2_draws_three_evaluations_as_a_line_with_a_band(history):

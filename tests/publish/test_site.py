@@ -325,6 +325,38 @@ def test_paper_figures_and_study_tables_are_collected(tmp_path):
     assert "study/months=2,days=2/results.csv" in page and "14.0" in page
 
 
+class _Thumbnails(HTMLParser):
+    """Every <img> of a page with the href of the <a> it sits in (None outside a link)."""
+
+    def __init__(self):
+        super().__init__(convert_charrefs=True)
+        self.links: list[str | None] = []
+        self.images: list[tuple[str | None, str | None]] = []
+
+    def handle_starttag(self, tag, attrs):
+        attrs = dict(attrs)
+        if tag == "a":
+            self.links.append(attrs.get("href"))
+        elif tag == "img":
+            self.images.append((attrs.get("src"), self.links[-1] if self.links else None))
+
+    def handle_endtag(self, tag):
+        if tag == "a" and self.links:
+            self.links.pop()
+
+
+def test_every_figure_thumbnail_links_to_its_full_image():
+    figures = [{"file": "fig2_performance.png", "name": "fig2_performance", "alt": "J."},
+               {"file": "fig7_theta.png", "name": "fig7_theta", "alt": "theta."}]
+    page = site_module.render_index([], {"profile": "ci", "notebooks": {}}, figures, [])
+    parsed = _Thumbnails()
+    parsed.feed(page)
+    assert [src for src, _ in parsed.images] == ["figures/fig2_performance.png",
+                                                 "figures/fig7_theta.png"]
+    for src, href in parsed.images:
+        assert href == src, f"thumbnail {src} is not a link to itself (inside {href!r})"
+
+
 def test_the_site_study_is_the_notebook_own_run(tmp_path):
     """Rows an exercise added to the study's folder (another seed, a pending run) and other
     sweeps' folders are not the study: only the finished runs of its own grid are shown."""
