@@ -231,6 +231,43 @@ def test_price_window_plan_policy_curve_and_value_fit():
     assert len(plots.draw_value_fit(Figure(), fit).axes) == 3        # two panels, a colorbar
 
 
+def _colours_near(fig, ax, x: float, y: float, colours: dict[str, str], reach: int = 10):
+    """Which of ``colours`` (name: hex) the rendered figure shows in the pixel column at data
+    ``x``, within ``reach`` pixels of data ``y``."""
+    from matplotlib.colors import to_rgb
+
+    fig.canvas.draw()
+    image = np.asarray(fig.canvas.buffer_rgba())[:, :, :3].astype(float)
+    px, py = ax.transData.transform((x, y))
+    row, col = image.shape[0] - round(float(py)), round(float(px))
+    column = image[max(row - reach, 0): row + reach + 1, col]
+    return {name for name, hex_ in colours.items()
+            if (np.abs(column - 255.0 * np.asarray(to_rgb(hex_))).max(axis=1) < 40).any()}
+
+
+def test_plan_grid_sums_stay_visible_at_the_limit_and_at_zero():
+    """Notebook 02's plan with T2 = -300: nothing bought or sold for 6 steps, then the sold sum
+    exactly at P_bar. The sold line must show at P_bar (not under its dashes), and where both
+    sums are 0 the bought and the sold line must both show."""
+    system = SystemConfig()
+    N, n = 12, system.n
+    s = np.zeros((N, n))
+    s[6:] = system.P_bar / n
+    plan = Plan(b=np.zeros((N, n)), s=s, soc=np.full((N + 1, n), 0.5),
+                sigma_hi=np.zeros((N, n)), sigma_lo=np.zeros((N, n)))
+    fig = plots.plot_plan(plan, system)
+    fig.set_dpi(150)
+    ax = fig.axes[2]
+    colours = {"bought": FIRST_COLOR, "sold": LAST_COLOR, "P_bar": "#000000"}
+    for x in (7.5, 9.5, 11.5):
+        assert {"sold", "P_bar"} <= _colours_near(fig, ax, x, system.P_bar, colours), x
+    for x in (1.5, 3.5, 5.5):
+        assert {"bought", "sold"} <= _colours_near(fig, ax, x, 0.0, colours), x
+    bought, sold, limit = (one_line(fig, g) for g in ("sum_b", "sum_s", "P_bar"))
+    assert limit.get_zorder() > sold.get_zorder() > bought.get_zorder()
+    assert bought.get_linewidth() > sold.get_linewidth() > limit.get_linewidth()
+
+
 # -- Fig. 1 ------------------------------------------------------------------------------------
 def test_fig1_first_red_last_blue(history):
     n = history.system.n
