@@ -379,6 +379,31 @@ def test_the_site_study_is_the_notebook_own_run(tmp_path):
     assert "99.0" not in copied and "pending" not in copied
 
 
+def test_the_study_note_warns_of_short_runs_only_when_the_runs_are_short():
+    """The classroom profile runs the notebook's default run size (30 months of 30 days) on a
+    smaller grid: its table must not be introduced as a run too short to judge a grid limit,
+    while the test profile's 2 months of 2 days must be."""
+    import pandas as pd
+
+    table = pd.DataFrame({"P_bar": [1.5, 2.0], "seed": [0, 0], "J_last": [-150.0, -226.0]})
+
+    def note(name: str) -> str:
+        page = site_module.render_index([], {"profile": "classroom", "notebooks": {}}, [],
+                                        [{"name": name, "files": [], "table": table}])
+        (text,) = re.findall(r'<p class="small">(One row per run.*?)</p>', page, re.DOTALL)
+        return text
+
+    defaults = nbref.read_notebook("07_parameter_study")
+    assert "MONTHS: int = 30" in defaults.cells[2].source
+    assert "DAYS: int = 30" in defaults.cells[2].source
+    full = note("months=30,days=30")
+    assert "learned 30 months of 30 days" in full and "differ only by their seed" in full
+    assert "A run this short" not in full
+    short = note("months=2,days=2")
+    assert "A run this short" in short and "(30 months of 30 days)" in short
+    assert "A run this short" in note("months=12,days=30")
+
+
 def test_site_command_rejects_a_bad_profile(capsys):
     with pytest.raises(SystemExit) as info:
         site_module.main(["--out", "unused", "--profile", "huge"])
