@@ -280,7 +280,7 @@ def fig2_performance(
         if low.shape == high.shape == x_eval.shape and np.isfinite(low).any():
             if few:
                 bars = ax.errorbar(x_eval, J_eval, yerr=[J_eval - low, high - J_eval], fmt="none",
-                                   ecolor="0.35", capsize=4, lw=1.4, zorder=2,
+                                   ecolor="0.35", capsize=4, lw=1.4, zorder=3.4,
                                    label=f"95 % CI over the {draws} draws")
                 bars.lines[2][0].set_gid("J_eval_ci")
             else:
@@ -288,8 +288,9 @@ def fig2_performance(
                                 gid="J_eval_ci", label=f"95 % CI over the {draws} draws")
         label = ("evaluation (fixed draw)" if draws == 1
                  else f"evaluation (mean of {draws} fixed draws)")
+        # above the larger first/last month markers, which sit at the same months
         ax.plot(x_eval, J_eval, color="black", ls="none" if few else "--",
-                lw=1.4, marker="s", ms=4.5, mfc="white", mec="black", mew=1.0, zorder=2.5,
+                lw=1.4, marker="s", ms=4.5, mfc="white", mec="black", mew=1.0, zorder=3.5,
                 gid="J_eval", label=label)
     _first_and_last(ax, x, J)
     _month_axis(ax, months, f"closed-loop cost J ({COST_UNIT})", "Closed-loop performance")

@@ -539,6 +539,11 @@ def test_fig2_draws_few_evaluations_as_points_with_error_bars(history):
     assert (low, high) == pytest.approx((two.J_eval_ci_low[0], two.J_eval_ci_high[0]))
     assert not [c for c in ax.collections if c.get_gid() == "J_eval_ci"
                 and type(c).__name__ == "FillBetweenPolyCollection"]
+    # the evaluations sit at the first and the last month: drawn above those months' markers
+    marks = [line for line in ax.get_lines() if line.get_label() in ("first month", "last month")]
+    assert len(marks) == 2
+    assert evaluation.get_zorder() > max(m.get_zorder() for m in marks)
+    assert bars[0].get_zorder() > max(m.get_zorder() for m in marks)
 
 
 def test_fig2_draws_three_evaluations_as_a_line_with_a_band(history):
