@@ -411,7 +411,7 @@ def _applied_power_note(history: History) -> str:
     if above.size == history.months and np.isfinite(above[[0, -1]]).all():
         hour_days = history.system.hours_per_day * history.learning.days_per_month
         first, last = 100.0 * above[0] / hour_days, 100.0 * above[-1] / hour_days
-        lines.append(f"hour-days with applied P > P_bar: {first:.1f} % (month 1), "
+        lines.append(rf"hour-days with applied $P > \bar P$: {first:.1f} % (month 1), "
                      f"{last:.1f} % (month {history.months})")
     return "\n".join(lines)
 

@@ -397,6 +397,32 @@ def test_fig4_grid_power_against_P_bar(history):
     assert f"{last:.1f} % (month {MONTHS})" in note[0].get_text()
 
 
+def _all_texts(fig) -> list[str]:
+    """Every text a figure shows: titles, axis labels, legend entries and free texts."""
+    texts = [t.get_text() for t in fig.texts]
+    for ax in fig.axes:
+        texts += [ax.get_title(loc) for loc in ("left", "center", "right")]
+        texts += [ax.get_xlabel(), ax.get_ylabel()] + [t.get_text() for t in ax.texts]
+        legend = ax.get_legend()
+        if legend is not None:
+            texts += [t.get_text() for t in legend.get_texts()]
+    for legend in fig.legends:
+        texts += [t.get_text() for t in legend.get_texts()]
+    return [t for t in texts if t]
+
+
+def test_the_grid_limit_is_written_as_mathtext_on_every_figure(history, tmp_path):
+    """P̄ is ``$\\bar P$`` wherever a figure names it, never the plain identifier P_bar."""
+    figures = [make(history) for make in (fig1_trajectories, fig2_performance,
+                                          fig3_gradient_norm, fig4_grid_power,
+                                          fig5_policy_and_agent_costs)]
+    figures += [fig7_theta(history), plot_day(history.last_month, day=0)]
+    texts = [t for fig in figures for t in _all_texts(fig)]
+    named = [t for t in texts if r"\bar P" in t]
+    assert len(named) >= 3, named  # Fig. 4's legend, shading and note, the day's legend
+    assert not [t for t in texts if "P_bar" in t or "P̄" in t]
+
+
 def test_fig4_days(history):
     fig = fig4_grid_power(history, days=2)
     assert fig.axes[0].get_xlim() == (0.0, 48.0)
