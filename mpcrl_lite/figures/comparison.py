@@ -1,5 +1,4 @@
-r"""Notebook 06's and 07's figures: every policy against the bounds, two learners on one
-figure, and a parameter study's grid points against :math:`J^\star`.
+r"""Notebook 06's and 07's figures: policies against the bounds, two learners, a study's grid.
 
 * :func:`plot_policy_comparison` draws, for each policy of
   :func:`mpcrl_lite.bounds.baselines.evaluate_baselines` (nominal MPC, price rule, learned
