@@ -404,6 +404,22 @@ def test_the_study_note_warns_of_short_runs_only_when_the_runs_are_short():
     assert "A run this short" in note("months=12,days=30")
 
 
+def test_the_classroom_study_runs_the_notebook_run_size():
+    """The site shows the classroom profile's study: its runs are as long as the notebook's
+    defaults (shorter runs end before the learning shows what a grid limit is worth: 12 months
+    of 12 days left P_bar = 2.0 near the nominal MPC's soc penalties), on a smaller grid."""
+    from mpcrl_lite.publish.report import notebook_parameters, profile_parameters
+
+    classroom = profile_parameters("classroom")["07_parameter_study"]
+    defaults = {k: v["default"] for k, v in notebook_parameters("07_parameter_study.ipynb").items()}
+    assert classroom["MONTHS"] >= int(defaults["MONTHS"]) == 30
+    assert classroom["DAYS"] >= int(defaults["DAYS"]) == 30
+    assert "A run this short" not in site_module._study_note(
+        f"months={classroom['MONTHS']},days={classroom['DAYS']}", "classroom")
+    # the paper's grid limit is on the grid: the day-end comparison runs at the paper's system
+    assert 1.5 in [float(p) for p in classroom["P_BARS"].split(",")]
+
+
 def test_site_command_rejects_a_bad_profile(capsys):
     with pytest.raises(SystemExit) as info:
         site_module.main(["--out", "unused", "--profile", "huge"])
