@@ -1,4 +1,4 @@
-r"""Notebook 06's figures: every policy against the bounds, and two learners on one figure.
+r"""Notebook 06's and 07's figures: policies against the bounds, two learners, a study's grid.
 
 * :func:`plot_policy_comparison` draws, for each policy of
   :func:`mpcrl_lite.bounds.baselines.evaluate_baselines` (nominal MPC, price rule, learned
@@ -9,7 +9,11 @@ r"""Notebook 06's figures: every policy against the bounds, and two learners on 
   regret split of a tuned class, ``causal['split']``);
 * :func:`plot_learning_curves` draws :math:`J` per month of the centralized and the
   decentralized learner of :func:`mpcrl_lite.decentralized.learner.compare_learners` on one
-  axes (points only when there are too few months for a line to mean anything).
+  axes (points only when there are too few months for a line to mean anything);
+* :func:`plot_parameter_study` draws notebook 07's study: every run's :math:`J_\text{eval}`
+  of the last month with its 95 % interval over the evaluation draws and :math:`J^\star` per
+  grid limit (left), the regret :math:`J_\text{eval} - J^\star` over the seeds (right;
+  points only when there are too few grid limits for a line to mean anything).
 """
 
 from __future__ import annotations
@@ -33,7 +37,8 @@ if TYPE_CHECKING:
     from matplotlib.axes import Axes
     from matplotlib.figure import Figure
 
-__all__ = ["POLICY_LABELS", "plot_learning_curves", "plot_policy_comparison"]
+__all__ = ["POLICY_LABELS", "plot_learning_curves", "plot_parameter_study",
+           "plot_policy_comparison"]
 
 #: How the policies of ``evaluate_baselines`` are named on the figure.
 POLICY_LABELS = {
@@ -157,4 +162,97 @@ def plot_learning_curves(comparison: Mapping[str, Any], ax: Axes | None = None,
     ax.legend(fontsize=9)
     ax.set_title(title or "Centralized and decentralized learning: J per month (same prices, "
                  "seed and exploration)", loc="left", fontsize=11)
+    return fig
+
+
+#: Columns :func:`plot_parameter_study` reads from its two tables.
+STUDY_RESULTS_COLUMNS = ("P_bar", "noise_var", "seed", "J_eval_last", "J_eval_last_ci_low",
+                         "J_eval_last_ci_high", "J_star")
+STUDY_STATS_COLUMNS = ("P_bar", "noise_var", "regret_last_mean", "regret_last_std")
+
+
+def plot_parameter_study(results: Any, stats: Any, axes: Any = None,
+                         fig: Figure | None = None) -> Figure:
+    r"""Notebook 07's study: each run against :math:`J^\star` (left), the regret (right).
+
+    Parameters
+    ----------
+    results : pandas.DataFrame
+        One row per run: ``P_bar``, ``noise_var``, ``seed``, ``J_eval_last`` with its 95 %
+        interval ``J_eval_last_ci_low`` / ``J_eval_last_ci_high``, and ``J_star`` of its
+        system.
+    stats : pandas.DataFrame
+        One row per grid point (``summarize`` over the seeds): ``P_bar``, ``noise_var``,
+        ``regret_last_mean``, ``regret_last_std``.
+    axes : two Axes, optional
+        Drawn into; else ``fig`` (cleared) or a new figure.
+    fig : Figure, optional
+
+    Returns
+    -------
+    Figure
+        Left: every run's :math:`J_\text{eval}` as a point with its interval (the seeds of
+        a grid point side by side) and :math:`J^\star` of each grid point as a cross. Right:
+        the mean regret over the seeds with one standard deviation; joined by a line only
+        with at least :data:`MIN_POINTS_FOR_A_LINE` grid limits (two points would draw a
+        trend nobody measured). One colour per noise variance.
+
+    Raises
+    ------
+    ValueError
+        If a table lacks a column the figure reads, or holds no row.
+
+    Notes
+    -----
+    Gids: the runs ``"J_eval[noise_var=v]"`` and ``"regret[noise_var=v]"`` (error-bar
+    containers, their data line carries the gid), the crosses ``"J_star[noise_var=v]"``.
+    """
+    for name, table, columns in (("results", results, STUDY_RESULTS_COLUMNS),
+                                 ("stats", stats, STUDY_STATS_COLUMNS)):
+        missing = [c for c in columns if c not in getattr(table, "columns", ())]
+        if missing:
+            raise ValueError(f"{name}: missing column(s) {missing}; expected {list(columns)}")
+        if len(table) == 0:
+            raise ValueError(f"{name}: no rows to draw")
+    fig, (ax_J, ax_r) = axes_or_new(axes, (1, 2), (11.0, 3.8), "axes", fig)
+    p_bars = np.unique(np.asarray(results["P_bar"], dtype=float))
+    seeds = int(results["seed"].nunique())
+    width = 0.08 * (float(p_bars.max() - p_bars.min()) or 1.0)
+    noise_groups = list(results.groupby("noise_var"))
+    for c, (noise_var, group) in enumerate(noise_groups):
+        color = f"C{c}"
+        # the seeds of a grid point side by side, the noise variances apart
+        offset = (c - (len(noise_groups) - 1) / 2) * width * 1.5
+        rank = group["seed"].rank(method="dense").to_numpy() - 1
+        x = group["P_bar"].to_numpy(float) + offset + (rank - (seeds - 1) / 2) * width / seeds
+        J = group["J_eval_last"].to_numpy(float)
+        bars = ax_J.errorbar(x, J, yerr=[J - group["J_eval_last_ci_low"].to_numpy(float),
+                                         group["J_eval_last_ci_high"].to_numpy(float) - J],
+                             fmt="o", ms=4, capsize=3, color=color,
+                             label=f"noise var {noise_var:g}: each run, 95 % interval")
+        bars.lines[0].set_gid(f"J_eval[noise_var={noise_var:g}]")
+        stars = group.drop_duplicates("P_bar")
+        ax_J.plot(stars["P_bar"].to_numpy(float) + offset, stars["J_star"].to_numpy(float), "x",
+                  ms=9, mew=2,
+                  color=color, gid=f"J_star[noise_var={noise_var:g}]",
+                  label=f"J* (noise var {noise_var:g})")
+        rows = stats[np.isclose(stats["noise_var"].to_numpy(float), float(noise_var))]
+        rows = rows.sort_values("P_bar")
+        line = "-" if len(rows) >= MIN_POINTS_FOR_A_LINE else "none"
+        bars = ax_r.errorbar(rows["P_bar"].to_numpy(float),
+                             rows["regret_last_mean"].to_numpy(float),
+                             yerr=rows["regret_last_std"].fillna(0.0).to_numpy(float),
+                             marker="o", capsize=4,
+                             color=color, ls=line, label=f"noise var {noise_var:g}")
+        bars.lines[0].set_gid(f"regret[noise_var={noise_var:g}]")
+    for ax in (ax_J, ax_r):
+        ax.set_xlabel(r"grid limit $\bar P$ (MW)")
+        ax.grid(True, color="0.9")
+        ax.legend(fontsize=8)
+    ax_J.set_ylabel(f"J ({COST_UNIT})")
+    ax_J.set_title(r"$J_\mathrm{eval}$, last month: each run with its 95 % interval",
+                   loc="left", fontsize=11)
+    ax_r.set_ylabel(rf"$J_\mathrm{{eval}} - J^\star$ ({COST_UNIT})")
+    ax_r.set_title(f"regret: mean ± std over {seeds} seed{'s' if seeds != 1 else ''}",
+                   loc="left", fontsize=11)
     return fig

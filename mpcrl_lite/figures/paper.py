@@ -280,7 +280,7 @@ def fig2_performance(
         if low.shape == high.shape == x_eval.shape and np.isfinite(low).any():
             if few:
                 bars = ax.errorbar(x_eval, J_eval, yerr=[J_eval - low, high - J_eval], fmt="none",
-                                   ecolor="0.35", capsize=4, lw=1.4, zorder=2,
+                                   ecolor="0.35", capsize=4, lw=1.4, zorder=3.4,
                                    label=f"95 % CI over the {draws} draws")
                 bars.lines[2][0].set_gid("J_eval_ci")
             else:
@@ -288,8 +288,9 @@ def fig2_performance(
                                 gid="J_eval_ci", label=f"95 % CI over the {draws} draws")
         label = ("evaluation (fixed draw)" if draws == 1
                  else f"evaluation (mean of {draws} fixed draws)")
+        # above the larger first/last month markers, which sit at the same months
         ax.plot(x_eval, J_eval, color="black", ls="none" if few else "--",
-                lw=1.4, marker="s", ms=4.5, mfc="white", mec="black", mew=1.0, zorder=2.5,
+                lw=1.4, marker="s", ms=4.5, mfc="white", mec="black", mew=1.0, zorder=3.5,
                 gid="J_eval", label=label)
     _first_and_last(ax, x, J)
     _month_axis(ax, months, f"closed-loop cost J ({COST_UNIT})", "Closed-loop performance")
@@ -410,7 +411,7 @@ def _applied_power_note(history: History) -> str:
     if above.size == history.months and np.isfinite(above[[0, -1]]).all():
         hour_days = history.system.hours_per_day * history.learning.days_per_month
         first, last = 100.0 * above[0] / hour_days, 100.0 * above[-1] / hour_days
-        lines.append(f"hour-days with applied P > P_bar: {first:.1f} % (month 1), "
+        lines.append(rf"hour-days with applied $P > \bar P$: {first:.1f} % (month 1), "
                      f"{last:.1f} % (month {history.months})")
     return "\n".join(lines)
 
@@ -531,7 +532,10 @@ def fig7_theta(history: History, part: str = "delta", ax: Axes | None = None) ->
     """Paper Fig. 7: one part of theta (one entry per agent) over the months.
 
     Point ``m`` is the value used during month ``m + 1``; the last point is theta after the
-    last update (:meth:`History.theta_part`), so month 0 is ``theta_0``.
+    last update (:meth:`History.theta_part`), so month 0 is ``theta_0``. When every agent
+    holds the same value in every month (``LearningConfig.tie_agents``, the default) the
+    agents' lines would lie on top of each other, the last one hiding the rest: one line is
+    drawn instead, labelled as the tied value of all agents.
 
     Parameters
     ----------
@@ -551,7 +555,8 @@ def fig7_theta(history: History, part: str = "delta", ax: Axes | None = None) ->
 
     Notes
     -----
-    Line gids: ``"theta_<part>[i]"`` (agents counted from 1).
+    Line gids: ``"theta_<part>[i]"`` (agents counted from 1), or ``"theta_<part>[tied]"``
+    for the one line of tied agents.
     """
     if part not in PARTS:
         raise ValueError(f"part={part!r}: expected one of {PARTS}")
@@ -562,15 +567,15 @@ def fig7_theta(history: History, part: str = "delta", ax: Axes | None = None) ->
     fig, (ax,) = axes_or_new(ax, (1, 1), (7.0, 4.0), "ax")
     x = np.arange(values.shape[0])  # theta_0 at 0, then after each month's update
     tex = _PART_TEX[part]
-    _agent_series(ax, x, values, f"theta_{part}", tex, lw=1.6)
+    n = values.shape[1]
+    if n > 1 and np.allclose(values, values[:, :1], rtol=1e-12, atol=0.0):
+        # tied agents: n coinciding lines would show one colour under n legend entries
+        ax.plot(x, values[:, 0], color="0.2", lw=1.6, marker="o", ms=3,
+                gid=f"theta_{part}[tied]", label=f"${tex}^i$, all {n} agents (tied)")
+    else:
+        _agent_series(ax, x, values, f"theta_{part}", tex, lw=1.6)
     _month_axis(ax, months, f"${tex}$ ({_PART_UNIT[part]})", f"Convergence of ${tex}^i$",
                 legend_size=9)
-    if values.shape[1] > 1 and np.allclose(values, values[:, :1], rtol=1e-12, atol=0.0):
-        # tied agents (LearningConfig.tie_agents): the lines coincide, the last one drawn hides
-        # the others; say so where the reader looks for them
-        ax.text(0.02, 0.04, f"all {values.shape[1]} agents share one value (tie_agents): "
-                "their lines coincide", transform=ax.transAxes, fontsize=9, gid="tied_note",
-                bbox={"facecolor": "white", "edgecolor": "0.7", "alpha": 0.9})
     ax.ticklabel_format(axis="y", style="sci", scilimits=(-3, 4), useMathText=True)
     return fig
 

@@ -272,14 +272,17 @@ def plot_plan(
         ax_a.plot(j, steps(plan.b[:, i] - plan.s[:, i]), drawstyle="steps-post",
                   color=agent_color(i), lw=1.5 + 0.8 * (n - 1 - i), gid=f"net_power[{i + 1}]")
     ax_a.set_ylabel("planned b − s (MW)")
-    # the sold sum often sits exactly at P_bar: wide lines under thin dashes show both
+    # The sold sum often sits exactly at P_bar, and both sums at 0 in the same steps: thin
+    # dashes of P_bar over a narrower sold line over a wider bought line, so that all three
+    # show wherever they coincide.
     p_bar_line(ax_p, system.P_bar, lw=1.0)
     sum_b, sum_s = plan.b.sum(axis=1), plan.s.sum(axis=1)
-    ax_p.plot(j, steps(sum_b), drawstyle="steps-post", color=FIRST_COLOR, lw=3.0, gid="sum_b",
-              alpha=0.85, label=r"$\sum_i b^i_j$ (bought)")
-    ax_p.plot(j, steps(sum_s), drawstyle="steps-post", color=LAST_COLOR, lw=3.0, gid="sum_s",
-              alpha=0.85, label=r"$\sum_i s^i_j$ (sold)")
-    headroom(ax_p, system.P_bar, sum_b.max(), sum_s.max())
+    ax_p.plot(j, steps(sum_b), drawstyle="steps-post", color=FIRST_COLOR, lw=4.0, gid="sum_b",
+              zorder=2, solid_capstyle="butt", label=r"$\sum_i b^i_j$ (bought)")
+    ax_p.plot(j, steps(sum_s), drawstyle="steps-post", color=LAST_COLOR, lw=2.2, gid="sum_s",
+              zorder=3, solid_capstyle="butt", label=r"$\sum_i s^i_j$ (sold)")
+    # a little room below 0, where both sums often sit, so that neither is cut by the axes
+    headroom(ax_p, system.P_bar, sum_b.max(), sum_s.max(), bottom=-0.06 * system.P_bar)
     ax_p.set_ylabel("grid (MW)")
     legend_beside(ax_p)
     if buy is not None:

@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import base64
 import datetime as _dt
+import functools
 import html
 import json
 import re
@@ -40,7 +41,7 @@ from .._util.references import PAPER
 from .._util.version import __version__
 from .html_export import MATHJAX_DIRNAME, mathjax_tags, remote_resources, write_html
 from .launch import binder_url, colab_url
-from .report import PROFILES, notebook_paths, run_report
+from .report import PROFILES, notebook_parameters, notebook_paths, run_report
 
 __all__ = [
     "PAPER_FIGURES_NOTEBOOK",
@@ -271,16 +272,36 @@ def render_index(entries: list[NotebookEntry], summary: dict[str, Any],
     return "\n".join(parts)
 
 
-def _study_note(name: str, profile: str) -> str:
-    """How to read a study table: its run size, and what so short a run can show."""
+def _study_note(name: str, profile: str, full_run: tuple[int, int] | None = None) -> str:
+    """How to read a study table: its run size, the spread between seeds, and, for runs
+    shorter than the notebook's defaults ``full_run`` (months, days; read from the notebook
+    when not given), what so short a run can show."""
     sizes = dict(part.split("=", 1) for part in name.split(",") if "=" in part)
     months, days = sizes.get("months", "?"), sizes.get("days", "?")
-    return (f"One row per run of the study ({profile} profile): each run learned {months} "
+    note = (f"One row per run of the study ({profile} profile): each run learned {months} "
             f"months of {days} days from theta0 and was evaluated on the same 10 noise draws. "
-            "A run this short shows where learning stands after so few months, not what a "
-            "grid limit or a noise level is worth: a run that has not settled yet can cost far "
-            "more than the nominal MPC. The notebook's defaults (30 months of 30 days) and "
-            "benchmarks/README.md give the comparison over longer runs.")
+            "The rows of one grid limit differ only by their seed: a difference between grid "
+            "limits means something where it is large against that spread (the notebook adds "
+            "each run's 95 % interval over the draws and its regret against J*).")
+    full_months, full_days = full_run or _study_defaults()
+    try:
+        short = int(months) < full_months or int(days) < full_days
+    except ValueError:  # a folder not named months=M,days=D: its size is unknown
+        short = True
+    if short:
+        note += (" A run this short shows where learning stands after so few months, not what "
+                 "a grid limit or a noise level is worth: a run that has not settled yet can "
+                 "cost far more than the nominal MPC. The notebook's defaults "
+                 f"({full_months} months of {full_days} days) and benchmarks/README.md give "
+                 "the comparison over longer runs.")
+    return note
+
+
+@functools.cache
+def _study_defaults() -> tuple[int, int]:
+    """The run size (months, days) of the study notebook's defaults."""
+    parameters = notebook_parameters(f"{_STUDY_NOTEBOOK}.ipynb")
+    return int(parameters["MONTHS"]["default"]), int(parameters["DAYS"]["default"])
 
 
 def _short(value: Any) -> str:

@@ -71,3 +71,68 @@ def test_learning_curves_on_one_axes_points_only_when_few_months():
     fig = plot_learning_curves(five)
     assert all(line.get_linestyle() != "None" for line in fig.axes[0].get_lines())
     plt.close(fig)
+
+
+def _study(p_bars, seeds=2, noise_vars=(0.5,)):
+    """Tables shaped as notebook 07's ``results`` and ``stats``."""
+    import pandas as pd
+
+    rows = []
+    for v in noise_vars:
+        for p in p_bars:
+            for seed in range(seeds):
+                J = -100.0 * p - 10.0 * seed - 50.0 * v
+                rows.append({"P_bar": p, "noise_var": v, "seed": seed, "J_eval_last": J,
+                             "J_eval_last_ci_low": J - 20.0, "J_eval_last_ci_high": J + 25.0,
+                             "J_star": -400.0 - 10.0 * p})
+    results = pd.DataFrame(rows)
+    results["regret_last"] = results["J_eval_last"] - results["J_star"]
+    stats = (results.groupby(["P_bar", "noise_var"], as_index=False)["regret_last"]
+             .agg(regret_last_mean="mean", regret_last_std="std"))
+    return results, stats
+
+
+def _container(ax, gid):
+    (found,) = [c for c in ax.containers if c.lines[0].get_gid() == gid]
+    return found
+
+
+def test_parameter_study_draws_two_grid_limits_as_points_without_a_trend():
+    """Notebook 07's classroom and test profiles run two grid limits: the regret panel shows
+    two points with their spreads and no line between them."""
+    from mpcrl_lite.figures.comparison import plot_parameter_study
+
+    results, stats = _study([1.5, 2.0])
+    fig = plot_parameter_study(results, stats)
+    ax_J, ax_r = fig.axes
+    regret = _container(ax_r, "regret[noise_var=0.5]")
+    assert regret.lines[0].get_linestyle() == "None" and regret.lines[0].get_marker() == "o"
+    np.testing.assert_allclose(regret.lines[0].get_xdata(), [1.5, 2.0])
+    np.testing.assert_allclose(regret.lines[0].get_ydata(), stats["regret_last_mean"])
+    runs = _container(ax_J, "J_eval[noise_var=0.5]").lines[0]
+    assert runs.get_linestyle() == "None"
+    np.testing.assert_allclose(sorted(runs.get_ydata()), sorted(results["J_eval_last"]))
+    # the two seeds of a grid point side by side around it, J* of each grid limit once
+    x = np.asarray(runs.get_xdata())
+    assert np.all(np.abs(x - results["P_bar"].to_numpy()) < 0.1) and len(set(x)) == 4
+    (stars,) = [line for line in ax_J.get_lines() if line.get_gid() == "J_star[noise_var=0.5]"]
+    np.testing.assert_allclose(stars.get_ydata(), [-415.0, -420.0])
+    for ax in (ax_J, ax_r):
+        assert ax.get_xlabel() == r"grid limit $\bar P$ (MW)"
+    assert "over 2 seeds" in ax_r.get_title("left")
+    plt.close(fig)
+
+
+def test_parameter_study_joins_three_grid_limits_and_refuses_bad_tables():
+    from mpcrl_lite.figures.comparison import plot_parameter_study
+
+    results, stats = _study([1.0, 1.5, 2.0], seeds=3, noise_vars=(0.2, 0.5))
+    fig = plot_parameter_study(results, stats)
+    for v in ("0.2", "0.5"):
+        line = _container(fig.axes[1], f"regret[noise_var={v}]").lines[0]
+        assert line.get_linestyle() == "-" and len(line.get_xdata()) == 3
+    plt.close(fig)
+    with pytest.raises(ValueError, match=r"results: missing column\(s\) \['J_star'\]"):
+        plot_parameter_study(results.drop(columns="J_star"), stats)
+    with pytest.raises(ValueError, match="stats: no rows"):
+        plot_parameter_study(results, stats.iloc[:0])

@@ -231,6 +231,43 @@ def test_price_window_plan_policy_curve_and_value_fit():
     assert len(plots.draw_value_fit(Figure(), fit).axes) == 3        # two panels, a colorbar
 
 
+def _colours_near(fig, ax, x: float, y: float, colours: dict[str, str], reach: int = 10):
+    """Which of ``colours`` (name: hex) the rendered figure shows in the pixel column at data
+    ``x``, within ``reach`` pixels of data ``y``."""
+    from matplotlib.colors import to_rgb
+
+    fig.canvas.draw()
+    image = np.asarray(fig.canvas.buffer_rgba())[:, :, :3].astype(float)
+    px, py = ax.transData.transform((x, y))
+    row, col = image.shape[0] - round(float(py)), round(float(px))
+    column = image[max(row - reach, 0): row + reach + 1, col]
+    return {name for name, hex_ in colours.items()
+            if (np.abs(column - 255.0 * np.asarray(to_rgb(hex_))).max(axis=1) < 40).any()}
+
+
+def test_plan_grid_sums_stay_visible_at_the_limit_and_at_zero():
+    """Notebook 02's plan with T2 = -300: nothing bought or sold for 6 steps, then the sold sum
+    exactly at P_bar. The sold line must show at P_bar (not under its dashes), and where both
+    sums are 0 the bought and the sold line must both show."""
+    system = SystemConfig()
+    N, n = 12, system.n
+    s = np.zeros((N, n))
+    s[6:] = system.P_bar / n
+    plan = Plan(b=np.zeros((N, n)), s=s, soc=np.full((N + 1, n), 0.5),
+                sigma_hi=np.zeros((N, n)), sigma_lo=np.zeros((N, n)))
+    fig = plots.plot_plan(plan, system)
+    fig.set_dpi(150)
+    ax = fig.axes[2]
+    colours = {"bought": FIRST_COLOR, "sold": LAST_COLOR, "P_bar": "#000000"}
+    for x in (7.5, 9.5, 11.5):
+        assert {"sold", "P_bar"} <= _colours_near(fig, ax, x, system.P_bar, colours), x
+    for x in (1.5, 3.5, 5.5):
+        assert {"bought", "sold"} <= _colours_near(fig, ax, x, 0.0, colours), x
+    bought, sold, limit = (one_line(fig, g) for g in ("sum_b", "sum_s", "P_bar"))
+    assert limit.get_zorder() > sold.get_zorder() > bought.get_zorder()
+    assert bought.get_linewidth() > sold.get_linewidth() > limit.get_linewidth()
+
+
 # -- Fig. 1 ------------------------------------------------------------------------------------
 def test_fig1_first_red_last_blue(history):
     n = history.system.n
@@ -314,6 +351,19 @@ def test_fig2_rolling_mean_on_a_longer_history(history):
         fig2_performance(longer, rolling=0)
 
 
+def test_fig2_centred_mean_of_a_step_changes_at_the_step(history):
+    """J drops from 100 to 50 after month 6: the centred mean passes half-way (75) between
+    months 6 and 7, where the step is; a trailing mean would pass it two months later."""
+    J = [100.0] * 6 + [50.0] * 6
+    fig = fig2_performance(dataclasses.replace(history, J=J), rolling=4)
+    rolling = one_line(fig, "J_rolling")
+    x, y = np.asarray(rolling.get_xdata()), np.asarray(rolling.get_ydata())
+    assert x[np.flatnonzero(y == 75.0)].tolist() == [6.5]
+    assert (y[x < 6.5] > 75.0).all() and (y[x > 6.5] < 75.0).all()
+    # every mean lies within the months it averages: never above the data before the step
+    assert (y <= 100.0).all() and (y[x >= 8.5] == 50.0).all()
+
+
 def test_fig3_gradient_norm_log_scale(history):
     fig3, ax = plt.subplots()
     fig = fig3_gradient_norm(history, ax=ax)
@@ -345,6 +395,32 @@ def test_fig4_grid_power_against_P_bar(history):
     assert f"{history.max_P_applied[top]:.2f} MW (month {top + 1})" in note[0].get_text()
     last = 100.0 * over / (rec.grid_power.size)
     assert f"{last:.1f} % (month {MONTHS})" in note[0].get_text()
+
+
+def _all_texts(fig) -> list[str]:
+    """Every text a figure shows: titles, axis labels, legend entries and free texts."""
+    texts = [t.get_text() for t in fig.texts]
+    for ax in fig.axes:
+        texts += [ax.get_title(loc) for loc in ("left", "center", "right")]
+        texts += [ax.get_xlabel(), ax.get_ylabel()] + [t.get_text() for t in ax.texts]
+        legend = ax.get_legend()
+        if legend is not None:
+            texts += [t.get_text() for t in legend.get_texts()]
+    for legend in fig.legends:
+        texts += [t.get_text() for t in legend.get_texts()]
+    return [t for t in texts if t]
+
+
+def test_the_grid_limit_is_written_as_mathtext_on_every_figure(history, tmp_path):
+    """P̄ is ``$\\bar P$`` wherever a figure names it, never the plain identifier P_bar."""
+    figures = [make(history) for make in (fig1_trajectories, fig2_performance,
+                                          fig3_gradient_norm, fig4_grid_power,
+                                          fig5_policy_and_agent_costs)]
+    figures += [fig7_theta(history), plot_day(history.last_month, day=0)]
+    texts = [t for fig in figures for t in _all_texts(fig)]
+    named = [t for t in texts if r"\bar P" in t]
+    assert len(named) >= 3, named  # Fig. 4's legend, shading and note, the day's legend
+    assert not [t for t in texts if "P_bar" in t or "P̄" in t]
 
 
 def test_fig4_days(history):
@@ -391,15 +467,48 @@ def test_fig6_prices():
 
 
 # -- Fig. 7 ------------------------------------------------------------------------------------
+def _untied(history: History) -> History:
+    """The history with agent i's theta moved by i/10 (plus a tenth of its size): per-agent
+    values that differ in every part."""
+    n = history.system.n
+    shift = np.tile(np.arange(n) / 10.0, len(history.theta_final) // n)
+
+    def untie(t):
+        t = np.asarray(t, dtype=float)
+        return list(t + shift * (1.0 + np.abs(t)))
+
+    return dataclasses.replace(history, theta=[untie(t) for t in history.theta],
+                               theta_final=untie(history.theta_final))
+
+
 @pytest.mark.parametrize("part", ["delta", "alpha", "T1"])
 def test_fig7_theta(history, part):
-    fig = fig7_theta(history, part)
-    values = history.theta_part(part)
+    untied = _untied(history)
+    fig = fig7_theta(untied, part)
+    values = untied.theta_part(part)
     assert values.shape == (MONTHS + 1, history.system.n)
+    assert not np.allclose(values, values[:, :1])
     for i in range(history.system.n):
         line = one_line(fig, f"theta_{part}[{i + 1}]")
         np.testing.assert_allclose(line.get_ydata(), values[:, i])
         np.testing.assert_allclose(line.get_xdata(), np.arange(MONTHS + 1))
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert len(labels) == history.system.n and not any("tied" in t for t in labels)
+
+
+def test_fig7_draws_tied_agents_as_one_line_labelled_tied(history):
+    """With tie_agents (the default) every agent holds the same value: one line, one legend
+    entry that says so, instead of n entries over one visible line."""
+    assert history.learning.tie_agents
+    values = history.theta_part("delta")
+    np.testing.assert_array_equal(values, np.repeat(values[:, :1], history.system.n, axis=1))
+    fig = fig7_theta(history, "delta")
+    ax = fig.axes[0]
+    data_lines = [line for line in ax.get_lines() if (line.get_gid() or "").startswith("theta_")]
+    assert [line.get_gid() for line in data_lines] == ["theta_delta[tied]"]
+    np.testing.assert_allclose(data_lines[0].get_ydata(), values[:, 0])
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert len(labels) == 1 and f"all {history.system.n} agents (tied)" in labels[0]
 
 
 def test_fig7_unknown_part(history):
@@ -456,19 +565,11 @@ def test_fig2_draws_few_evaluations_as_points_with_error_bars(history):
     assert (low, high) == pytest.approx((two.J_eval_ci_low[0], two.J_eval_ci_high[0]))
     assert not [c for c in ax.collections if c.get_gid() == "J_eval_ci"
                 and type(c).__name__ == "FillBetweenPolyCollection"]
-
-
-def test_fig7_says_when_tied_agents_coincide(history):
-    from mpcrl_lite.theta import Theta
-
-    tied = history.theta_part("delta")
-    notes = [t for t in fig7_theta(history, "delta").axes[0].texts
-             if t.get_gid() == "tied_note"]
-    coincide = np.allclose(tied, tied[:, :1], rtol=1e-12, atol=0.0)
-    assert bool(notes) == coincide
-    if notes:
-        assert "share one value" in notes[0].get_text()
-    assert Theta  # the note depends only on the values drawn
+    # the evaluations sit at the first and the last month: drawn above those months' markers
+    marks = [line for line in ax.get_lines() if line.get_label() in ("first month", "last month")]
+    assert len(marks) == 2
+    assert evaluation.get_zorder() > max(m.get_zorder() for m in marks)
+    assert bars[0].get_zorder() > max(m.get_zorder() for m in marks)
 
 
 def test_fig2_draws_three_evaluations_as_a_line_with_a_band(history):

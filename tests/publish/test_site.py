@@ -325,6 +325,38 @@ def test_paper_figures_and_study_tables_are_collected(tmp_path):
     assert "study/months=2,days=2/results.csv" in page and "14.0" in page
 
 
+class _Thumbnails(HTMLParser):
+    """Every <img> of a page with the href of the <a> it sits in (None outside a link)."""
+
+    def __init__(self):
+        super().__init__(convert_charrefs=True)
+        self.links: list[str | None] = []
+        self.images: list[tuple[str | None, str | None]] = []
+
+    def handle_starttag(self, tag, attrs):
+        attrs = dict(attrs)
+        if tag == "a":
+            self.links.append(attrs.get("href"))
+        elif tag == "img":
+            self.images.append((attrs.get("src"), self.links[-1] if self.links else None))
+
+    def handle_endtag(self, tag):
+        if tag == "a" and self.links:
+            self.links.pop()
+
+
+def test_every_figure_thumbnail_links_to_its_full_image():
+    figures = [{"file": "fig2_performance.png", "name": "fig2_performance", "alt": "J."},
+               {"file": "fig7_theta.png", "name": "fig7_theta", "alt": "theta."}]
+    page = site_module.render_index([], {"profile": "ci", "notebooks": {}}, figures, [])
+    parsed = _Thumbnails()
+    parsed.feed(page)
+    assert [src for src, _ in parsed.images] == ["figures/fig2_performance.png",
+                                                 "figures/fig7_theta.png"]
+    for src, href in parsed.images:
+        assert href == src, f"thumbnail {src} is not a link to itself (inside {href!r})"
+
+
 def test_the_site_study_is_the_notebook_own_run(tmp_path):
     """Rows an exercise added to the study's folder (another seed, a pending run) and other
     sweeps' folders are not the study: only the finished runs of its own grid are shown."""
@@ -345,6 +377,47 @@ def test_the_site_study_is_the_notebook_own_run(tmp_path):
     assert (table["status"] == "done").all() and table["seed"].max() == 1
     copied = (tmp_path / "study" / "months=2,days=2" / "results.csv").read_text()
     assert "99.0" not in copied and "pending" not in copied
+
+
+def test_the_study_note_warns_of_short_runs_only_when_the_runs_are_short():
+    """The classroom profile runs the notebook's default run size (30 months of 30 days) on a
+    smaller grid: its table must not be introduced as a run too short to judge a grid limit,
+    while the test profile's 2 months of 2 days must be."""
+    import pandas as pd
+
+    table = pd.DataFrame({"P_bar": [1.5, 2.0], "seed": [0, 0], "J_last": [-150.0, -226.0]})
+
+    def note(name: str) -> str:
+        page = site_module.render_index([], {"profile": "classroom", "notebooks": {}}, [],
+                                        [{"name": name, "files": [], "table": table}])
+        (text,) = re.findall(r'<p class="small">(One row per run.*?)</p>', page, re.DOTALL)
+        return text
+
+    defaults = nbref.read_notebook("07_parameter_study")
+    assert "MONTHS: int = 30" in defaults.cells[2].source
+    assert "DAYS: int = 30" in defaults.cells[2].source
+    full = note("months=30,days=30")
+    assert "learned 30 months of 30 days" in full and "differ only by their seed" in full
+    assert "A run this short" not in full
+    short = note("months=2,days=2")
+    assert "A run this short" in short and "(30 months of 30 days)" in short
+    assert "A run this short" in note("months=12,days=30")
+
+
+def test_the_classroom_study_runs_the_notebook_run_size():
+    """The site shows the classroom profile's study: its runs are as long as the notebook's
+    defaults (shorter runs end before the learning shows what a grid limit is worth: 12 months
+    of 12 days left P_bar = 2.0 near the nominal MPC's soc penalties), on a smaller grid."""
+    from mpcrl_lite.publish.report import notebook_parameters, profile_parameters
+
+    classroom = profile_parameters("classroom")["07_parameter_study"]
+    defaults = {k: v["default"] for k, v in notebook_parameters("07_parameter_study.ipynb").items()}
+    assert classroom["MONTHS"] >= int(defaults["MONTHS"]) == 30
+    assert classroom["DAYS"] >= int(defaults["DAYS"]) == 30
+    assert "A run this short" not in site_module._study_note(
+        f"months={classroom['MONTHS']},days={classroom['DAYS']}", "classroom")
+    # the paper's grid limit is on the grid: the day-end comparison runs at the paper's system
+    assert 1.5 in [float(p) for p in classroom["P_BARS"].split(",")]
 
 
 def test_site_command_rejects_a_bad_profile(capsys):
