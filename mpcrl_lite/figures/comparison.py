@@ -1,4 +1,4 @@
-r"""Notebook 06's and 07's figures: policies against the bounds, two learners, a study's grid.
+r"""Notebooks 06-08's figures: policies against the bounds, learners, a study's grid.
 
 * :func:`plot_policy_comparison` draws, for each policy of
   :func:`mpcrl_lite.bounds.baselines.evaluate_baselines` (nominal MPC, price rule, learned
@@ -14,6 +14,12 @@ r"""Notebook 06's and 07's figures: policies against the bounds, two learners, a
   of the last month with its 95 % interval over the evaluation draws and :math:`J^\star` per
   grid limit (left), the regret :math:`J_\text{eval} - J^\star` over the seeds (right;
   points only when there are too few grid limits for a line to mean anything).
+
+Notebook 08's figure:
+
+* :func:`plot_seed_bands` draws, for each learner, the mean ``J_eval`` over seeds with its
+  95 % interval over the seeds (the bands of :func:`mpcrl_lite.studies.study.seed_band`)
+  against the nominal MPC, the best parameters of the class and :math:`J^\star`.
 """
 
 from __future__ import annotations
@@ -38,7 +44,7 @@ if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
 __all__ = ["POLICY_LABELS", "plot_learning_curves", "plot_parameter_study",
-           "plot_policy_comparison"]
+           "plot_policy_comparison", "plot_seed_bands"]
 
 #: How the policies of ``evaluate_baselines`` are named on the figure.
 POLICY_LABELS = {
@@ -255,4 +261,61 @@ def plot_parameter_study(results: Any, stats: Any, axes: Any = None,
     ax_r.set_ylabel(rf"$J_\mathrm{{eval}} - J^\star$ ({COST_UNIT})")
     ax_r.set_title(f"regret: mean ± std over {seeds} seed{'s' if seeds != 1 else ''}",
                    loc="left", fontsize=11)
+    return fig
+
+
+#: Colours of the learners of :func:`plot_seed_bands` (others cycle through matplotlib's).
+LEARNER_COLORS = {"DPG": LAST_COLOR, "Q-learning": "#2ca02c"}
+
+
+def plot_seed_bands(bands: Mapping[str, Mapping[str, Any]], J_star: float | None = None,
+                    J_class: float | None = None, J_nominal: float | None = None,
+                    ax: Axes | None = None, fig: Figure | None = None,
+                    title: str | None = None) -> Figure:
+    """Mean ``J_eval`` over seeds per learner, with its 95 % interval over the seeds.
+
+    Parameters
+    ----------
+    bands : dict
+        Learner name -> the result of :func:`mpcrl_lite.studies.study.seed_band` (``month``
+        from 0, ``mean``, ``ci_low``, ``ci_high``, ``seeds``).
+    J_star, J_class, J_nominal : float, optional
+        Drawn as horizontal lines (gids ``"J_star"``, ``"J_class"``, ``"J_nominal"``): the
+        best causal policy, the best parameters of the MPC class, the nominal MPC.
+    ax : Axes, optional
+        Drawn into; else ``fig`` (cleared) or a new figure.
+    fig : Figure, optional
+    title : str, optional
+
+    Returns
+    -------
+    Figure
+        Months from 1 on the x axis (month ``m`` evaluated after ``m - 1`` updates); one line
+        per learner (gid ``"mean=<name>"``) and its band where the interval is finite (one
+        seed: the line only).
+    """
+    fig, (ax,) = axes_or_new(ax, (1, 1), (8.0, 4.2), "ax", fig)
+    for name, band in bands.items():
+        x = np.asarray(band["month"], dtype=float) + 1
+        mean = np.asarray(band["mean"], dtype=float)
+        low, high = (np.asarray(band[k], dtype=float) for k in ("ci_low", "ci_high"))
+        color = LEARNER_COLORS.get(name)
+        (line,) = ax.plot(x, mean, marker="o", ms=4, lw=2, color=color, gid=f"mean={name}",
+                          label=f"{name}: mean of {band['seeds']} seeds")
+        if np.isfinite(low).all() and np.isfinite(high).all():
+            ax.fill_between(x, low, high, color=line.get_color(), alpha=0.2, lw=0,
+                            label=f"{name}: 95 % interval over the seeds")
+    for value, gid, label, style in (
+            (J_nominal, "J_nominal", "nominal MPC", {"color": REF_GREY, "ls": "--"}),
+            (J_class, "J_class", "best θ of the class", {"color": "black", "ls": "-."}),
+            (J_star, "J_star", "J* (best causal policy)", {"color": FIRST_COLOR, "ls": ":"})):
+        if value is not None and np.isfinite(value):
+            ax.axhline(float(value), lw=1.5, gid=gid, label=f"{label} {float(value):.1f}",
+                       **style)
+    ax.set_xlabel("learning month (evaluated before its update)")
+    ax.set_ylabel(f"J_eval ({COST_UNIT})")
+    ax.grid(True, color="0.9")
+    ax.legend(fontsize=8, ncol=2)
+    ax.set_title(title or "J_eval on the fixed evaluation draws: mean and 95 % interval "
+                 "over the seeds", loc="left", fontsize=11)
     return fig

@@ -16,8 +16,8 @@ Every link is relative and nothing is loaded from the network, so the folder can
 with a browser from disk, zipped and mailed, or published as it is on any static host
 (GitHub Pages, GitLab Pages, a university web space).
 
-The notebooks are executed with a parameter profile (default ``classroom``, about five minutes
-for all seven), or taken from an existing report directory (``--report reports`` after ``make
+The notebooks are executed with a parameter profile (default ``classroom``, a few minutes
+for all eight), or taken from an existing report directory (``--report reports`` after ``make
 report``, which reuses its executed notebooks and parameter study).
 """
 
@@ -214,7 +214,7 @@ def render_index(entries: list[NotebookEntry], summary: dict[str, Any],
         "<title>mpcrl_lite: MPC-based reinforcement learning for battery storage</title>",
         f"<style>{_STYLE}</style>", mathjax_tags(mathjax_url), "</head>", "<body>", "<main>",
         "<h1>MPC-based reinforcement learning for a multi-agent battery storage system</h1>",
-        "<p>Seven teaching notebooks that rebuild, step by step, the paper</p>",
+        "<p>Eight teaching notebooks that rebuild, step by step, the paper</p>",
         (f"<blockquote>{_e(', '.join(paper['authors']))}, “{_e(paper['title'])}”, "
         f"<em>{_e(paper['venue'])}</em>, {paper['year']}. "
         f'DOI <a href="{_e(paper["url"])}">{_e(paper["doi"])}</a>; '

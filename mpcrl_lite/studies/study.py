@@ -49,7 +49,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -73,7 +73,8 @@ from .sweep.grid import load_grid
 from .sweep.store import check_out_dir
 
 __all__ = ["LATE_COLLAPSE", "SEED_COLUMNS", "TARGETS", "THRESHOLD", "causal_target",
-           "class_split", "gap_closed", "plot_curves", "run_study", "seed_row", "summarize"]
+           "class_split", "gap_closed", "plot_curves", "run_study", "seed_band", "seed_row",
+           "summarize", "updates_to_close"]
 
 #: Default share of the gap ``J_nom - J_target`` a seed must close to count as converged.
 THRESHOLD = 0.9
@@ -295,6 +296,55 @@ def _study_target(out: Path, system: SystemConfig, prices: Prices) -> dict[str, 
     out.mkdir(parents=True, exist_ok=True)
     rundir.write_json(path, {"for": key, "target": target})
     return target
+
+
+def updates_to_close(history: History, J_nominal: float, J_target: float,
+                     share: float = THRESHOLD) -> int | None:
+    """The first evaluated month of ``history`` whose ``J_eval`` closes at least ``share`` of
+    the gap ``J_nominal - J_target`` (:func:`gap_closed`), or None when none does.
+
+    Month ``m`` (from 0) is evaluated with the parameters used in that month, i.e. after
+    ``m`` updates, so the result is the number of updates the run needed (0: the nominal
+    parameters are good enough already). The resolution is ``LearningConfig.eval_every``.
+    """
+    if isinstance(share, bool) or not (isinstance(share, (int, float)) and 0 < share <= 1):
+        raise ValueError(f"share={share!r}: expected a number in (0, 1]")
+    for month, J in zip(history.eval_month, history.J_eval):
+        closed = gap_closed(float(J), J_nominal, J_target)
+        if math.isfinite(closed) and closed >= share:
+            return int(month)
+    return None
+
+
+def seed_band(histories: Sequence[History], level: float = 0.95
+              ) -> dict[str, np.ndarray]:
+    """Mean ``J_eval`` over the seeds of ``histories`` at every evaluated month, with its
+    Student-t interval over the seeds (:func:`mpcrl_lite._util.stats.mean_ci`).
+
+    The runs must have been evaluated at the same months (the same ``months`` and
+    ``eval_every``); with one seed the interval is NaN.
+
+    Returns
+    -------
+    dict
+        ``month`` (evals,) from 0, ``mean``, ``ci_low``, ``ci_high`` (evals,), ``J_eval``
+        (seeds, evals) and ``seeds`` (the number of runs).
+    """
+    histories = list(histories)
+    if not histories:
+        raise ValueError("histories is empty: expected at least one run")
+    months = list(histories[0].eval_month)
+    for h in histories[1:]:
+        if list(h.eval_month) != months:
+            raise ValueError(f"the runs were evaluated at different months ({months} and "
+                             f"{list(h.eval_month)}); expected the same months and eval_every")
+    J = np.asarray([h.J_eval for h in histories], dtype=float).reshape(len(histories), -1)
+    cis = [mean_ci(J[:, j], level) for j in range(J.shape[1])]
+    return {"month": np.asarray(months, dtype=int),
+            "mean": np.array([c.mean for c in cis]),
+            "ci_low": np.array([c.ci_low for c in cis]),
+            "ci_high": np.array([c.ci_high for c in cis]),
+            "J_eval": J, "seeds": len(histories)}
 
 
 def curves_table(histories: Mapping[int, History]) -> pd.DataFrame:

@@ -13,6 +13,7 @@ import pytest
 
 from mpcrl_lite._util.stats import mean_ci
 from mpcrl_lite.figures.comparison import plot_learning_curves, plot_policy_comparison
+from mpcrl_lite.figures.style import find_lines
 
 
 @pytest.fixture
@@ -136,3 +137,28 @@ def test_parameter_study_joins_three_grid_limits_and_refuses_bad_tables():
         plot_parameter_study(results.drop(columns="J_star"), stats)
     with pytest.raises(ValueError, match="stats: no rows"):
         plot_parameter_study(results, stats.iloc[:0])
+def test_seed_bands_draw_the_mean_its_band_and_the_reference_lines():
+    from mpcrl_lite.figures.comparison import plot_seed_bands
+
+    two = {"month": np.array([0, 5, 9]), "mean": np.array([1500.0, 100.0, -150.0]),
+           "ci_low": np.array([1500.0, 50.0, -180.0]), "ci_high": np.array([1500.0, 150.0, -120.0]),
+           "seeds": 2}
+    one = {"month": np.array([0, 5, 9]), "mean": np.array([1500.0, -50.0, -100.0]),
+           "ci_low": np.full(3, np.nan), "ci_high": np.full(3, np.nan), "seeds": 1}
+    fig = plot_seed_bands({"DPG": two, "Q-learning": one}, J_star=-399.3, J_class=-230.0,
+                          J_nominal=1500.0)
+    (ax,) = fig.axes
+    (dpg,) = find_lines(ax, "mean=DPG")
+    assert list(dpg.get_xdata()) == [1, 6, 10] and list(dpg.get_ydata()) == [1500, 100, -150]
+    assert len(find_lines(ax, "mean=Q-learning")) == 1
+    # one band: the learner with two seeds; one seed has no interval over the seeds
+    (band,) = ax.collections
+    low, high = band.get_paths()[0].vertices[:, 1].min(), band.get_paths()[0].vertices[:, 1].max()
+    assert (low, high) == pytest.approx((-180.0, 1500.0))
+    for gid, value in (("J_star", -399.3), ("J_class", -230.0), ("J_nominal", 1500.0)):
+        (line,) = find_lines(ax, gid)
+        assert line.get_ydata()[0] == pytest.approx(value)
+    plt.close(fig)
+    fig = plot_seed_bands({"DPG": two})  # no reference lines unless given
+    assert not find_lines(fig.axes[0], "J_star")
+    plt.close(fig)

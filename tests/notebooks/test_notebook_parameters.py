@@ -37,6 +37,9 @@ FOLLOWS = {
     "SEED": (LearningConfig, "seed"),
     "EVAL_SEED": (LearningConfig, "eval_seed"),
     "EXPLORATION_STD": (LearningConfig, "exploration_std"),
+    "EVAL_DRAWS": (LearningConfig, "eval_draws"),
+    "EVAL_EVERY": (LearningConfig, "eval_every"),
+    "HESSIAN": (LearningConfig, "hessian"),
 }
 
 #: Parameters of a notebook's own, with no package default to follow.
@@ -48,6 +51,7 @@ OWN = {
     "06_baselines_and_decentralized_learning": {"LEARNER_MONTHS", "N_LARGE", "CAUSAL_POLICY",
                                                 "MIXED_MONTHS"},
     "07_parameter_study": {"P_BARS", "NOISE_VARS", "SEEDS", "WORKERS"},
+    "08_q_learning_vs_policy_gradient": {"SEEDS", "THRESHOLD"},
 }
 
 #: (notebook, parameter) -> (the value it uses instead of the package default, why).
@@ -67,6 +71,9 @@ DELIBERATE = {
     ("07_parameter_study", "MONTHS"): (30, (
         "a grid of 3 x 2 x 3 = 18 learning runs: 30 months each keeps the default study "
         "affordable; the full 100-month run is notebook 05's")),
+    ("08_q_learning_vs_policy_gradient", "MONTHS"): (40, (
+        "two learners x 3 seeds: 40 months each keeps the notebook at about two minutes and "
+        "shows both the fast start of Q-learning and its late drift")),
 }
 
 

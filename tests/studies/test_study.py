@@ -257,3 +257,45 @@ def test_a_sweep_run_written_before_the_forecast_option_is_still_its_own(tmp_pat
     with pytest.raises(ValueError, match="mpc.forecast='until_midnight'") as err:
         check_run_dirs(sweep, tmp_path)
     assert len(str(err.value).splitlines()) == 1
+
+
+def _evaluated(J_eval, months=(0, 5, 9)):
+    from mpcrl_lite.config import LearningConfig, MPCConfig
+
+    history = History(SystemConfig(), MPCConfig(), LearningConfig())
+    history.eval_month, history.J_eval = list(months), list(J_eval)
+    return history
+
+
+def test_updates_to_close_is_the_first_evaluated_month_past_the_share():
+    from mpcrl_lite.studies.study import updates_to_close
+
+    run = _evaluated([1000.0, 150.0, 50.0])  # gap 1000 -> 0: closes 0, 0.85, 0.95
+    assert updates_to_close(run, 1000.0, 0.0, 0.9) == 9
+    assert updates_to_close(run, 1000.0, 0.0, 0.8) == 5
+    assert updates_to_close(run, 1000.0, 0.0) == 9  # default: THRESHOLD
+    assert updates_to_close(run, 1000.0, -1000.0, 0.9) is None  # never within the run
+    assert updates_to_close(_evaluated([-10.0, 50.0, 60.0]), 1000.0, 0.0, 0.9) == 0
+    with pytest.raises(ValueError, match="share=1.5"):
+        updates_to_close(run, 1000.0, 0.0, 1.5)
+
+
+def test_seed_band_is_the_mean_and_t_interval_over_the_seeds():
+    from mpcrl_lite._util.stats import mean_ci
+    from mpcrl_lite.studies.study import seed_band
+
+    runs = [_evaluated([1000.0, 100.0, 0.0]), _evaluated([1000.0, 300.0, -40.0]),
+            _evaluated([1000.0, 200.0, -80.0])]
+    band = seed_band(runs)
+    assert band["seeds"] == 3 and list(band["month"]) == [0, 5, 9]
+    np.testing.assert_allclose(band["mean"], [1000.0, 200.0, -40.0])
+    ci = mean_ci([100.0, 300.0, 200.0])
+    assert (band["ci_low"][1], band["ci_high"][1]) == pytest.approx((ci.ci_low, ci.ci_high))
+    assert band["ci_low"][1] < 200.0 < band["ci_high"][1]
+    assert band["J_eval"].shape == (3, 3)
+    alone = seed_band(runs[:1])
+    assert np.isnan(alone["ci_low"]).all() and list(alone["mean"]) == [1000.0, 100.0, 0.0]
+    with pytest.raises(ValueError, match="different months"):
+        seed_band([runs[0], _evaluated([1.0, 2.0], months=(0, 4))])
+    with pytest.raises(ValueError, match="histories is empty"):
+        seed_band([])
