@@ -469,6 +469,12 @@ def causal_optimum(
     else:
         system = same
         soc_grid = SocGrid(system, grid, action_step)
+    return _solve(system, soc_grid, buy, sell, keep_values)
+
+
+def _solve(system: SystemConfig, soc_grid: SocGrid | BatteryGrids, buy: np.ndarray,
+           sell: np.ndarray, keep_values: bool) -> CausalBound:
+    """The backward recursion of every distinct day on ``soc_grid`` (either stage)."""
     stage = _stage(system, soc_grid)
     t0 = time.perf_counter()
     first, day_of = distinct_days(buy, sell)
@@ -486,7 +492,7 @@ def causal_optimum(
             ev = stage.contract(stage.full(v))
         j_day[u] = stage.at_states(soc0, buy[d, 0], sell[d, 0], ev)[1][0]
     info = {"states": S, "joint_actions": stage.joint_actions, "distinct_days": int(first.size),
-            "method": "symmetric" if same is not None else "product"}
+            "method": "product" if isinstance(soc_grid, BatteryGrids) else "symmetric"}
     return CausalBound(system, soc_grid, buy, sell, j_day[day_of], values, day_of,
                        time.perf_counter() - t0, info)
 
