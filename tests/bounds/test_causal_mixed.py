@@ -139,7 +139,14 @@ def test_weak_duality_and_the_dp_policy_in_closed_loop():
     assert grid_error > 0  # refining the grid model only gains
     days = 1000
     prices = Prices(np.tile(base.buy, (days // 2, 1)))
-    run = evaluate_policy(bound.policy(prices), make_scenario(sysc, days, 11, prices), "dp")
+    policy = bound.policy(prices)
+    # its commands keep each battery's own bound and the site's grid limit
+    a = policy(3, np.random.default_rng(0).uniform(0.0, 1.0, (days, 2)))
+    assert np.all(np.abs(a) <= np.array(sysc.battery("U_bar")) + 1e-12)
+    assert np.abs(a[:, 1]).max() == pytest.approx(0.5)
+    assert np.maximum(a, 0).sum(axis=1).max() <= sysc.P_bar + 1e-12
+    assert np.maximum(-a, 0).sum(axis=1).max() <= sysc.P_bar + 1e-12
+    run = evaluate_policy(policy, make_scenario(sysc, days, 11, prices), "dp")
     se = run.J_per_day.std(ddof=1) / np.sqrt(days)
     assert abs(run.J - bound.J_star) < 3 * se + grid_error
 
