@@ -76,7 +76,7 @@ defaults (``Gy^4`` values per hour) -- use the Lagrangian bound there.
 Three batteries that differ cost more: ``G^3 = 68 921`` states, and the large battery of
 ``examples/mixed_site.yaml`` (``alpha = 1/24``) has 261 post-decision nodes against 141, so
 5.2 million post-decision values per hour. The site's month takes about 3.5 minutes of CPU
-(220 s measured, one core, with the first-call compilation) and its value tables 380 MB.
+(220 s measured on one core, about 8 s per price day) and its value tables 380 MB.
 
 Figures for the paper's system
 ------------------------------
