@@ -178,16 +178,19 @@ def causal_reference(system: SystemConfig, prices: Prices) -> tuple[CausalBound 
     """J* of the best causal policy for ``evaluate_baselines(causal=...)`` and where it comes
     from: the stored table ``data/causal_j_star.csv`` where it covers the system and the days
     (:func:`mpcrl_lite.bounds.causal.table.causal_bound`), else the coupled DP solved now (up to
-    three batteries), else the Lagrangian lower bound (:mod:`mpcrl_lite.bounds.causal.dual`:
-    below the true J*, so the regret is overstated)."""
+    three batteries, identical or not: the source then says ``"coupled DP (solved)"``, with
+    ``", one grid per battery"`` for batteries that differ), else the Lagrangian lower bound
+    (:mod:`mpcrl_lite.bounds.causal.dual`: below the true J*, so the regret is overstated)."""
     if system.n <= 3:
         try:
             bound = causal_bound(system, prices)
         except ValueError:
             pass
         else:
-            return bound, ("stored table data/causal_j_star.csv"
-                           if bound.info.get("source") != "solved" else "coupled DP (solved)")
+            if bound.info.get("source") != "solved":
+                return bound, "stored table data/causal_j_star.csv"
+            return bound, ("coupled DP (solved, one grid per battery)"
+                           if bound.info.get("method") == "product" else "coupled DP (solved)")
     return float(lagrangian_bound(system, prices).J_bound), "Lagrangian lower bound"
 
 

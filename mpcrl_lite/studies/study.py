@@ -240,7 +240,8 @@ def causal_target(system: SystemConfig, prices: Prices) -> dict[str, Any]:
     """J* of the best causal policy on ``prices``, by the best method that runs for ``system``.
 
     The coupled dynamic program (:func:`mpcrl_lite.bounds.causal.dp.causal_optimum`, 41 soc nodes) for
-    up to three batteries, read from the stored table where it covers the system and the
+    up to three batteries (identical, or differing: then on the product grid, one soc grid per
+    battery), read from the stored table where it covers the system and the
     month (:func:`mpcrl_lite.bounds.causal.table.causal_bound`); beyond, or if it refuses the system, the Lagrangian bound
     (:func:`mpcrl_lite.bounds.causal.dual.lagrangian_bound`); if that is refused too, none.
 
@@ -249,7 +250,8 @@ def causal_target(system: SystemConfig, prices: Prices) -> dict[str, Any]:
     dict
         ``J_star`` (NOK/day, None when none could be computed), ``method``
         (``'causal_dp'``, ``'lagrangian_bound'`` or None), ``note`` (what the figure is, in
-        words), ``wall_time_s``.
+        words), ``wall_time_s``; with the DP also ``states`` (``'symmetric'`` for identical
+        batteries, ``'product'`` for batteries that differ).
     """
     problems = []
     if system.n <= 3:
@@ -259,9 +261,13 @@ def causal_target(system: SystemConfig, prices: Prices) -> dict[str, Any]:
         except ValueError as err:
             problems.append(f"causal_optimum: {err}")
         else:
+            states = bound.info.get("method", "symmetric")
+            where = (" on the product grid of batteries that differ, one soc grid per battery"
+                     if states == "product" else "")
             return {"J_star": float(np.mean(bound.J_star_for(prices))), "method": "causal_dp",
+                    "states": states,
                     "wall_time_s": bound.wall_time_s, "source": bound.info.get("source"),
-                    "note": "J* is the coupled DP's optimum of the grid model at 41 soc nodes "
+                    "note": f"J* is the coupled DP's optimum of the grid model at 41 soc nodes{where} "
                             "(mpcrl_lite.bounds.causal.dp): an estimate, pessimistic by about 2 NOK/day "
                             "for the paper's system (-399.3 against -401.5 refined)"}
     else:

@@ -1,5 +1,6 @@
 """Baselines and bounds of a mixed site: the clairvoyant LP, the price rule, the Lagrangian
-bound group by group, the causal DP's refusal; identical batteries as tuples change nothing."""
+bound group by group, the causal DP's refusal beyond three batteries that differ; identical
+batteries as tuples change nothing."""
 
 from __future__ import annotations
 
@@ -48,8 +49,9 @@ def test_the_lagrangian_bound_relaxes_group_by_group():
                             max_iter=0).J_relaxed == one
 
 
-def test_the_causal_dp_refuses_batteries_that_differ_in_one_line():
+def test_the_causal_dp_refuses_four_batteries_that_differ_in_one_line():
+    four = SystemConfig(n=4, alpha=(1 / 24, 1 / 12, 1 / 12, 1 / 12))
     with pytest.raises(ValueError) as info:
-        causal_optimum(MIXED, Prices.month(MIXED, 1))
+        causal_optimum(four, Prices.month(four, 1))
     text = str(info.value)
     assert "\n" not in text and "alpha=[" in text and "lagrangian_bound" in text

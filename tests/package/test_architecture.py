@@ -56,7 +56,7 @@ SUBLAYERS: dict[str, list[set[str]]] = {
                  {"q_experiment"}],
     "decentralized": [{"local_qp", "coordination_kernel"}, {"coordination"}, {"learner"}],
     "bounds": [{"causal", "scenario"}, {"rule", "clairvoyant"}, {"baselines"}],
-    "bounds.causal": [{"kernels"}, {"grid"}, {"dp", "dual"}, {"table"}],
+    "bounds.causal": [{"kernels"}, {"grid"}, {"mixed"}, {"dp", "dual"}, {"table"}],
     "figures": [{"style", "describe"}, {"paper", "comparison"}, {"plots"}],
     "classroom": [{"controls", "explorers", "picture"}, {"widgets"}],
     "publish": [{"alt_text", "claims", "html_export", "launch", "run_times"}, {"report"}, {"site"}],

@@ -17,6 +17,9 @@ lands at ``r j + m + M``. ``cost[j, t]`` is one battery's expected economic stag
 * :func:`greedy3`, :func:`greedy_actions` -- the minimisation at arbitrary states of charge
   (the simulated policy), with ``ev`` interpolated multilinearly.
 * :func:`expected_cost_rows` -- the closed-form expected economic cost at arbitrary states.
+* :func:`bellman_min3_mixed`, :func:`bellman_min_mixed`, :func:`greedy_mixed` -- the same for
+  batteries that differ (:mod:`mpcrl_lite.bounds.causal.mixed`): every battery its own
+  post-decision grid, the states the full product grid.
 
 All compiled with ``numba.njit(cache=True)`` (the first call on a machine compiles, a few
 seconds; later sessions load the cache).
@@ -33,9 +36,12 @@ from ..._util.jit import njit_cached
 __all__ = [
     "bellman_min",
     "bellman_min3",
+    "bellman_min3_mixed",
+    "bellman_min_mixed",
     "expected_cost_rows",
     "greedy3",
     "greedy_actions",
+    "greedy_mixed",
 ]
 
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
@@ -368,3 +374,186 @@ def expected_cost_rows(
                     e_plus = _hinge(mz, sz, alpha * a)[1] / alpha
                 out[row, i, t] = sell[row] * e_net + (buy[row] - sell[row]) * e_plus
     return out
+
+
+# -- batteries that differ (mpcrl_lite.bounds.causal.mixed) ------------------------------------
+# Battery i has its own post-decision grid: node j with step m lands at r[i] j + m + M[i];
+# ``cost`` has shape (n, G, 2 Mx + 1) with step m of battery i at column m + Mx
+# (Mx = max M[i]); ``pen`` has shape (n, G). The states are the full product grid in C order.
+
+
+@njit_cached(fastmath=True)
+def bellman_min3_mixed(
+    G: int, r: np.ndarray, M: np.ndarray, Mx: int, B: int, cost: np.ndarray, pen: np.ndarray,
+    ev: np.ndarray, gamma: float, ring_lo: np.ndarray, ring_hi: np.ndarray,
+) -> np.ndarray:
+    """:func:`bellman_min3` for three batteries that differ, at every state of the product grid.
+
+    ``V[j1, j2, j3] = sum_i pen[i, j_i] + min_m sum_i cost[i, j_i, m_i + Mx]
+    + gamma ev[r_1 j_1 + m_1 + M_1, ..]`` over ``|m_i| <= M_i`` and the grid limit ``B``;
+    ``ev`` has shape ``(Gy_1, Gy_2, Gy_3)``. The same two stages as :func:`bellman_min3`
+    (running minima over the third battery's steps per post-decision pair, a ring of
+    ``2 M_1 + 1`` planes of the first battery), over the full ranges of ``j_2`` and ``j_3``.
+    ``ring_lo``, ``ring_hi``: work arrays of shape ``(2 M_1 + 1, Gy_2, M_3 + 1, G)``.
+
+    Returns
+    -------
+    float64 array, shape ``(G ** 3,)``
+    """
+    Gy2 = ev.shape[1]
+    r1, r2, r3 = r[0], r[1], r[2]
+    M1, M2, M3 = M[0], M[1], M[2]
+    K1 = 2 * M1 + 1
+    out = np.empty(G * G * G)
+    c3 = np.ascontiguousarray(cost[2].T)  # (2 Mx + 1, G)
+    plane = np.full(K1, -1, dtype=np.int64)
+    acc_lo = np.empty(G)
+    acc_hi = np.empty(G)
+    best = np.empty(G)
+    idx = 0
+    for j1 in range(G):
+        for u in range(K1):
+            p1 = r1 * j1 + u
+            slot = p1 % K1
+            if plane[slot] == p1:
+                continue  # tabulated for the previous j1 (the ranges are always full)
+            plane[slot] = p1
+            for p2 in range(Gy2):
+                row = ev[p1, p2]
+                for j3 in range(G):
+                    v = c3[Mx, j3] + gamma * row[r3 * j3 + M3]
+                    acc_lo[j3] = v
+                    acc_hi[j3] = v
+                    ring_lo[slot, p2, 0, j3] = v
+                    ring_hi[slot, p2, 0, j3] = v
+                for k in range(1, M3 + 1):
+                    for j3 in range(G):
+                        acc_lo[j3] = min(acc_lo[j3],
+                                         c3[Mx - k, j3] + gamma * row[r3 * j3 + M3 - k])
+                        ring_lo[slot, p2, k, j3] = acc_lo[j3]
+                        acc_hi[j3] = min(acc_hi[j3],
+                                         c3[Mx + k, j3] + gamma * row[r3 * j3 + M3 + k])
+                        ring_hi[slot, p2, k, j3] = acc_hi[j3]
+        for j2 in range(G):
+            for j3 in range(G):
+                best[j3] = np.inf
+            for m1 in range(-M1, M1 + 1):
+                slot = (r1 * j1 + m1 + M1) % K1
+                c1 = cost[0, j1, m1 + Mx]
+                up1 = max(m1, 0)
+                dn1 = max(-m1, 0)
+                for m2 in range(-M2, M2 + 1):
+                    up = up1 + max(m2, 0)
+                    dn = dn1 + max(-m2, 0)
+                    if up > B or dn > B:
+                        continue
+                    p2 = r2 * j2 + m2 + M2
+                    c12 = c1 + cost[1, j2, m2 + Mx]
+                    lo_row = ring_lo[slot, p2, min(M3, B - dn)]
+                    hi_row = ring_hi[slot, p2, min(M3, B - up)]
+                    for j3 in range(G):
+                        best[j3] = min(best[j3], c12 + min(lo_row[j3], hi_row[j3]))
+            fixed = pen[0, j1] + pen[1, j2]
+            for j3 in range(G):
+                out[idx] = fixed + pen[2, j3] + best[j3]
+                idx += 1
+    return out
+
+
+@njit_cached()
+def bellman_min_mixed(
+    states: np.ndarray, prefixes: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+    cost: np.ndarray, pen: np.ndarray, ev: np.ndarray, strides: np.ndarray, r: np.ndarray,
+    M: np.ndarray, Mx: int, gamma: float,
+) -> np.ndarray:
+    """:func:`bellman_min` for batteries that differ (any ``n``), by enumeration.
+
+    ``states`` ``(S, n)``, ``prefixes``, ``lo``, ``hi`` and ``strides`` as in
+    :func:`bellman_min` (the prefixes keep each battery's own ``|m_i| <= M_i``); ``ev`` flat.
+    """
+    S, n = states.shape
+    P = prefixes.shape[0]
+    out = np.empty(S)
+    last = n - 1
+    for s in range(S):
+        base = 0
+        fixed = 0.0
+        for i in range(n):
+            j = states[s, i]
+            base += (r[i] * j + M[i]) * strides[i]
+            fixed += pen[i, j]
+        jl = states[s, last]
+        best = np.inf
+        for p in range(P):
+            partial = 0.0
+            off = base
+            for i in range(last):
+                m = prefixes[p, i]
+                partial += cost[i, states[s, i], m + Mx]
+                off += m * strides[i]
+            for m in range(lo[p], hi[p] + 1):
+                best = min(best, partial + cost[last, jl, m + Mx]
+                           + gamma * ev[off + m * strides[last]])
+        out[s] = fixed + best
+    return out
+
+
+@njit_cached()
+def greedy_mixed(
+    soc: np.ndarray, cost: np.ndarray, prefixes: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+    ev: np.ndarray, strides: np.ndarray, inv_hy: np.ndarray, top: np.ndarray, M: np.ndarray,
+    Mx: int, gamma: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`greedy_actions` for batteries that differ: battery ``i``'s post-decision
+    coordinate is ``soc_i / h_y,i + m_i + M_i`` (``inv_hy``, ``top``, ``M`` per battery);
+    ``cost`` ``(R, n, 2 Mx + 1)``."""
+    R, n = soc.shape
+    P = prefixes.shape[0]
+    last = n - 1
+    ncorner = 1 << n
+    steps = np.zeros((R, n), dtype=np.int64)
+    value = np.empty(R)
+    cw = np.empty(ncorner)
+    co = np.empty(ncorner, dtype=np.int64)
+    frac = np.empty(n)
+    for row in range(R):
+        base = 0
+        for i in range(n):
+            b, frac[i] = _base(soc[row, i], inv_hy[i], top[i])
+            base += (b + M[i]) * strides[i]
+        for c in range(ncorner):
+            w = 1.0
+            o = 0
+            for i in range(n):
+                if (c >> i) & 1:
+                    w *= frac[i]
+                    o += strides[i]
+                else:
+                    w *= 1.0 - frac[i]
+            cw[c] = w
+            co[c] = o
+        best = np.inf
+        best_p = 0
+        best_m = 0
+        for p in range(P):
+            partial = 0.0
+            off = base
+            for i in range(last):
+                m = prefixes[p, i]
+                partial += cost[row, i, m + Mx]
+                off += m * strides[i]
+            for m in range(lo[p], hi[p] + 1):
+                flat = off + m * strides[last]
+                e = 0.0
+                for c in range(ncorner):
+                    e += cw[c] * ev[flat + co[c]]
+                val = partial + cost[row, last, m + Mx] + gamma * e
+                if val < best:
+                    best = val
+                    best_p = p
+                    best_m = m
+        for i in range(last):
+            steps[row, i] = prefixes[best_p, i]
+        steps[row, last] = best_m
+        value[row] = best
+    return steps, value
