@@ -247,7 +247,11 @@ def check_ranges(section: str, config: Any) -> None:
         value = getattr(config, name, None)
         if value is None:
             continue
-        values = np.asarray(value, dtype=float).ravel()
+        try:
+            values = np.asarray(value, dtype=float).ravel()
+        except OverflowError:  # an integer beyond any float (10**400): out of every range
+            raise ValueError(f"{name}={show(value)}: expected a value in [{low:g}, {high:g}] "
+                             f"({why}; config.RANGES)") from None
         bad = values[~((values >= low) & (values <= high))]
         if bad.size:
             shown = f"{name}={value!r}" if values.size == 1 else \

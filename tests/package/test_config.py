@@ -370,6 +370,14 @@ def test_the_ranges_apply_to_every_entry_of_a_per_battery_value():
     check_ranges("system", PerBattery())
 
 
+def test_an_integer_beyond_every_float_is_refused_by_its_range():
+    """10**400 cannot become a float (OverflowError in numpy): still one clear line."""
+    with pytest.raises(ValueError, match=r"^N=1000.*: expected a value in \[1, 168\]"):
+        SystemConfig(N=10**400)
+    with pytest.raises(ValueError, match=r"^P_bar=-1000.*: expected a finite value"):
+        SystemConfig(P_bar=-(10**400))
+
+
 def test_prices_the_model_cannot_mean_are_refused():
     from mpcrl_lite.config import PRICE_LIMIT
     from mpcrl_lite.system.prices import Prices
