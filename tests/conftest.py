@@ -230,7 +230,7 @@ def learn_in_child(argv: list[str], env: dict[str, str]) -> int:
     import os
 
     from mpcrl_lite.cli.main import main
-    from mpcrl_lite.learning import rundir
+    from mpcrl_lite.learning import durable
 
     pid = os.fork()
     if pid == 0:
@@ -240,7 +240,7 @@ def learn_in_child(argv: list[str], env: dict[str, str]) -> int:
             os.dup2(devnull, 1)
             os.dup2(devnull, 2)
             os.environ.update(env)
-            rundir._writes = 0
+            durable._writes = 0
             code = main(argv)
         finally:
             os._exit(code)

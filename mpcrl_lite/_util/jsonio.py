@@ -4,7 +4,7 @@ A learning step's diagnostics, a checkpoint, a sweep's files and a notebook's su
 Python and numpy values: :func:`dumps` writes them as strict JSON (numpy arrays as lists,
 numpy scalars as numbers, paths as strings, every NaN or infinity as ``null`` -- ``NaN`` is
 not JSON and other readers reject it), :func:`plain` gives what reading that back gives.
-Files are written atomically by :func:`mpcrl_lite.learning.rundir.write_json` (fsync, rename).
+Files are written atomically by :func:`mpcrl_lite.learning.durable.write_json` (fsync, rename).
 """
 
 from __future__ import annotations

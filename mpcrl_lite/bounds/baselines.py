@@ -39,7 +39,7 @@ import numpy as np
 
 from .._util.stats import mean_ci
 from ..config import LearningConfig, MPCConfig, SystemConfig
-from ..learning import rundir
+from ..learning import durable, outdir, rundir
 from ..learning.history import History
 from ..mpc.backends.registry import make_solver
 from ..mpc.formulation import MPC
@@ -262,7 +262,7 @@ def run_baselines_cli(
     ``prices`` (e.g. another month of a Nord Pool export) must have that many days.
     ``out_dir`` is checked before any work: a file, a directory that cannot be written, or
     one that holds ``baselines.json`` already (unless ``force``) is a ``ValueError``
-    (:class:`~mpcrl_lite.learning.rundir.RunDirError`). ``baselines.json`` is strict JSON (NaN as
+    (:class:`~mpcrl_lite.learning.outdir.RunDirError`). ``baselines.json`` is strict JSON (NaN as
     null), written atomically.
 
     Returns
@@ -305,9 +305,9 @@ def run_baselines_cli(
                           stacklevel=2)
         thetas["class_best"] = tuned["theta_best"]
     if rundir.inspect(out_dir, others=[BASELINES_JSON]).others and not force:
-        raise rundir.RunDirError(f"--out {out_dir} already holds {BASELINES_JSON}; pass --force "
+        raise outdir.RunDirError(f"--out {out_dir} already holds {BASELINES_JSON}; pass --force "
                                  "to replace it or choose another --out")
-    out = rundir.check_output_dir(out_dir)
+    out = outdir.check_output_dir(out_dir)
     reference: CausalBound | float | bool = False
     source = None
     if causal:
@@ -331,5 +331,5 @@ def run_baselines_cli(
                 policies["class_best"]["J_per_day"],
                 result["causal"]["J_star"] if star is None else star)
     result["history"] = None if history_dir is None else str(history_dir)
-    rundir.write_json(out / BASELINES_JSON, result)
+    durable.write_json(out / BASELINES_JSON, result)
     return result

@@ -24,7 +24,7 @@ from ..config import (
     SystemConfig,
     check_grid_bound,
 )
-from ..learning import rundir
+from ..learning import durable
 from ..system.price_files.currency import CURRENCIES
 from ..system.price_files.detect import FORMATS
 
@@ -226,14 +226,14 @@ def configs(args: argparse.Namespace, **learning: Any):
 def write_json(path: Path, data: dict[str, Any]) -> None:
     """Strict JSON (NaN as null), written atomically."""
     try:
-        rundir.write_json(path, data)
+        durable.write_json(path, data)
     except OSError as err:
         raise UsageError(str(err)) from None
 
 
 def write_bytes(path: Path, data: bytes) -> None:
     try:
-        rundir.write_atomic(path, data)
+        durable.write_atomic(path, data)
     except OSError as err:
         raise UsageError(str(err)) from None
 

@@ -29,7 +29,8 @@ from .._util.budget import (  # noqa: F401 (importable from here)
     estimate,
 )
 from ..config import PRICE_UNIT, SystemConfig
-from ..learning.rundir import RunDirError, check_output_dir, inspect
+from ..learning.outdir import RunDirError, check_output_dir
+from ..learning.rundir import inspect
 from ..studies.sweep.grid import load_yaml
 from ..system.price_files.load import load_prices
 from ..system.price_files.month import parse_month
@@ -201,7 +202,7 @@ def prepare_out(path: str | os.PathLike, outputs: Iterable[str], force: bool = F
     Raises
     ------
     ValueError
-        (:class:`~mpcrl_lite.learning.rundir.RunDirError`) one line with the remedy.
+        (:class:`~mpcrl_lite.learning.outdir.RunDirError`) one line with the remedy.
     """
     refuse_finished(path, outputs, force, flag)
     return check_output_dir(path, flag)

@@ -66,7 +66,7 @@ from ..learning.dpg import DPGUpdater
 from ..learning.experiment import Experiment
 from ..learning.history import History, MonthRecord
 from ..learning.learner import Learner, resolve_setup
-from ..learning.rundir import RunDirError
+from ..learning.outdir import RunDirError
 from ..learning.step import lstd_policy_gradient
 from ..sim.closed_loop import Decision, simulate
 from ..sim.exploration import GaussianExploration

@@ -31,8 +31,8 @@ import numpy as np
 from .._util.lazy import lazy_module
 from .._util.validate import check_instance, check_int
 from ..config import PRICE_UNIT
+from ..learning.durable import atomic_output
 from ..learning.history import History
-from ..learning.rundir import atomic_output
 from ..system.prices import Prices
 from ..theta import PARTS
 from .style import (

@@ -29,7 +29,8 @@ from ..system.prices import Prices
 from ..theta import PARTS, Theta
 from . import rundir
 from .history import History
-from .rundir import RECOVER, RunDirError, RunDirMissing
+from .outdir import RunDirError, RunDirMissing
+from .rundir import RECOVER
 
 __all__ = ["Checkpointing", "open_run", "parse_theta", "prices_fingerprint"]
 

@@ -59,7 +59,7 @@ from .checkpoint import parse_theta
 from .dpg import DPGUpdater
 from .history import History
 from .learner import Learner, resolve_setup
-from .rundir import RunDirError
+from .outdir import RunDirError
 from .step import lstd_policy_gradient
 
 # run_month (mpcrl_lite.sim.closed_loop), value_baseline_features (mpcrl_lite.learning.lstd), run_months

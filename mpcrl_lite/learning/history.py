@@ -40,7 +40,8 @@ from ..config import LearningConfig, MPCConfig, SystemConfig
 from ..sim.record import RECORD_ARRAYS, MonthRecord, Record
 from ..theta import PARTS, Theta
 from . import rundir
-from .rundir import RECOVER, RunDirError
+from .outdir import RunDirError
+from .rundir import RECOVER
 
 __all__ = ["History"]
 
@@ -310,7 +311,7 @@ class History:
         FileNotFoundError
             No ``history.json`` (and no manifest) in ``directory``.
         ValueError
-            (:class:`~mpcrl_lite.learning.rundir.RunDirError`) a file that does not verify, or files
+            (:class:`~mpcrl_lite.learning.outdir.RunDirError`) a file that does not verify, or files
             that disagree; the message names the file and the problem.
         """
         run = rundir.read(directory, [rundir.HISTORY_JSON, rundir.HISTORY_NPZ, rundir.JOURNAL],
@@ -326,7 +327,7 @@ class History:
     @classmethod
     def from_files(cls, files: Mapping[str, bytes], directory: Path | str = ".") -> History:
         """Inverse of :meth:`to_files` (with the journal ``history.jsonl`` of a run in
-        progress, if ``files`` hold it), checked: a :class:`~mpcrl_lite.learning.rundir.RunDirError`
+        progress, if ``files`` hold it), checked: a :class:`~mpcrl_lite.learning.outdir.RunDirError`
         names the first problem found (``directory`` only names the files in messages)."""
         path = Path(directory) / rundir.HISTORY_JSON
         try:

@@ -41,7 +41,7 @@ from ..sim.record import MonthRecord
 from ..system.forecast import forecast_of, forecast_prices
 from ..system.prices import Prices
 from ..theta import Theta
-from . import rundir
+from . import outdir
 from .checkpoint import Checkpointing, open_run
 from .history import History
 
@@ -113,7 +113,7 @@ def run_months(
 
     Runs until ``months`` months are recorded (default ``learning.months``). With ``out``
     every month is committed to that run directory, locked for the loop
-    (:func:`~mpcrl_lite.learning.rundir.lock_output_dir`: another process there is refused);
+    (:func:`~mpcrl_lite.learning.outdir.lock_output_dir`: another process there is refused);
     a directory that already holds a run is continued with ``resume`` (verified first, see
     :meth:`Learner.load_checkpoint`; a directory from before the manifest format only with
     ``adopt``), replaced with ``force``, and refused otherwise. ``resume`` in a directory
@@ -122,7 +122,7 @@ def run_months(
     with ExitStack() as stack:
         if out is not None:
             Path(out).mkdir(parents=True, exist_ok=True)
-            stack.enter_context(rundir.lock_output_dir(out, "learn"))
+            stack.enter_context(outdir.lock_output_dir(out, "learn"))
         return _run_months(learner, months, out, resume, progress, desc, force, adopt)
 
 

@@ -75,21 +75,12 @@ Every problem with a directory is a :class:`RunDirError` (a ``ValueError``) whos
 one line saying what is wrong and how to recover; a failed write is a :class:`RunWriteError`
 (an ``OSError``) after which the last commit is intact.
 
-One process per directory (:func:`lock_output_dir`)
----------------------------------------------------
-Every command that writes a directory (``learn``, ``study``, ``sweep``, ``report``, ``tune``)
-holds an OS file lock on ``D/.mpcrl_lite.lock`` (``fcntl.flock``) while it works; the file
-names the holder's PID and command. A second process on the same directory is refused in one
-line (:class:`RunDirLocked`) naming that PID; the lock dies with its process, so the lock file
-of a killed process is simply taken over, and the file is removed when the holder ends.
-
-Test hooks
-----------
-``MPCRL_LITE_KILL_AFTER_WRITE=i`` makes the process kill itself (SIGKILL) right after its
-``i``-th write to a run directory (a file written, renamed, linked or removed, counted from
-1 over the whole process); ``MPCRL_LITE_KILL_MID_WRITE=i`` kills it half-way through the
-``i``-th write if that write is a file's content. They exist to test that every interruption
-leaves a directory that resumes or is refused (``tests/learning/test_durability.py``).
+Where the pieces live
+---------------------
+The durable low-level writes, the atomic file writer and the background thread are
+:mod:`mpcrl_lite.learning.durable` (with the kill hooks that test every interruption); the
+check of an output directory and its lock (one process per directory) are
+:mod:`mpcrl_lite.learning.outdir`. This module is the run directory's format on top of them.
 """
 
 from __future__ import annotations
@@ -99,24 +90,20 @@ import hashlib
 import json
 import os
 import re
-import signal
-import tempfile
-import threading
-import time
-from collections.abc import Iterable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from .._util.jsonio import dumps
+from . import durable
+from .durable import RunWriteError
+from .outdir import RunDirError, RunDirMissing
 
-try:  # POSIX file locks; elsewhere a directory is not locked
-    import fcntl
-except ImportError:  # pragma: no cover (Windows)
-    fcntl = None  # type: ignore[assignment]
-
-__all__ = ["APPENDABLE", "CHECKPOINT", "FORMAT", "FORMATS", "FORMAT_APPEND", "HISTORY_JSON", "HISTORY_NPZ", "JOURNAL", "KINDS", "LOCK", "MANIFEST", "RECOVER", "STAGING", "SUMMARY", "Contents", "PendingCommit", "Run", "RunDirError", "RunDirLocked", "RunDirMissing", "RunWriteError", "atomic_output", "check_output_dir", "clear", "commit", "commit_soon", "config_sha256", "inspect", "lock_output_dir", "manifest_of", "read", "refuse_empty", "write_atomic", "write_json"]
+__all__ = ["APPENDABLE", "CHECKPOINT", "FORMAT", "FORMATS", "FORMAT_APPEND", "HISTORY_JSON",
+           "HISTORY_NPZ", "JOURNAL", "KINDS", "MANIFEST", "RECOVER", "STAGING", "SUMMARY",
+           "Contents", "Run", "clear", "commit", "commit_soon", "config_sha256", "inspect",
+           "manifest_of", "read"]
 
 FORMAT = "mpcrl_lite.Run/1"
 #: The manifest's format when it lists an appended file (readers of format 1 refuse it).
@@ -131,8 +118,6 @@ JOURNAL = "history.jsonl"
 #: The files a commit may append to instead of writing them anew.
 APPENDABLE = (JOURNAL,)
 SUMMARY = "summary.json"
-#: The lock file of a directory in use (:func:`lock_output_dir`).
-LOCK = ".mpcrl_lite.lock"
 #: Where a commit's new files are written before the manifest names them.
 STAGING = ".run"
 #: What a run directory holds: a learner's run or a History on its own.
@@ -142,27 +127,8 @@ RUN_FILES = (HISTORY_JSON, HISTORY_NPZ, CHECKPOINT, JOURNAL)
 #: How to recover from a directory that does not verify (appended to the error messages).
 RECOVER = "restore the directory from a backup, or start over in it with --force (force=True)"
 
-KILL_AFTER_WRITE_ENV = "MPCRL_LITE_KILL_AFTER_WRITE"
-KILL_MID_WRITE_ENV = "MPCRL_LITE_KILL_MID_WRITE"
-
 _STAGED = re.compile(r"^\d{6,}-[0-9a-f]{8}-[A-Za-z0-9_.]+$")
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
-
-
-class RunDirError(ValueError):
-    """A run directory that cannot be used as asked (one-line message with the remedy)."""
-
-
-class RunDirMissing(RunDirError, FileNotFoundError):
-    """No run (or no History) where one was expected."""
-
-
-class RunDirLocked(RunDirError):
-    """The directory is in use by another process (:func:`lock_output_dir`)."""
-
-
-class RunWriteError(OSError):
-    """Writing a commit failed; the directory still holds the previous commit."""
 
 
 #: Configuration fields added after run directories existed, with the value the older runs
@@ -186,64 +152,6 @@ def _sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
-# -- low-level writes (every one counted for the test hooks) ----------------------------------
-_writes = 0
-
-
-def _kill_self() -> None:
-    os.kill(os.getpid(), getattr(signal, "SIGKILL", signal.SIGTERM))
-    os._exit(137)  # pragma: no cover (where SIGKILL is not delivered at once)
-
-
-def _hook(variable: str) -> int | None:
-    text = os.environ.get(variable)
-    return int(text) if text else None
-
-
-def _wrote() -> None:
-    global _writes
-    _writes += 1
-    if _hook(KILL_AFTER_WRITE_ENV) == _writes:
-        _kill_self()
-
-
-def _write_file(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` (created or truncated) and fsync it."""
-    mid = _hook(KILL_MID_WRITE_ENV) == _writes + 1
-    with open(path, "wb") as f:
-        if mid:
-            f.write(data[: len(data) // 2])
-            f.flush()
-            os.fsync(f.fileno())
-            _kill_self()
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    _wrote()
-
-
-def _append_file(path: Path, offset: int, data: bytes) -> None:
-    """Write ``data`` to ``path`` at ``offset`` (the file created if needed and cut to
-    ``offset`` first, so that a tail left by an interrupted writer goes) and fsync it."""
-    mid = _hook(KILL_MID_WRITE_ENV) == _writes + 1
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT, 0o666)
-    try:
-        os.ftruncate(fd, offset)
-        view = memoryview(data)
-        if mid:
-            view = view[: len(data) // 2]
-        while view:
-            done = os.pwrite(fd, view, offset)
-            offset += done
-            view = view[done:]
-        os.fsync(fd)
-        if mid:
-            _kill_self()
-    finally:
-        os.close(fd)
-    _wrote()
-
-
 #: The running sha256 of the appended files this process committed, by path: (size, sha256,
 #: hash object), so that an append hashes its new bytes only.
 _appended: dict[Path, tuple[int, str, Any]] = {}
@@ -263,96 +171,6 @@ def _append_hash(path: Path, entry: Mapping[str, Any] | None) -> Any:
     if len(prefix) != entry["size"] or digest.hexdigest() != entry["sha256"]:
         raise OSError(errno.EIO, f"{path.name} changed after its last commit")
     return digest
-
-
-def _replace(src: Path, dst: Path) -> None:
-    os.replace(src, dst)
-    _wrote()
-
-
-def _unlink(path: Path) -> None:
-    try:
-        path.unlink()
-    except FileNotFoundError:
-        return
-    _wrote()
-
-
-def _fsync_dir(directory: Path) -> None:
-    if os.name == "nt":  # directories cannot be opened there; renames are durable anyway
-        return
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def write_atomic(path: str | os.PathLike, data: bytes) -> None:
-    """Replace ``path`` by ``data`` atomically (temporary file, fsync, rename, fsync of the
-    directory): a reader sees the old or the new file, never a part of one."""
-    path = Path(path)
-    _settle(path.parent)
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
-        _write_file(tmp, data)
-        _replace(tmp, path)
-        _fsync_dir(path.parent)
-    except OSError as err:
-        tmp.unlink(missing_ok=True)
-        raise RunWriteError(err.errno, f"could not write {path}: {_reason(err)}") from err
-
-
-def write_json(path: str | os.PathLike, data: Any) -> None:
-    """Write ``data`` as strict JSON (:func:`mpcrl_lite._util.jsonio.dumps`: NaN as ``null``)
-    to ``path`` atomically (:func:`write_atomic`): the one JSON writer of the package."""
-    write_atomic(path, dumps(data))
-
-
-@contextmanager
-def atomic_output(path: str | os.PathLike,
-                  failed: str | os.PathLike | None = None) -> Iterator[Path]:
-    """A temporary path to write ``path``'s new content to, for writers that want a path
-    (``savefig``, papermill): on leaving the block it is fsynced and renamed onto ``path``
-    (then the directory is fsynced), so ``path`` is the old file or the whole new one, never a
-    part of one.
-
-    The temporary file, ``.<stem>.partial<suffix>`` in the same directory, keeps the suffix
-    (writers choose the format by it). If the block raises, it is removed (or, with
-    ``failed``, renamed to that path, e.g. a notebook executed up to its failing cell, kept
-    for inspection), ``path`` is left as it was and the error goes on.
-
-    Examples
-    --------
-    >>> with atomic_output(directory / "fig2_performance.png") as tmp:  # doctest: +SKIP
-    ...     fig.savefig(tmp)
-
-    Raises
-    ------
-    RunWriteError
-        (an ``OSError``) if the new file cannot be fsynced or renamed into place.
-    """
-    path = Path(path)
-    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
-    try:
-        yield tmp
-    except BaseException:
-        if failed is not None and tmp.exists():
-            os.replace(tmp, failed)
-        tmp.unlink(missing_ok=True)
-        raise
-    try:
-        with open(tmp, "rb") as f:
-            os.fsync(f.fileno())
-        _replace(tmp, path)
-        _fsync_dir(path.parent)
-    except OSError as err:
-        tmp.unlink(missing_ok=True)
-        raise RunWriteError(err.errno, f"could not write {path}: {_reason(err)}") from err
-
-
-def _reason(err: OSError) -> str:
-    return err.strerror or str(err)
 
 
 # -- what a directory holds ---------------------------------------------------------------
@@ -378,7 +196,7 @@ class Contents:
 
 def inspect(directory: str | os.PathLike, others: Iterable[str] = ()) -> Contents:
     """Which run files (and which of ``others``, e.g. ``summary.json``) ``directory`` holds."""
-    _settle(directory)
+    durable.settle(directory)
     directory = Path(directory)
     found = Contents(directory)
     if not directory.is_dir():
@@ -389,222 +207,14 @@ def inspect(directory: str | os.PathLike, others: Iterable[str] = ()) -> Content
     return found
 
 
-def _existing_ancestor(path: Path) -> Path:
-    while not path.exists() and path != path.parent:
-        path = path.parent
-    return path
-
-
-def refuse_empty(path: str | os.PathLike, flag: str = "--out") -> str:
-    """``path`` as a string, or a :class:`RunDirError` if it is empty (``Path('')`` is the
-    current directory: an empty ``--out`` must not quietly write there)."""
-    text = os.fspath(path)
-    if text == "":
-        raise RunDirError(f"{flag} '': expected a directory path (an empty path would "
-                          "write into the current directory; pass '.' to mean it)")
-    return text
-
-
-def check_output_dir(path: str | os.PathLike, flag: str = "--out", create: bool = True) -> Path:
-    """An output directory that exists (created if needed) and can be written, or a
-    :class:`RunDirError` naming the problem; called before any work starts.
-
-    With ``create=False`` nothing is created: a directory that does not exist yet is judged by
-    its nearest existing parent (it must be a directory this process can write to). The one
-    check of every command's output directory (runs, sweeps, studies, reports).
-    """
-    text = refuse_empty(path, flag)
-    directory = Path(text)
-    if not create:
-        try:
-            if directory.exists() and not directory.is_dir():
-                raise RunDirError(f"{flag} {text}: is an existing file; expected a directory")
-            parent = _existing_ancestor(directory)
-            if not parent.is_dir():
-                raise RunDirError(f"{flag} {text}: {parent} is an existing file, so it cannot be "
-                                  "created; expected a directory")
-            if not os.access(parent, os.W_OK | os.X_OK):
-                raise RunDirError(f"{flag} {text}: cannot write there ({parent} is not "
-                                  "writable); expected a writable directory")
-        except OSError as err:
-            raise RunDirError(f"{flag} {text}: cannot be checked ({_reason(err)})") from None
-        return directory
-    created = False
-    try:
-        if directory.exists() and not directory.is_dir():
-            raise RunDirError(f"{flag} {text}: is an existing file; expected a directory")
-        created = not directory.exists()
-        directory.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".probe-", dir=directory)
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as err:
-        if created:
-            try:
-                directory.rmdir()
-            except OSError:
-                pass
-        raise RunDirError(
-            f"{flag} {text}: cannot write there ({_reason(err)}); expected a writable directory"
-        ) from None
-    return directory
-
-
-# -- one process per directory ----------------------------------------------------------------
-#: Locks this process holds: real path -> [file descriptor, depth] (a lock is re-entrant in
-#: its process: a command and the library function it calls may both take it).
-_held: dict[str, list[int]] = {}
-
-
-def _holder(path: Path) -> str:
-    """'PID 1234, learn' as the lock file says (read a few times: the holder writes it just
-    after taking the lock)."""
-    for _ in range(20):
-        try:
-            text = path.read_text().split()
-        except OSError:
-            text = []
-        if text:
-            return f"PID {text[0]}" + (f", {' '.join(text[1:])}" if len(text) > 1 else "")
-        time.sleep(0.01)
-    return "PID unknown"
-
-
-@contextmanager
-def lock_output_dir(path: str | os.PathLike, command: str, flag: str = "--out") -> Iterator[Path]:
-    """Hold the lock of the directory ``path`` (which must exist) for the block: one process
-    at a time writes a directory.
-
-    The lock is ``fcntl.flock`` on ``path/.mpcrl_lite.lock`` (:data:`LOCK`), which holds the
-    PID and ``command``; the OS releases it when the process ends, however it ends, so the
-    file of a killed process is taken over. It is re-entrant within a process (a command and
-    the library function it calls may both take it) and released, its file removed, when the
-    outermost block ends. Where ``fcntl`` does not exist (Windows) nothing is locked.
-
-    Raises
-    ------
-    RunDirLocked
-        (a :class:`RunDirError`) at once, one line naming the holder's PID, if another
-        process holds the lock.
-    """
-    directory = Path(path)
-    key = os.path.realpath(directory)
-    if fcntl is None or key in _held:
-        if key in _held:
-            _held[key][1] += 1
-        try:
-            yield directory
-        finally:
-            if key in _held:
-                _held[key][1] -= 1
-        return
-    lock = directory / LOCK
-    while True:
-        try:
-            fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
-        except OSError as err:
-            raise RunDirError(f"{flag} {os.fspath(path)}: cannot create its lock file "
-                              f"({_reason(err)}); expected a writable directory") from None
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            os.close(fd)
-            raise RunDirLocked(
-                f"{flag} {os.fspath(path)} is in use by another process ({_holder(lock)}); "
-                f"wait for it to end or choose another {flag}") from None
-        try:  # the file may have been removed by a holder that ended meanwhile: lock anew
-            same = os.fstat(fd).st_ino == os.stat(lock).st_ino
-        except OSError:
-            same = False
-        if same:
-            break
-        os.close(fd)
-    try:
-        os.ftruncate(fd, 0)
-        os.write(fd, f"{os.getpid()} {command}\n".encode())
-    except OSError:  # a full disk: the lock holds without its note
-        pass
-    _held[key] = [fd, 1]
-    try:
-        yield directory
-    finally:
-        _held[key][1] -= 1
-        if _held[key][1] == 0:
-            del _held[key]
-            try:
-                lock.unlink()  # while locked: a waiting process then locks a new file
-            except OSError:
-                pass
-            os.close(fd)
-
-
 # -- commits in the background -------------------------------------------------------------
-class PendingCommit:
-    """A :func:`commit` under way in a thread (:func:`commit_soon`)."""
-
-    def __init__(self, directory: Path, run: Any) -> None:
-        self.directory = directory
-        self._manifest: dict[str, Any] | None = None
-        self._error: BaseException | None = None
-
-        def work() -> None:
-            try:
-                self._manifest = run()
-            except BaseException as err:  # noqa: BLE001 (raised by result())
-                self._error = err
-
-        self._thread = threading.Thread(target=work, name=f"mpcrl_lite commit {directory.name}")
-        self._thread.start()
-
-    def done(self) -> bool:
-        """Whether the commit has finished (committed or failed)."""
-        return not self._thread.is_alive()
-
-    def wait(self) -> None:
-        """Wait until the commit has finished."""
-        self._thread.join()
-
-    def result(self) -> dict[str, Any]:
-        """The manifest written, once the commit has finished; its error if it failed."""
-        self.wait()
-        if self._error is not None:
-            raise self._error
-        assert self._manifest is not None
-        return self._manifest
-
-
-#: The commit under way in each directory (a key only while its thread runs or until waited).
-_pending: dict[Path, PendingCommit] = {}
-_pending_lock = threading.Lock()
-
-
-def _settle(directory: str | os.PathLike) -> None:
-    """Wait for a commit under way in ``directory`` (its error stays with its owner)."""
-    key = Path(os.path.abspath(directory))
-    with _pending_lock:
-        pending = _pending.get(key)
-    if pending is not None and pending._thread is not threading.current_thread():
-        pending.wait()
-        with _pending_lock:
-            if _pending.get(key) is pending:
-                del _pending[key]
-
-
 def commit_soon(directory: str | os.PathLike, files: Mapping[str, bytes], **options: Any
-                ) -> PendingCommit:
+                ) -> durable.PendingCommit:
     """:func:`commit` (same arguments) in a thread: returns at once with a
-    :class:`PendingCommit` (see "Commits in the background" in the module docstring)."""
+    :class:`~mpcrl_lite.learning.durable.PendingCommit` (see "Commits in the background" in the module docstring)."""
     directory = Path(directory)
-    _settle(directory)
     files = dict(files)
-
-    def run() -> dict[str, Any]:
-        return commit(directory, files, **options)
-
-    key = Path(os.path.abspath(directory))
-    with _pending_lock:
-        pending = _pending[key] = PendingCommit(directory, run)
-    return pending
+    return durable.in_background(directory, lambda: commit(directory, files, **options))
 
 
 # -- commit -------------------------------------------------------------------------------
@@ -632,7 +242,7 @@ def commit(
     among :data:`APPENDABLE` -> bytes) adds bytes after an appended file's committed size
     (or starts the file when ``previous`` does not list it as appended).
     """
-    _settle(directory)
+    durable.settle(directory)
     if kind not in KINDS:
         raise ValueError(f"kind={kind!r}: expected one of {KINDS}")
     if isinstance(months_done, bool) or not isinstance(months_done, int) or months_done < 0:
@@ -664,9 +274,9 @@ def commit(
             entry = entry if entry is not None and entry.get("append") else None
             digest = _append_hash(path, entry)
             size = entry["size"] if entry is not None else 0
-            _append_file(path, size, data)
+            durable.append_file(path, size, data)
             if entry is None:
-                _fsync_dir(directory)  # the new file's name
+                durable.fsync_dir(directory)  # the new file's name
             digest.update(data)
             entries[name] = {"sha256": digest.hexdigest(), "size": size + len(data),
                              "append": True}
@@ -674,13 +284,13 @@ def commit(
         if files:
             if not staging.is_dir():
                 staging.mkdir()
-                _wrote()
+                durable.wrote()
             for name, data in files.items():
                 staged = f"{STAGING}/{months_done:06d}-{token}-{name}"
                 written.append(directory / staged)
-                _write_file(directory / staged, data)
+                durable.write_file(directory / staged, data)
                 entries[name] = {"sha256": _sha256(data), "size": len(data), "staged": staged}
-            _fsync_dir(staging)
+            durable.fsync_dir(staging)
         manifest = {
             "format": FORMAT_APPEND if append else FORMAT,
             "kind": kind,
@@ -688,8 +298,8 @@ def commit(
             "config_sha256": configs_hash,
             "files": entries,
         }
-        _write_file(tmp, dumps(manifest))
-        _replace(tmp, directory / MANIFEST)  # the commit
+        durable.write_file(tmp, dumps(manifest))
+        durable.replace(tmp, directory / MANIFEST)  # the commit
     except OSError as err:
         for path in [*written, tmp]:
             try:
@@ -698,7 +308,7 @@ def commit(
                 pass
         raise RunWriteError(
             err.errno,
-            f"could not write month {months_done} to {directory}: {_reason(err)}; the "
+            f"could not write month {months_done} to {directory}: {durable.reason(err)}; the "
             "previous commit is kept (free the space or fix the permissions, then resume)",
         ) from err
     # committed: from here on a failure only delays pointing the visible names at the files
@@ -716,7 +326,7 @@ def _publish(directory: Path, manifest: Mapping[str, Any], data: Mapping[str, by
     A failure here is left for the next writer (the commit is done: readers find the staged
     files)."""
     try:
-        _fsync_dir(directory)
+        durable.fsync_dir(directory)
         for name, entry in manifest["files"].items():
             target = directory / name
             if entry.get("append") or _file_sha256(target) == entry["sha256"]:
@@ -728,11 +338,11 @@ def _publish(directory: Path, manifest: Mapping[str, Any], data: Mapping[str, by
             tmp.unlink(missing_ok=True)
             try:
                 os.link(staged, tmp)
-                _wrote()
+                durable.wrote()
             except OSError:  # no hard links on this file system: a copy
-                _write_file(tmp, data[name] if name in data else staged.read_bytes())
-            _replace(tmp, target)
-        _fsync_dir(directory)
+                durable.write_file(tmp, data[name] if name in data else staged.read_bytes())
+            durable.replace(tmp, target)
+        durable.fsync_dir(directory)
         _remove_leftovers(directory, [n for n in APPENDABLE if n not in manifest["files"]])
     except OSError:
         return
@@ -753,25 +363,25 @@ def _remove_leftovers(directory: Path, unlisted: Iterable[str] = ()) -> None:
     if staging.is_dir():
         for path in sorted(staging.iterdir()):
             if _STAGED.match(path.name):
-                _unlink(path)
+                durable.unlink(path)
         try:
             staging.rmdir()
-            _wrote()
+            durable.wrote()
         except OSError:
             pass
     for name in (MANIFEST + ".tmp", *(f".{n}.tmp" for n in RUN_FILES), *unlisted):
-        _unlink(directory / name)
+        durable.unlink(directory / name)
 
 
 def clear(directory: str | os.PathLike, others: Iterable[str] = ()) -> None:
     """Remove a run from ``directory`` (and the files ``others``): the manifest first, so
     that an interruption never leaves something that reads as a run of mixed origins."""
-    _settle(directory)
+    durable.settle(directory)
     directory = Path(directory)
-    _unlink(directory / MANIFEST)
-    _fsync_dir(directory)
+    durable.unlink(directory / MANIFEST)
+    durable.fsync_dir(directory)
     for name in (*RUN_FILES, *others):
-        _unlink(directory / name)
+        durable.unlink(directory / name)
     _remove_leftovers(directory)
 
 
@@ -848,7 +458,7 @@ def _load_manifest(directory: Path) -> dict[str, Any]:
 def manifest_of(directory: str | os.PathLike) -> dict[str, Any] | None:
     """The manifest of ``directory`` as it is on disk, or None if there is none or it does
     not verify (a writer checks with it that the directory still holds its last commit)."""
-    _settle(directory)
+    durable.settle(directory)
     try:
         return _load_manifest(Path(directory))
     except RunDirError:
@@ -877,7 +487,7 @@ def read(
     RunDirError
         Anything that does not verify; the message says which file and what to do.
     """
-    _settle(directory)
+    durable.settle(directory)
     directory = Path(directory)
     if not directory.is_dir():
         raise RunDirMissing(f"{directory / names[0]} not found: {directory} is not a directory")
@@ -936,5 +546,5 @@ def _read_legacy(directory: Path, names: Sequence[str], optional: Sequence[str])
                 f"run); {RECOVER}"
             ) from None
         except OSError as err:
-            raise RunDirError(f"{path} cannot be read ({_reason(err)}); {RECOVER}") from None
+            raise RunDirError(f"{path} cannot be read ({durable.reason(err)}); {RECOVER}") from None
     return Run(directory, None, files)

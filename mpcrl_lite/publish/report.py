@@ -34,7 +34,7 @@ from typing import Any
 from .._util.jsonio import plain
 from .._util.resources import package_folder
 from .._util.validate import InputTypeError, check_choice
-from ..learning import rundir
+from ..learning import durable, outdir
 from .claims import check_claims
 from .html_export import copy_mathjax, write_html
 
@@ -282,35 +282,35 @@ def run_report(
     parameters and run time, and the check of the prose's claims for ``profile``
     (:mod:`mpcrl_lite.publish.claims`): a claim that does not hold raises :class:`ClaimError`
     once everything is written."""
-    out = Path(rundir.refuse_empty(out))
+    out = Path(outdir.refuse_empty(out))
     params = profile_parameters(profile)
     paths = notebook_paths(notebooks)
     # check every notebook's parameters before executing any of them (or creating ``out``)
     for path in paths:
         _check_values(path.name, params.get(path.stem, {}), notebook_parameters(path))
-    out = rundir.check_output_dir(out)
-    with rundir.lock_output_dir(out, "report"):  # one process at a time in out
+    out = outdir.check_output_dir(out)
+    with outdir.lock_output_dir(out, "report"):  # one process at a time in out
         copy_mathjax(out)  # before any work: fails at once if the MathJax files are missing
         summary: dict[str, Any] = {"profile": profile, "notebooks": {}}
         for path in paths:
             t0 = time.perf_counter()
             # papermill saves the notebook after every cell: written aside, renamed when done
-            with rundir.atomic_output(out / path.name,
+            with durable.atomic_output(out / path.name,
                                       failed=out / f"{path.stem}.failed.ipynb") as partial:
                 nb = execute_notebook(path, partial, params.get(path.stem, {}), cwd=out)
             seconds = time.perf_counter() - t0
-            with rundir.atomic_output(out / f"{path.stem}.html") as partial:
+            with durable.atomic_output(out / f"{path.stem}.html") as partial:
                 write_html(nb, partial)
             summary["notebooks"][path.stem] = {
                 "seconds": round(seconds, 1),
                 "parameters": params.get(path.stem, {}),
                 "results": read_summary(nb),
             }
-            rundir.write_json(out / "summary.json", summary)
+            durable.write_json(out / "summary.json", summary)
         # what the prose claims about these runs (notebooks/claims.yaml), checked last
         summary["claims"] = check_claims(
             {stem: entry["results"] for stem, entry in summary["notebooks"].items()}, profile)
-        rundir.write_json(out / "summary.json", summary)
+        durable.write_json(out / "summary.json", summary)
         if summary["claims"]["failed"]:
             raise ClaimError(f"{len(summary['claims']['failed'])} claim(s) of the notebooks' prose "
                              "do not hold for this run (notebooks/claims.yaml): "

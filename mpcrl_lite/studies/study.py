@@ -64,7 +64,7 @@ from ..bounds.baselines import load_class_best
 from ..bounds.causal.dual import lagrangian_bound
 from ..bounds.causal.table import causal_bound
 from ..config import SystemConfig
-from ..learning import rundir
+from ..learning import durable, outdir
 from ..learning.checkpoint import prices_fingerprint
 from ..learning.history import History
 from ..system.prices import Prices
@@ -300,7 +300,7 @@ def _study_target(out: Path, system: SystemConfig, prices: Prices) -> dict[str, 
         pass
     target = causal_target(system, prices)
     out.mkdir(parents=True, exist_ok=True)
-    rundir.write_json(path, {"for": key, "target": target})
+    durable.write_json(path, {"for": key, "target": target})
     return target
 
 
@@ -476,11 +476,11 @@ def run_study(
     grid = {"base": {**base, "learning.months": int(months)}, "grid": {"learning.seed": seed_list}}
     # the convergence rule is checked before any run starts
     summarize(pd.DataFrame({"seed": [], "status": []}), J_star, threshold)
-    out = Path(rundir.refuse_empty(out))
+    out = Path(outdir.refuse_empty(out))
     method, note = "given", ""
     check_out_dir(out)  # before the DP writes its result there
     out.mkdir(parents=True, exist_ok=True)
-    with rundir.lock_output_dir(out, "study"):  # one process at a time in out
+    with outdir.lock_output_dir(out, "study"):  # one process at a time in out
         if J_star is None and target == "causal":
             # every run shares the system and the month (only the seed varies)
             run = load_grid(grid).runs[0]
@@ -522,10 +522,10 @@ def run_study(
         seed_table.to_csv(out / "study.csv", index=False)
         curves.to_csv(out / "study_curves.csv", index=False)
         summary = {"months": int(months), "eval_draws": _eval_draws(histories), **summary}
-        rundir.write_json(out / "study.json", summary)
+        durable.write_json(out / "study.json", summary)
         fig = plot_curves(curves, summary["J_target"])
         try:
-            with rundir.atomic_output(out / "study_curves.png") as tmp:
+            with durable.atomic_output(out / "study_curves.png") as tmp:
                 fig.savefig(tmp, dpi=120, bbox_inches="tight")
         finally:
             plt.close(fig)

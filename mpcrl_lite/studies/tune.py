@@ -30,7 +30,7 @@ The search
   of many candidates on few draws flatters ``J_best``; the held-out figure does not.
 * **Resumable.** After every generation the search's whole state (the CMA-ES object, numpy's
   global generator that CMA-ES draws from, the log) is written atomically to
-  ``tune_state.pkl`` (:func:`mpcrl_lite.learning.rundir.write_atomic`); ``resume=True`` continues
+  ``tune_state.pkl`` (:func:`mpcrl_lite.learning.durable.write_atomic`); ``resume=True`` continues
   from it exactly (the same candidates as an uninterrupted search) and refuses, in one line, a
   state whose settings differ. ``evals`` may grow on a resume. The file is a Python pickle: load
   only states you wrote.
@@ -61,7 +61,7 @@ import numpy as np
 from .._util.stats import mean_ci
 from .._util.validate import check_instance, check_int, check_real
 from ..config import LearningConfig, MPCConfig, SystemConfig
-from ..learning import rundir
+from ..learning import durable, outdir
 from ..mpc.backends.registry import make_solver
 from ..mpc.formulation import MPC
 from ..sim.candidates import evaluate_candidates
@@ -300,8 +300,8 @@ def tune(
     if theta0.n != system.n:
         raise ValueError(f"theta0 has n={theta0.n}; expected n={system.n}")
     workers = check_int("workers", workers, 1)
-    out = rundir.check_output_dir(rundir.refuse_empty(out))
-    with rundir.lock_output_dir(out, "tune"):  # one process at a time in out
+    out = outdir.check_output_dir(outdir.refuse_empty(out))
+    with outdir.lock_output_dir(out, "tune"):  # one process at a time in out
         space = Space(theta0, settings.tied)
         key = _key(settings, system, mpc_config, prices, theta0)
         state_path = out / _STATE
@@ -351,7 +351,7 @@ def tune(
                 state["cpu"] += time.process_time() - t_cpu
                 state["worker_cpu"] += evaluate.worker_cpu - w_cpu
                 state["es"], state["np_random"] = es, np.random.get_state()
-                rundir.write_atomic(state_path, pickle.dumps(state))
+                durable.write_atomic(state_path, pickle.dumps(state))
                 bar.set_postfix(J_best=f"{state['best_J']:.1f}", refresh=False)
                 bar.update(min(len(Z), settings.evals - bar.n))
             bar.close()
@@ -388,7 +388,7 @@ def tune(
             "heldout_cpu_time_s": held_cpu,
             "log": state["log"],
         }
-        rundir.write_json(out / "tune.json", result)
+        durable.write_json(out / "tune.json", result)
         if figure:
             plot_convergence(result, out / "tune.png")
         return result
@@ -422,7 +422,7 @@ def plot_convergence(result: dict[str, Any], path: str | os.PathLike) -> Path:
                      f"{'tied' if result['settings']['tied'] else 'untied'})")
         ax.legend(loc="upper right", fontsize=8)
         path = Path(path)
-        with rundir.atomic_output(path) as tmp:
+        with durable.atomic_output(path) as tmp:
             fig.savefig(tmp, dpi=120, bbox_inches="tight", format="png")
     finally:
         plt.close(fig)

@@ -1,5 +1,5 @@
 """One process at a time per output directory: the lock of
-:func:`mpcrl_lite.learning.rundir.lock_output_dir`, taken by ``learn``, ``study``, ``sweep``,
+:func:`mpcrl_lite.learning.outdir.lock_output_dir`, taken by ``learn``, ``study``, ``sweep``,
 ``report`` and ``tune`` (and the library functions they call).
 
 Two processes on one ``--out``: exactly one runs, the other is refused in one line naming
@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from mpcrl_lite.cli.main import main
-from mpcrl_lite.learning import rundir
+from mpcrl_lite.learning import outdir
 from mpcrl_lite.learning.history import History
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -50,7 +50,7 @@ def test_two_learn_processes_on_one_out_one_runs_one_is_refused(tmp_path):
             or "already holds a run" in err[0]), err
     history = History.load(out)  # verified against the manifest
     assert history.months == 3 and history.learning.seed == winner
-    assert not (out / rundir.LOCK).exists()
+    assert not (out / outdir.LOCK).exists()
 
 
 @pytest.mark.parametrize("command", ["learn", "sweep", "study", "report", "tune"])
@@ -70,10 +70,10 @@ def test_a_held_lock_refuses_every_command_naming_the_pid(command, tmp_path):
         "tune": ["tune", "--evals", "4", "--draws", "1", "--heldout-draws", "2", "--days", "1",
                  "--out", str(out), "--quiet"],
     }[command]
-    with rundir.lock_output_dir(out, "test"):
+    with outdir.lock_output_dir(out, "test"):
         proc = python(*argv, cwd=tmp_path)
         code, (_, err) = proc.wait(timeout=300), proc.communicate()
-        assert sorted(p.name for p in out.iterdir()) == [rundir.LOCK]
+        assert sorted(p.name for p in out.iterdir()) == [outdir.LOCK]
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1, err
     assert f"is in use by another process (PID {os.getpid()}, test)" in lines[0], lines
@@ -85,31 +85,31 @@ def test_the_lock_of_a_killed_process_is_taken_over(tmp_path, capsys):
     out.mkdir()
     pid = os.fork()
     if pid == 0:  # the child takes the lock and dies without releasing it
-        with rundir.lock_output_dir(out, "learn"):
+        with outdir.lock_output_dir(out, "learn"):
             os.kill(os.getpid(), signal.SIGKILL)
     os.waitpid(pid, 0)
-    assert (out / rundir.LOCK).read_text().split()[0] == str(pid)  # left behind
+    assert (out / outdir.LOCK).read_text().split()[0] == str(pid)  # left behind
     status = main(["learn", "--months", "1", "--days", "1", "--out", str(out), "--quiet",
                    "--no-figures"])
     assert status == 0, capsys.readouterr().err
-    assert History.load(out).months == 1 and not (out / rundir.LOCK).exists()
+    assert History.load(out).months == 1 and not (out / outdir.LOCK).exists()
 
 
 def test_the_lock_is_reentrant_in_its_process_and_exclusive_across(tmp_path):
     out = tmp_path / "d"
     out.mkdir()
-    probe = ("import sys; from mpcrl_lite.learning import rundir\n"
-             "try:\n    with rundir.lock_output_dir(sys.argv[1], 'probe'): print('got it')\n"
-             "except rundir.RunDirLocked as err: print(err)\n")
+    probe = ("import sys; from mpcrl_lite.learning import outdir\n"
+             "try:\n    with outdir.lock_output_dir(sys.argv[1], 'probe'): print('got it')\n"
+             "except outdir.RunDirLocked as err: print(err)\n")
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
 
     def other() -> str:
         return subprocess.run([sys.executable, "-c", probe, str(out)], env=env, text=True,
                               capture_output=True, check=True).stdout.strip()
 
-    with rundir.lock_output_dir(out, "outer"):
-        with rundir.lock_output_dir(out / ".", "inner"):  # the same directory, re-entered
-            assert (out / rundir.LOCK).read_text().split() == [str(os.getpid()), "outer"]
+    with outdir.lock_output_dir(out, "outer"):
+        with outdir.lock_output_dir(out / ".", "inner"):  # the same directory, re-entered
+            assert (out / outdir.LOCK).read_text().split() == [str(os.getpid()), "outer"]
         assert f"in use by another process (PID {os.getpid()}, outer)" in other()
     assert other() == "got it"
     assert list(out.iterdir()) == []

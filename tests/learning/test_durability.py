@@ -32,10 +32,11 @@ from mpcrl_lite import LearningConfig, MPCConfig, SystemConfig, Theta
 from mpcrl_lite._util import jsonio
 from mpcrl_lite.cli.main import main
 from mpcrl_lite.decentralized.learner import DecentralizedExperiment
-from mpcrl_lite.learning import rundir
+from mpcrl_lite.learning import durable, rundir
+from mpcrl_lite.learning.durable import RunWriteError
 from mpcrl_lite.learning.experiment import Experiment
 from mpcrl_lite.learning.history import History
-from mpcrl_lite.learning.rundir import RunDirError, RunWriteError
+from mpcrl_lite.learning.outdir import RunDirError
 from mpcrl_lite.sim.record import RECORD_ARRAYS
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
@@ -129,22 +130,22 @@ def test_a_kill_at_any_write_resumes_identically(learner, stride, tmp_path, caps
                                                  monkeypatch):
     reference = tmp_path / "reference"
     file_writes: list[int] = []
-    real_write = rundir._write_file
+    real_write = durable.write_file
 
     def spy(path, data):
-        file_writes.append(rundir._writes + 1)
+        file_writes.append(durable._writes + 1)
         return real_write(path, data)
 
-    monkeypatch.setattr(rundir, "_write_file", spy)
-    start = rundir._writes
+    monkeypatch.setattr(durable, "write_file", spy)
+    start = durable._writes
     assert cli(learn_args(reference, 2, learner), capsys)[0] == 0
-    writes = rundir._writes - start
+    writes = durable._writes - start
     file_writes = [i - start for i in file_writes]
     monkeypatch.undo()
     # 2 commits (staging, 3 files, manifest, visible names, clean-up) + summary.json
     assert writes >= 2 * 10 + 2 and len(file_writes) == 2 * 4 + 1
-    points = [(rundir.KILL_AFTER_WRITE_ENV, i) for i in range(1, writes + 1)]
-    points += [(rundir.KILL_MID_WRITE_ENV, i) for i in file_writes]
+    points = [(durable.KILL_AFTER_WRITE_ENV, i) for i in range(1, writes + 1)]
+    points += [(durable.KILL_MID_WRITE_ENV, i) for i in file_writes]
     points = points[::stride]
     outcomes: dict[str, list] = {"identical": [], "refused": []}
     for hook, i in points:

@@ -19,10 +19,10 @@ from mpcrl_lite import LearningConfig, MPCConfig, SystemConfig
 from mpcrl_lite._util import jsonio
 from mpcrl_lite.cli.main import main
 from mpcrl_lite.decentralized.learner import DecentralizedExperiment
-from mpcrl_lite.learning import rundir
+from mpcrl_lite.learning import durable, outdir, rundir
 from mpcrl_lite.learning.experiment import Experiment
 from mpcrl_lite.learning.history import History
-from mpcrl_lite.learning.rundir import RunDirError
+from mpcrl_lite.learning.outdir import RunDirError
 from mpcrl_lite.sim.record import RECORD_ARRAYS
 from mpcrl_lite.studies.lockstep import run_lockstep
 
@@ -109,23 +109,23 @@ def test_a_kill_at_any_write_of_a_journaled_run_resumes_identically(tmp_path, ca
     kill leaves reads as a History of the months its manifest records."""
     reference = tmp_path / "reference"
     appends: list[int] = []
-    real = rundir._append_file
+    real = durable.append_file
 
     def spy(path, offset, data):
-        appends.append(rundir._writes + 1)
+        appends.append(durable._writes + 1)
         return real(path, offset, data)
 
-    monkeypatch.setattr(rundir, "_append_file", spy)
-    start = rundir._writes
+    monkeypatch.setattr(durable, "append_file", spy)
+    start = durable._writes
     assert main(learn_args(reference, 4)) == 0
-    writes = rundir._writes - start
+    writes = durable._writes - start
     appends = [i - start for i in appends]
     monkeypatch.undo()
     assert len(appends) == 2
     want = History.load(reference)
     checkpoint = json.loads((reference / "checkpoint.json").read_text())
-    points = [(rundir.KILL_AFTER_WRITE_ENV, i) for i in range(1, writes + 1)]
-    points += [(rundir.KILL_MID_WRITE_ENV, i) for i in appends]
+    points = [(durable.KILL_AFTER_WRITE_ENV, i) for i in range(1, writes + 1)]
+    points += [(durable.KILL_MID_WRITE_ENV, i) for i in appends]
     for hook, i in points:
         out = tmp_path / f"{hook[-10:]}-{i}"
         status = learn_in_child(learn_args(out, 4), {hook: str(i)})
@@ -177,14 +177,14 @@ def test_a_changed_journal_is_refused(tmp_path, capsys, change):
     data = path.read_bytes()
     path.write_bytes(data.replace(b'"months": 2', b'"months": 7') if change == "byte"
                      else data[:-10])
-    before = {p.name: p.read_bytes() for p in run.iterdir() if p.name != rundir.LOCK}
+    before = {p.name: p.read_bytes() for p in run.iterdir() if p.name != outdir.LOCK}
     message = "history.jsonl does not match its sha256"
     with pytest.raises(RunDirError, match=message):
         History.load(run)
     status = main(learn_args(run, 5, "--resume"))
     assert status == 2 and message in capsys.readouterr().err
     # nothing of the run touched (the command's lock file is not part of the run)
-    assert {p.name: p.read_bytes() for p in run.iterdir() if p.name != rundir.LOCK} == before
+    assert {p.name: p.read_bytes() for p in run.iterdir() if p.name != outdir.LOCK} == before
 
 
 def test_a_stale_journal_next_to_a_whole_history_is_ignored_and_removed(tmp_path):
@@ -221,7 +221,7 @@ def test_lockstep_writes_the_files_of_the_runs_alone(tmp_path):
             got, want = History.load(s), History.load(a)
             assert got.J == want.J and got.theta_final == want.theta_final
             def files(d):  # the run's files (a process's lock file is not part of the run)
-                return sorted(p.name for p in d.iterdir() if p.name != rundir.LOCK)
+                return sorted(p.name for p in d.iterdir() if p.name != outdir.LOCK)
 
             assert files(s) == files(a)
             manifest = [json.loads((d / "manifest.json").read_text()) for d in (s, a)]
@@ -256,7 +256,7 @@ def test_a_background_commit_that_fails_stops_the_run_at_the_next_month(tmp_path
         try:
             exp.run(out=out, progress=False)
             outcomes.add("finished")
-        except rundir.RunWriteError as err:
+        except durable.RunWriteError as err:
             assert "No space left on device" in str(err)
             outcomes.add("stopped")
             # the month that failed was committed in the background: the run went on to

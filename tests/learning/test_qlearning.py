@@ -14,6 +14,7 @@ from mpcrl_lite.config import LearningConfig, SystemConfig
 from mpcrl_lite.learning import rundir
 from mpcrl_lite.learning.experiment import Experiment
 from mpcrl_lite.learning.history import History
+from mpcrl_lite.learning.outdir import RunDirError
 from mpcrl_lite.learning.q_experiment import QLearningExperiment
 from mpcrl_lite.learning.qlearning import (
     QLearningUpdater,
@@ -21,7 +22,6 @@ from mpcrl_lite.learning.qlearning import (
     td_errors,
     td_gradient,
 )
-from mpcrl_lite.learning.rundir import RunDirError
 from mpcrl_lite.theta import Theta
 
 SMALL = SystemConfig(N=6)

@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 
 from mpcrl_lite._util import jsonio
-from mpcrl_lite.learning import rundir
-from mpcrl_lite.learning.rundir import RunDirError, RunDirMissing, RunWriteError
+from mpcrl_lite.learning import durable, outdir, rundir
+from mpcrl_lite.learning.durable import RunWriteError
+from mpcrl_lite.learning.outdir import RunDirError, RunDirMissing
 
 FILES = {"history.json": b'{"a": 1}', "history.npz": b"\x00binary\xff", "checkpoint.json": b"{}"}
 
@@ -188,22 +189,22 @@ def test_config_hash_ignores_key_order():
 
 def test_write_atomic_replaces_whole_files(tmp_path):
     target = tmp_path / "summary.json"
-    rundir.write_atomic(target, b"one")
-    rundir.write_atomic(target, b"two")
+    durable.write_atomic(target, b"one")
+    durable.write_atomic(target, b"two")
     assert target.read_bytes() == b"two"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["summary.json"]
 
 
 def test_check_output_dir(tmp_path):
     with pytest.raises(RunDirError, match=r"--out '': expected a directory path"):
-        rundir.check_output_dir("")
+        outdir.check_output_dir("")
     afile = tmp_path / "afile"
     afile.write_text("x")
     with pytest.raises(RunDirError, match="is an existing file; expected a directory"):
-        rundir.check_output_dir(afile)
+        outdir.check_output_dir(afile)
     with pytest.raises(RunDirError, match="cannot write there"):
-        rundir.check_output_dir(afile / "below")
-    made = rundir.check_output_dir(tmp_path / "a" / "b")
+        outdir.check_output_dir(afile / "below")
+    made = outdir.check_output_dir(tmp_path / "a" / "b")
     assert made.is_dir() and list(made.iterdir()) == []
 
 
@@ -224,7 +225,7 @@ def test_check_output_dir_refuses_a_read_only_directory():
             if os.geteuid() == 0:
                 os.setgid(65534)
                 os.setuid(65534)
-            rundir.check_output_dir(locked / "run")
+            outdir.check_output_dir(locked / "run")
         except RunDirError as err:
             os.write(write, str(err).encode())
             code = 3
@@ -247,24 +248,24 @@ def test_check_output_dir_refuses_a_read_only_directory():
 def test_atomic_output_replaces_whole_or_not_at_all(tmp_path):
     path = tmp_path / "fig.png"
     path.write_bytes(b"old figure")
-    with pytest.raises(RuntimeError, match="killed"), rundir.atomic_output(path) as tmp:
+    with pytest.raises(RuntimeError, match="killed"), durable.atomic_output(path) as tmp:
         assert tmp.parent == tmp_path and tmp.suffix == ".png" and tmp != path
         tmp.write_bytes(b"half a fig")
         raise RuntimeError("killed half-way")
     assert path.read_bytes() == b"old figure"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fig.png"]  # nothing partial left
-    with rundir.atomic_output(path) as tmp:
+    with durable.atomic_output(path) as tmp:
         tmp.write_bytes(b"new figure")
         assert path.read_bytes() == b"old figure"  # until the block ends
     assert path.read_bytes() == b"new figure"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fig.png"]
     # a writer that wrote nothing: the old file stays, the error is a RunWriteError
-    with pytest.raises(RunWriteError, match="could not write"), rundir.atomic_output(path):
+    with pytest.raises(RunWriteError, match="could not write"), durable.atomic_output(path):
         pass
     assert path.read_bytes() == b"new figure"
     # failed=: what the writer left is kept aside for inspection
     kept = tmp_path / "nb.failed.ipynb"
-    with pytest.raises(RuntimeError), rundir.atomic_output(tmp_path / "nb.ipynb",
+    with pytest.raises(RuntimeError), durable.atomic_output(tmp_path / "nb.ipynb",
                                                            failed=kept) as tmp:
         tmp.write_text("executed up to the failing cell")
         raise RuntimeError("a cell failed")

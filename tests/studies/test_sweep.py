@@ -344,16 +344,17 @@ def test_notebook_route(tiny_notebook: Path, tmp_path: Path) -> None:
 #: in a function counts too): grid -> store -> table -> run -> schedule -> sweep.
 SWEEP_LAYER = {
     "studies.sweep.grid": {"config"},
-    # rundir: LEGACY_VALUES of older configs
-    "studies.sweep.store": {"learning.rundir", "studies.sweep.grid"},
+    # rundir: LEGACY_VALUES of older configs; durable, outdir: atomic files, the out check
+    "studies.sweep.store": {"learning.durable", "learning.outdir", "learning.rundir",
+                            "studies.sweep.grid"},
     "studies.sweep.table": {"learning.history", "studies.sweep.grid", "studies.sweep.store"},
     "studies.sweep.run": {"learning.experiment", "learning.q_experiment", "studies.lockstep",
                           "publish.report", "system.prices",  # prices: a run on a price file
                           "studies.sweep.grid", "studies.sweep.store", "studies.sweep.table"},
     "studies.sweep.schedule": {"studies.sweep.grid", "studies.sweep.run", "studies.sweep.store",
                                "studies.sweep.table"},
-    # rundir: the lock of out; budget: the size of the work
-    "studies.sweep.api": {"_util.budget", "learning.rundir", "publish.report",
+    # outdir: the lock of out; budget: the size of the work
+    "studies.sweep.api": {"_util.budget", "learning.outdir", "publish.report",
                           "studies.sweep.grid", "studies.sweep.run",
                           "studies.sweep.schedule", "studies.sweep.store", "studies.sweep.table"},
 }

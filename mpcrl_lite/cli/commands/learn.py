@@ -10,7 +10,7 @@ from typing import Any
 
 from ..._util import jsonio
 from ...config import HESSIANS, LEARNERS, OPTIMIZERS, LearningConfig, MPCConfig
-from ...learning import rundir
+from ...learning import durable, outdir, rundir
 from .. import args as _a
 from ..args import UsageError
 
@@ -170,10 +170,10 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--resume and --force exclude each other: --resume continues the run "
                          "in --out, --force replaces it")
     try:
-        out = rundir.check_output_dir(args.out)
-        with rundir.lock_output_dir(out, NAME):  # one process at a time in --out
+        out = outdir.check_output_dir(args.out)
+        with outdir.lock_output_dir(out, NAME):  # one process at a time in --out
             return _learn(args, out, system, mpc_config, learning, prices)
-    except rundir.RunDirError as err:
+    except outdir.RunDirError as err:
         raise UsageError(str(err)) from None
 
 
@@ -217,7 +217,7 @@ def _learn(args, out, system, mpc_config, learning, prices) -> int:
         raise UsageError(str(err)) from None
     summary = {**history.summary(), "forecast": history.mpc.forecast}
     try:
-        rundir.write_json(out / rundir.SUMMARY, summary)
+        durable.write_json(out / rundir.SUMMARY, summary)
     except OSError as err:
         raise UsageError(str(err)) from None
     if not args.no_figures:

@@ -75,7 +75,7 @@ import pandas as pd
 import yaml
 
 from ..._util.budget import Budget, check_estimate, learning_estimate
-from ...learning import rundir
+from ...learning import outdir
 from ...publish.report import NOTEBOOK_DIR
 from .grid import (
     SECTIONS,
@@ -259,8 +259,8 @@ def run_sweep(
     _check_arguments(scheduler, workers, lockstep)
     check_sweep_budget(sweep, scheduler, workers)
     try:
-        out = Path(rundir.refuse_empty(out)).resolve()
-    except rundir.RunDirError as err:
+        out = Path(outdir.refuse_empty(out)).resolve()
+    except outdir.RunDirError as err:
         raise GridError(str(err)) from None
     serial = scheduler == "serial" or workers == 0
     selected = set(sweep.run_ids)
@@ -292,7 +292,7 @@ def run_sweep(
         out.mkdir(parents=True, exist_ok=True)
     except OSError as err:
         raise GridError(f"output directory {out} cannot be written: {err}") from None
-    with rundir.lock_output_dir(out, "sweep"):  # one process at a time in out
+    with outdir.lock_output_dir(out, "sweep"):  # one process at a time in out
         rows = {run.run_id: run_row(run, out, notebooks) for run in sweep.runs}
         for row in rows.values():
             row["cached"] = row["status"] == "done"

@@ -18,7 +18,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from ...learning import rundir
+from ...learning import durable, outdir
 from ...learning.rundir import LEGACY_VALUES
 from .grid import SECTIONS, GridError, Sweep, SweepRun, one_line
 
@@ -41,8 +41,8 @@ class DamagedFileError(GridError):
 
 def write_json(path: Path, data: Any) -> None:
     """Write ``data`` as strict JSON to ``path`` atomically
-    (:func:`mpcrl_lite.learning.rundir.write_json`)."""
-    rundir.write_json(path, data)
+    (:func:`mpcrl_lite.learning.durable.write_json`)."""
+    durable.write_json(path, data)
 
 
 def read_json(path: Path) -> dict[str, Any] | None:
@@ -104,7 +104,7 @@ def is_done(run: SweepRun, directory: Path) -> bool:
 # -- checks before anything is written -----------------------------------------------------
 def check_out_dir(out: Path) -> None:
     """Fail in one line if ``out`` cannot be (or become) a directory this process writes to
-    (:func:`mpcrl_lite.learning.rundir.check_output_dir`, creating nothing), or if its
+    (:func:`mpcrl_lite.learning.outdir.check_output_dir`, creating nothing), or if its
     ``runs`` or ``reports`` is a file.
 
     Raises
@@ -113,8 +113,8 @@ def check_out_dir(out: Path) -> None:
         With the check's message.
     """
     try:
-        rundir.check_output_dir(out, create=False)
-    except rundir.RunDirError as err:
+        outdir.check_output_dir(out, create=False)
+    except outdir.RunDirError as err:
         raise GridError(str(err)) from None
     for sub in ("runs", "reports"):
         if (out / sub).exists() and not (out / sub).is_dir():
