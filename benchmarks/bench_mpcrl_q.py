@@ -28,8 +28,17 @@ The same problem on both sides
   :func:`~mpcrl_lite.learning.qlearning.td_gradient` on :class:`~mpcrl_lite.mpc.value.MPCValue`'s
   Q and V and :class:`~mpcrl_lite.learning.qlearning.QLearningUpdater` (``newton_step = lr``).
 
-Run ``python benchmarks/bench_mpcrl_q.py [--transitions 24] [--hessian approx] [--check]``;
-prints one JSON line (the relative differences of the two updates).
+Run ``python benchmarks/bench_mpcrl_q.py [--transitions 24] [--hessian approx] [--check]
+[--n 3] [--horizon 12]``; prints one JSON line (the relative differences of the two updates).
+
+``--hessian full`` on the paper's size (n = 3, N = 12) exhausts the memory on mpcrl's side:
+its agent inverts the KKT matrix symbolically (``casadi.solve(Ky, Kp)``, over 17 GB before
+``std::bad_alloc`` on a 24 GB machine), so the full Hessian is compared on a smaller MPC of the
+same formulation: ``--hessian full --n 2 --horizon 4 --transitions 4``. There the TD Hessian
+is indefinite (shifted by ``t I`` before the Newton step on both sides) and the two sides
+grow ``t`` differently (mpcrl by 1.05 a try, mpcrl_lite doubling), so the comparison gives our
+side mpcrl's schedule; it also checks the second derivative of Q against central differences
+of its gradient (``finite_difference_checks`` in the JSON line).
 """
 
 from __future__ import annotations
@@ -141,7 +150,8 @@ def build_agent(system, mpc_config, theta0, hessian: str, lr: float, batch: int)
     ), parts
 
 
-def our_updates(system, mpc_config, theta0, data, hessian: str, lr: float, batch: int):
+def our_updates(system, mpc_config, theta0, data, hessian: str, lr: float, batch: int,
+                checks: list | None = None):
     """The same updates with mpcrl_lite: thetas after each batch of transitions."""
     from mpcrl_lite.config import LearningConfig
     from mpcrl_lite.learning.qlearning import QLearningUpdater, td_gradient
@@ -163,9 +173,40 @@ def our_updates(system, mpc_config, theta0, data, hessian: str, lr: float, batch
         assert q.ok.all() and v.ok.all(), (q.reason, v.reason)
         delta = cost[rows] + system.gamma * v.value - q.value
         g, H = td_gradient(delta, q.grad, q.hess, hessian)
+        if checks is not None and hessian == "full":
+            # the same direction with the Hessian of Q from central differences of its
+            # gradient (an independent check of the KKT-based second derivative)
+            d2q = fd_hessian(value, soc[rows], buy, sell, theta, a[rows])
+            _, H_fd = td_gradient(delta, q.grad, d2q, hessian)
+            d_ours, shift = updater.direction(g, H)
+            d_fd, shift_fd = updater.direction(g, H_fd)
+            checks.append({"d2Q_rel_diff_fd": float(np.abs(q.hess - d2q).max()
+                                                    / np.abs(d2q).max()),
+                           "direction_rel_diff_fd": float(np.abs(d_ours - d_fd).max()
+                                                          / np.abs(d_fd).max()),
+                           "shift": float(shift), "shift_fd": float(shift_fd)})
         theta = updater.step(theta, g, H)
         out.append(theta)
     return out
+
+
+def fd_hessian(value, soc, buy, sell, theta, a, eps: float = 1e-5) -> np.ndarray:
+    """(S, n_theta, n_theta): central differences of the theta gradient of Q(s, a)."""
+    from mpcrl_lite.theta import Theta
+
+    x0 = theta.to_vector()
+    cols = []
+    for i in range(x0.size):
+        grads = []
+        for sign in (1.0, -1.0):
+            x = x0.copy()
+            x[i] += sign * eps
+            q = value.action_value(soc, buy, sell, Theta.from_vector(x, theta.n), a)
+            assert q.ok.all(), q.reason
+            grads.append(q.grad)
+        cols.append((grads[0] - grads[1]) / (2 * eps))
+    H = np.stack(cols, axis=2)
+    return 0.5 * (H + np.swapaxes(H, 1, 2))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -175,11 +216,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--hessian", choices=("approx", "full"), default="approx")
     parser.add_argument("--lr", type=float, default=0.3)
     parser.add_argument("--check", action="store_true", help="exit 1 above 1e-6 relative")
+    parser.add_argument("--n", type=int, default=None,
+                        help="batteries (default the paper's 3)")
+    parser.add_argument("--horizon", type=int, default=None,
+                        help="MPC horizon N (default the paper's 12)")
     args = parser.parse_args(argv)
     from mpcrl_lite.config import MPCConfig, SystemConfig
     from mpcrl_lite.theta import Theta
 
-    system, mpc_config = SystemConfig(), MPCConfig()
+    sizes = {k: v for k, v in (("n", args.n), ("N", args.horizon)) if v is not None}
+    system, mpc_config = SystemConfig(**sizes), MPCConfig()
     theta0 = Theta.nominal(system)
     batch = args.transitions
     data = transitions(system, batch * args.updates)
@@ -188,8 +234,20 @@ def main(argv: list[str] | None = None) -> int:
     agent.thetas = theirs = []
     rollout = [(soc[i], a[i], float(cost[i]), soc_next[i]) for i in range(len(cost))]
     agent.train_offpolicy([rollout])
-    ours = our_updates(system, mpc_config, theta0, data, args.hessian, args.lr, batch)
-    result = {"hessian": args.hessian, "transitions": batch, "updates": []}
+    checks: list = []
+    if args.hessian == "full":
+        # far from a fit the full TD Hessian is indefinite and both sides shift it by t I until
+        # its Cholesky factorisation succeeds; mpcrl grows t by 1.05 a try, mpcrl_lite doubles
+        # it: the same schedule on both sides, so that the same matrix is solved
+        import functools
+
+        from mpcrl_lite.learning import qlearning
+
+        qlearning.regularised_solve = functools.partial(
+            qlearning.regularised_solve, growth=1.05, max_tries=5000)
+    ours = our_updates(system, mpc_config, theta0, data, args.hessian, args.lr, batch, checks)
+    result = {"hessian": args.hessian, "transitions": batch, "n": system.n, "N": system.N,
+              "updates": []}
     worst = 0.0
     for k, (mine, p) in enumerate(zip(ours, theirs, strict=False)):
         ref = np.concatenate([np.ravel(p[f"theta_{name}"]) for name in parts]
@@ -202,6 +260,8 @@ def main(argv: list[str] | None = None) -> int:
         result["updates"].append({"update": k + 1, "step_rel_diff": rel,
                                   "step_norm": float(np.linalg.norm(ref - start))})
     result["updates_compared"] = len(result["updates"])
+    if checks:
+        result["finite_difference_checks"] = checks
     print(json.dumps(result))
     if args.check and (worst > 1e-6 or len(result["updates"]) < args.updates):
         return 1

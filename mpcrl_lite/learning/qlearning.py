@@ -150,11 +150,15 @@ def td_gradient(delta: np.ndarray, dq: np.ndarray, d2q: np.ndarray | None,
 
 
 def regularised_solve(H: np.ndarray, g: np.ndarray, beta: float = REGULARISATION_BETA,
-                      max_tries: int = 200) -> tuple[np.ndarray, float]:
+                      max_tries: int = 200, growth: float = 2.0) -> tuple[np.ndarray, float]:
     r"""``(H + t I)^{-1} g`` with the smallest ``t`` of the sequence ``0`` (if ``H``'s
-    diagonal is positive, else ``beta - min diag``), then doubling from ``beta``, for which the
-    Cholesky factorisation succeeds (Nocedal & Wright, Algorithm 3.3); returns the solution
-    and ``t``."""
+    diagonal is positive, else ``beta - min diag``), then growing by ``growth`` (doubling)
+    from ``beta``, for which the Cholesky factorisation succeeds (Nocedal & Wright, Algorithm
+    3.3); returns the solution and ``t``. An indefinite ``H`` (the full TD Hessian far from a
+    fit) is shifted: the step then depends on the schedule, which is why ``growth`` can be set
+    (``benchmarks/bench_mpcrl_q.py`` uses mpcrl's 1.05 to compare with it)."""
+    if not growth > 1.0:
+        raise ValueError(f"growth={growth!r}: expected a factor > 1")
     H = np.asarray(H, float)
     t = 0.0 if np.diag(H).min() > 0 else beta - np.diag(H).min()
     eye = np.eye(H.shape[0])
@@ -162,7 +166,7 @@ def regularised_solve(H: np.ndarray, g: np.ndarray, beta: float = REGULARISATION
         try:
             L = np.linalg.cholesky(H + t * eye)
         except np.linalg.LinAlgError:
-            t = max(2.0 * t, beta)
+            t = max(growth * t, beta)
             continue
         return np.linalg.solve(L.T, np.linalg.solve(L, g)), t
     raise ValueError(f"no positive definite H + t I found after {max_tries} tries (t = {t:g})")

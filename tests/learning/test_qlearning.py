@@ -97,6 +97,23 @@ def test_regularised_solve_shifts_only_what_is_not_positive_definite():
     assert np.linalg.eigvalsh(indefinite + 0.5 * t * np.eye(4)).min() <= 0
 
 
+def test_regularised_solve_grows_the_shift_by_its_factor():
+    """growth=1.05 (mpcrl's schedule) finds a smaller shift than doubling, still the first of
+    its own sequence that factorises; a factor <= 1 is refused."""
+    rng = np.random.default_rng(2)
+    M = rng.normal(size=(5, 5))
+    indefinite = M @ M.T - 4.0 * np.eye(5)
+    g = rng.normal(size=5)
+    _, t2 = regularised_solve(indefinite, g)
+    x, t = regularised_solve(indefinite, g, growth=1.05, max_tries=5000)
+    lam = np.linalg.eigvalsh(indefinite).min()
+    assert -lam < t <= t2 and t <= 1.05 * -lam + 1e-3
+    np.testing.assert_allclose((indefinite + t * np.eye(5)) @ x, g)
+    assert np.linalg.eigvalsh(indefinite + (t / 1.05) * np.eye(5)).min() <= 0
+    with pytest.raises(ValueError, match="growth=1.0: expected a factor > 1"):
+        regularised_solve(indefinite, g, growth=1.0)
+
+
 def test_tied_newton_step_solves_in_the_shared_parameters(system):
     n = system.n
     config = LearningConfig(learner="q", hessian="approx", newton_step=0.5,
