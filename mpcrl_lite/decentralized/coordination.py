@@ -31,9 +31,9 @@ The coordination finds the prices satisfying these ``2N`` equations per day; the
 solutions then **are** the centralized MPC's solution for the stacked
 :math:`\theta = (\theta^1, \dots, \theta^n)` (:func:`join_theta`): decentralizing changes
 who computes the policy and how it learns, not the policy. With a loose limit
-(:math:`\bar P \ge n\bar U`) the prices settle at
-:math:`\lambda_j = \tau/(\bar P - \sum_i \hat b^i_j) \le \tau/(\bar P - n\bar U)`: zero up to
-the barrier, and the local problems are independent.
+(:math:`\bar P \ge \sum_i \bar U^i`, each battery's own input bound :math:`\bar U^i`) the
+prices settle at :math:`\lambda_j = \tau/(\bar P - \sum_i \hat b^i_j) \le \tau/(\bar P -
+\sum_i \bar U^i)`: zero up to the barrier, and the local problems are independent.
 
 How the prices are found
 ------------------------
