@@ -137,3 +137,8 @@ def test_two_decentralized_learning_months_on_a_mixed_site(tmp_path):
     assert np.all(np.isfinite(summary["J"]))
     assert np.array(summary["J_per_agent"]).shape == (2, 3)
     assert max(summary["max_P_mpc"]) < 1.2  # every planned hour within the grid limit
+    history = np.load(out / "history.npz")
+    for month in ("first", "last"):  # each battery's action within its own bound
+        policy = history[f"{month}_policy"]
+        assert policy.shape[-1] == 3
+        assert np.all(np.abs(policy).reshape(-1, 3).max(0) < np.array(U))
