@@ -31,9 +31,9 @@ The coordination finds the prices satisfying these ``2N`` equations per day; the
 solutions then **are** the centralized MPC's solution for the stacked
 :math:`\theta = (\theta^1, \dots, \theta^n)` (:func:`join_theta`): decentralizing changes
 who computes the policy and how it learns, not the policy. With a loose limit
-(:math:`\bar P \ge n\bar U`) the prices settle at
-:math:`\lambda_j = \tau/(\bar P - \sum_i \hat b^i_j) \le \tau/(\bar P - n\bar U)`: zero up to
-the barrier, and the local problems are independent.
+(:math:`\bar P \ge \sum_i \bar U^i`, each battery's own input bound :math:`\bar U^i`) the
+prices settle at :math:`\lambda_j = \tau/(\bar P - \sum_i \hat b^i_j) \le \tau/(\bar P -
+\sum_i \bar U^i)`: zero up to the barrier, and the local problems are independent.
 
 How the prices are found
 ------------------------
@@ -355,11 +355,18 @@ class CoordinatedMPC:
             raise ValueError(  # noqa: TRY004
                 f"coordination={coordination!r}: expected a CoordinationConfig"
             )
-        self.local_mpc = MPC(local_system(system, self.coordination.local_grid_factor))
-        self._qp = LocalQP(self.local_mpc)
-        self._ipopt: IpoptSolver | None = None
-        self._sensitivity: PolicySensitivity | None = None
-        self._kernel: KernelSolver | None = None
+        # one local formulation per distinct input bound U_bar (battery 0's is local_mpc)
+        U_all = system.battery("U_bar")
+        first = {U: U_all.index(U) for U in dict.fromkeys(U_all)}
+        formulations = {U: MPC(local_system(system, self.coordination.local_grid_factor, i))
+                        for U, i in first.items()}
+        #: the local MPC of every battery (batteries with equal U_bar share one)
+        self.local_mpcs = tuple(formulations[U] for U in U_all)
+        self.local_mpc = self.local_mpcs[0]
+        self._qp = LocalQP(self.local_mpc, U_all)
+        self._ipopts: dict[int, IpoptSolver] = {}
+        self._sensitivities: dict[int, PolicySensitivity] = {}
+        self._kernels: dict[int, KernelSolver] = {}
         self._structure: _coord_kernel.Structure | None = None
         self._discount = system.gamma ** np.arange(system.N)
         # b_j and s_j at positions kb, ks of stage j's block (what the compiled rounds use)
@@ -376,10 +383,15 @@ class CoordinatedMPC:
 
     @property
     def ipopt(self) -> IpoptSolver:
-        """The reference solver of the local MPC (fallback)."""
-        if self._ipopt is None:
-            self._ipopt = IpoptSolver(self.local_mpc, self.mpc_config.replace(backend="ipopt"))
-        return self._ipopt
+        """The reference solver of battery 0's local MPC (fallback)."""
+        return self.local_ipopt(0)
+
+    def local_ipopt(self, battery: int) -> IpoptSolver:
+        """The reference solver of battery ``battery``'s local MPC (fallback)."""
+        mpc = self.local_mpcs[battery]
+        if id(mpc) not in self._ipopts:
+            self._ipopts[id(mpc)] = IpoptSolver(mpc, self.mpc_config.replace(backend="ipopt"))
+        return self._ipopts[id(mpc)]
 
     def _thetas(self, thetas: Theta | Sequence[Theta]) -> list[Theta]:
         n = self.system.n
@@ -502,7 +514,8 @@ class CoordinatedMPC:
         n, N, P_bar = sysc.n, sysc.N, sysc.P_bar
         D = hour.scale.shape[0]
         x = np.tile(self.ipopt.default_guess(), (D * n, 1))
-        x[:, qp.ib] = x[:, qp.is_] = 0.25 * min(sysc.U_bar, P_bar / n)  # inside the limit
+        start = 0.25 * np.minimum(qp.bound(D * n), P_bar / n)[:, None]  # inside the limits
+        x[:, qp.ib] = x[:, qp.is_] = start
         lam = np.zeros((D * n, N))
         tau = np.full(D, max(self.mpc_config.tau, 1e-2 * float(hour.scale.max())))
         x = qp.feasible(hour.A, hour.e, x)
@@ -580,7 +593,7 @@ class CoordinatedMPC:
         dnu_r = np.repeat(dnu, n, axis=0)
         dx = dx0 + qp.price_step(hour.A[rows], L, Winv, dnu_r)
         dlam = lam0 + (L @ dnu_r[..., None])[..., 0] - point.lam
-        dh = qp.h(dx) + qp.db
+        dh = qp.h(dx) + qp.d(dx.shape[0])
         dmu = -(res.rc + point.mu * dh) / res.h
         return _Step(dx, dlam, dmu, dnu)
 
@@ -629,7 +642,7 @@ class CoordinatedMPC:
         rows and multipliers, the grid rows and prices; fraction to the boundary), 0 for a
         day without a direction."""
         qp, n, N = self._qp, self.system.n, self.system.N
-        dh = qp.h(step.dx) + qp.db
+        dh = qp.h(step.dx) + qp.d(step.dx.shape[0])
         dc = qp.E(step.dx).reshape(-1, n, 2 * N).sum(1)
         with np.errstate(divide="ignore", invalid="ignore"):
             limits = [
@@ -688,7 +701,8 @@ class CoordinatedMPC:
             log.info("coordination did not converge (day %d, residual %.1e): local IPOPT "
                      "solves at the last prices and projection", d, worst[d])
             for i in range(n):
-                sol = self.ipopt.solve(soc[d, i : i + 1], buy_p[d], sell_p[d], thetas[i])
+                sol = self.local_ipopt(i).solve(soc[d, i : i + 1], buy_p[d], sell_p[d],
+                                                thetas[i])
                 ok[d, i] = sol.success
                 if sol.success:
                     X[d, i], Lm[d, i], Mu[d, i] = sol.x, sol.lam, sol.mu
@@ -720,12 +734,13 @@ class CoordinatedMPC:
         D, n = solution.action.shape
         if solution.compiled:
             return self._compiled_sensitivity(solution)
-        if self._sensitivity is None:
-            self._sensitivity = PolicySensitivity(self.local_mpc, self.mpc_config)
         grad = np.zeros((D, n, self.local_mpc.n_theta))
         ok = np.zeros((D, n), bool)
         for i in range(n):
-            sens = self._sensitivity(solution.local(i))
+            mpc = self.local_mpcs[i]
+            if id(mpc) not in self._sensitivities:
+                self._sensitivities[id(mpc)] = PolicySensitivity(mpc, self.mpc_config)
+            sens = self._sensitivities[id(mpc)](solution.local(i))
             grad[:, i] = sens.grad[:, :, 0]
             ok[:, i] = sens.ok
         return grad, ok
@@ -735,10 +750,32 @@ class CoordinatedMPC:
     ) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`sensitivity` by :meth:`KernelSolver.sensitivity
         <mpcrl_lite.mpc.backends.kernel.KernelSolver.sensitivity>` of the local MPC, every day and
-        battery in one call (the local problem at the final prices is an ``n = 1`` MPC)."""
-        if self._kernel is None:
-            self._kernel = KernelSolver(self.local_mpc, self.mpc_config)
+        battery in one call per distinct local MPC (the local problem at the final prices is
+        an ``n = 1`` MPC)."""
         D, n = solution.action.shape
+        mpcs = list(dict.fromkeys(self.local_mpcs))
+        if len(mpcs) > 1:  # batteries of unequal U_bar: each group by its own formulation
+            grad = np.zeros((D, n, self.local_mpc.n_theta))
+            ok = np.zeros((D, n), bool)
+            for mpc in mpcs:
+                group = [i for i in range(n) if self.local_mpcs[i] is mpc]
+                g, o = self._kernel_sensitivity(mpc, solution, group)
+                grad[:, group], ok[:, group] = g, o
+            return grad, ok
+        return self._kernel_sensitivity(self.local_mpc, solution, list(range(n)))
+
+    def _kernel_sensitivity(
+        self, mpc: MPC, solution: CoordinatedSolution, group: list[int]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The compiled sensitivities of the batteries ``group`` (all sharing ``mpc``),
+        ``(days, len(group), 10)`` and ``(days, len(group))``."""
+        if id(mpc) not in self._kernels:
+            self._kernels[id(mpc)] = KernelSolver(mpc, self.mpc_config)
+        D = solution.action.shape[0]
+        n = len(group)
+        solution = replace(solution, action=solution.action[:, group], x=solution.x[:, group],
+                           lam=solution.lam[:, group], mu=solution.mu[:, group],
+                           p=solution.p[:, group], success=solution.success[:, group])
         ok = solution.success.ravel()
         rows = BatchSolution(
             action=solution.action.reshape(D * n, 1), x=solution.x.reshape(D * n, -1),
@@ -748,5 +785,5 @@ class CoordinatedMPC:
             iterations=np.repeat(solution.iterations, n), p=solution.p.reshape(D * n, -1),
             solve_time=solution.solve_time, backend="decentralized",
         )
-        sens = self._kernel.sensitivity(rows)
+        sens = self._kernels[id(mpc)].sensitivity(rows)
         return sens.grad[:, :, 0].reshape(D, n, -1), sens.ok.reshape(D, n)

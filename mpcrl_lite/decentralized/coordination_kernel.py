@@ -134,7 +134,7 @@ def _kkt_day(Hd, q0, aval, e, acol, cr, cc, cv, db, kb, ks, P_bar, x, lam, mu, n
     ``h, rc (n, N, 10)``, ``c (2N,)``; returns the 2-norm of every residual and the
     largest absolute one."""
     n, nx = x.shape
-    N, nh = db.shape
+    N, nh = db.shape[1], db.shape[2]
     nb = nx // N
     ka, kc = acol.shape[1], cr.shape[1]
     sq = 0.0
@@ -163,7 +163,7 @@ def _kkt_day(Hd, q0, aval, e, acol, cr, cc, cv, db, kb, ks, P_bar, x, lam, mu, n
             big = max(big, abs(v))
         for j in range(N):
             for row in range(nh):
-                h[i, j, row] = -db[j, row]
+                h[i, j, row] = -db[i, j, row]
             for k in range(kc):
                 h[i, j, cr[j, k]] += cv[j, k] * x[i, j * nb + cc[j, k]]
                 rx[j * nb + cc[j, k]] += cv[j, k] * mu[i, j, cr[j, k]]
@@ -501,7 +501,8 @@ def coordinate(Hd, q0, aval, e, scale, acol, ablo, abhi, cr, cc, cv, wr, wa, wb,
         ordered (day, battery), battery fastest.
     aval (B, N, ka), e (B, N), acol, ablo, abhi, cr, cc, cv, wr, wa, wb, wv
         Local dynamics ``A x = e`` and inequality rows in the sparse form of
-        :func:`structure`; ``db (N, 10)`` the right-hand sides of the inequality rows.
+        :func:`structure`; ``db (n, N, 10)`` the right-hand sides of the inequality rows by
+        battery (each battery's own input bound).
     scale : (D,)
         ``1 + max |q|`` per day, the scale of the tolerance.
     kb, ks : int
@@ -517,7 +518,7 @@ def coordinate(Hd, q0, aval, e, scale, acol, ablo, abhi, cr, cc, cv, wr, wa, wb,
         residual (updated in place).
     """
     B, nx = x.shape
-    N, nh = db.shape
+    N, nh = db.shape[1], db.shape[2]
     nb = nx // N
     D = nu.shape[0]
     qeff, h, rc = np.empty((B, nx)), np.empty((B, N, nh)), np.empty((B, N, nh))
@@ -615,7 +616,7 @@ def warm_up() -> None:
     for j in range(N):
         for k in range(nb):
             Cb[j, 2 * k, k], Cb[j, 2 * k + 1, k] = -1.0, 1.0
-    db = np.tile(np.array([0.0, 1.0] * nb), (N, 1))
+    db = np.tile(np.array([0.0, 1.0] * nb), (n, N, 1))
     A = np.zeros((n, N, nx))
     for r in range(N):
         A[:, r, r * nb + 2], A[:, r, r * nb], A[:, r, r * nb + 1] = 1.0, -0.1, 0.1

@@ -35,18 +35,20 @@ __all__ = ["LocalQP", "local_system"]
 def local_system(system: SystemConfig, local_grid_factor: float = 1e4,
                  battery: int = 0) -> SystemConfig:
     """The local MPC's system: ``system`` with ``n = 1``, the per-battery fields of battery
-    ``battery`` and an inert grid row (``P_bar = local_grid_factor * max(U_bar, P_bar)``; the
-    true limit is priced). The local MPCs share one formulation, so ``U_bar`` must be the same
-    for every battery (a one-line error otherwise)."""
+    ``battery`` (its own input bound ``U_bar`` among them) and an inert grid row
+    (``P_bar = local_grid_factor * max(U_bar..., P_bar)`` with the largest ``U_bar`` of all
+    batteries, the same row for every battery; the true limit is priced)."""
     if not isinstance(system, SystemConfig):
         raise ValueError(f"system={system!r}: expected a SystemConfig")  # noqa: TRY004
-    U = system.common("U_bar", "the decentralized MPCs")
+    U_all = system.battery("U_bar")
+    if not 0 <= battery < system.n:
+        raise ValueError(f"battery={battery!r}: expected an index 0..{system.n - 1}")
     own = {name: system.battery(name)[battery] for name in PER_BATTERY if name != "U_bar"}
     own = {name: value for name, value in own.items() if isinstance(getattr(system, name), tuple)}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConfigWarning)
-        return system.replace(n=1, P_bar=local_grid_factor * max(U, system.P_bar), U_bar=U,
-                              **own)
+        return system.replace(n=1, P_bar=local_grid_factor * max(*U_all, system.P_bar),
+                              U_bar=U_all[battery], **own)
 
 
 def _scatter(out: ca.DM, shape: tuple[int, int], flat: np.ndarray) -> np.ndarray:
@@ -72,11 +74,15 @@ class LocalQP:
     ----------
     mpc : MPC
         The local MPC (``n = 1``), e.g. ``MPC(local_system(system))``.
+    U_bar : sequence of float, optional
+        Every battery's input bound, ``n`` values (default: the one of ``mpc``). The batch
+        axis is then ordered (day, battery), battery fastest, and battery ``i``'s rows
+        ``b <= U_bar``, ``s <= U_bar`` use ``U_bar[i]``: ``db`` has shape ``(n, N, 10)``.
     """
 
     nb, nh = 5, 10
 
-    def __init__(self, mpc: MPC) -> None:
+    def __init__(self, mpc: MPC, U_bar: tuple[float, ...] | None = None) -> None:
         if mpc.n != 1:
             raise ValueError(f"the local MPC has n={mpc.n}; expected n=1")
         self.mpc = mpc
@@ -99,10 +105,19 @@ class LocalQP:
         if not np.array_equal(rebuilt, ref.C):
             raise RuntimeError("the MPC's inequality rows are not block diagonal by stage")
         self._CbT = np.ascontiguousarray(np.swapaxes(self.Cb, 1, 2))
-        self.db = ref.d.reshape(N, self.nh)
-        self._maps: dict[int, tuple[ca.Function, list]] = {}
         sysc = mpc.system
-        self.U, self.soc_low, self.soc_high = sysc.U_bar, sysc.soc_low, sysc.soc_high
+        U = np.array([sysc.U_bar] if U_bar is None else U_bar, dtype=float)
+        if U.ndim != 1 or U.size == 0 or not np.all(np.isfinite(U) & (U > 0)):
+            raise ValueError(f"U_bar={U_bar!r}: expected one positive bound per battery")
+        #: every battery's input bound, ``(n,)``
+        self.U = U
+        #: right-hand sides of the inequality rows by battery and stage, ``(n, N, 10)``
+        self.db = np.tile(ref.d.reshape(N, self.nh), (U.size, 1, 1))
+        for name in ("b_max", "s_max"):
+            row = int(mpc.inequality_index(name, 0)[0])
+            self.db[:, :, row] = U[:, None]
+        self._maps: dict[int, tuple[ca.Function, list]] = {}
+        self.soc_low, self.soc_high = sysc.soc_low, sysc.soc_high
         self.ib, self.is_ = mpc.index("b")[:, 0], mpc.index("s")[:, 0]
         self.isoc = mpc.index("soc")[:, 0]
         self.ihi, self.ilo = mpc.index("sigma_hi")[:, 0], mpc.index("sigma_lo")[:, 0]
@@ -127,8 +142,18 @@ class LocalQP:
                 np.array(A).reshape(m.neq, B, m.nx).transpose(1, 0, 2), np.array(e).T)
 
     def h(self, x: np.ndarray) -> np.ndarray:
-        """``h = Cx - d`` by stage, shape ``(B, N, 10)``."""
-        return (self.Cb @ x.reshape(x.shape[0], -1, self.nb, 1))[..., 0] - self.db
+        """``h = Cx - d`` by stage, shape ``(B, N, 10)`` (``B`` a multiple of ``n``, ordered
+        (day, battery))."""
+        Cx = (self.Cb @ x.reshape(x.shape[0], -1, self.nb, 1))[..., 0]
+        return (Cx.reshape(-1, *self.db.shape) - self.db).reshape(Cx.shape)
+
+    def d(self, B: int) -> np.ndarray:
+        """``d`` by stage for a batch of ``B`` problems ordered (day, battery), ``(B, N, 10)``."""
+        return np.tile(self.db, (B // self.db.shape[0], 1, 1))
+
+    def bound(self, B: int) -> np.ndarray:
+        """Every problem's input bound for a batch of ``B`` ordered (day, battery), ``(B,)``."""
+        return np.tile(self.U, B // self.U.size)
 
     def Ct(self, v: np.ndarray) -> np.ndarray:
         """``C' v`` for ``v (B, N, 10)``, shape ``(B, nx)``."""
@@ -151,10 +176,11 @@ class LocalQP:
         raised only where needed (to at least 1e-3 above the soc band's bound, so that no
         barrier term starts at a vanishing distance from its bound)."""
         x = x.copy()
-        margin = 1e-3 * self.U
+        U = self.bound(x.shape[0])[:, None]
+        margin = 1e-3 * U
         for i in (self.ib, self.is_):
             v = x[:, i]
-            x[:, i] = np.where((v > 0) & (v < self.U), v, np.clip(v, margin, self.U - margin))
+            x[:, i] = np.where((v > 0) & (v < U), v, np.clip(v, margin, U - margin))
         rest = np.ones(x.shape[1], bool)
         rest[self.isoc] = False
         rhs = e - np.einsum("bri,bi->br", A[:, :, rest], x[:, rest])

@@ -83,7 +83,7 @@ def test_compiled_sensitivity_matches_finite_differences_at_fixed_prices():
     assert ok.all()
     # battery 1's local MPC at the final grid prices, its own theta moved
     local = mpc.local_mpc
-    solver = mpc._kernel
+    solver = mpc._kernels[id(local)]
     buy_p = buy + sol.price_buy / mpc._discount
     sell_p = sell - sol.price_sell / mpc._discount
     base = theta.to_vector().reshape(-1, TIGHT.n)[:, 1]  # part-major: theta^1's 10 entries

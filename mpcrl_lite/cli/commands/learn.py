@@ -157,12 +157,6 @@ def run(args: argparse.Namespace) -> int:
     _a.budget(f"--months {args.months} --days {learning.days_per_month} --n {system.n}",
             system.n, learning.days_per_month, runs=args.months, sensitivities=True,
             horizon=system.N)
-    if args.decentralized:  # the batteries' local MPCs share one formulation: one U_bar
-        try:
-            system.common("U_bar", "--decentralized")
-        except ValueError as err:
-            raise UsageError(str(err)) from None
-
     if args.adopt and not args.resume:
         raise UsageError("--adopt without --resume: --adopt continues a run written before "
                          "the manifest format; expected --resume --adopt")
