@@ -11,7 +11,6 @@ from mpcrl_lite.config import CoordinationConfig, LearningConfig, MPCConfig, Sys
 from mpcrl_lite.decentralized import coordination_kernel as _coord_kernel
 from mpcrl_lite.decentralized.coordination import CoordinatedMPC
 from mpcrl_lite.decentralized.learner import DecentralizedExperiment
-from mpcrl_lite.mpc.backends.kernel import warm_up
 from mpcrl_lite.system.prices import Prices
 from mpcrl_lite.theta import Theta
 
@@ -175,7 +174,8 @@ def test_structure_reproduces_the_dense_data():
 
 def test_warm_up_compiles_what_the_coordination_uses():
     # the types of the warm-up's call are those of a real hour: no user waits for numba
-    warm_up()
+    # (the coordination kernel's own warm-up, which python -m mpcrl_lite.cli.warm calls)
+    _coord_kernel.warm_up()
     assert len(_coord_kernel.coordinate.signatures) == 1
     soc, buy, sell = case(TIGHT, 2, 18, 8)
     assert CoordinatedMPC(TIGHT, FAST).solve(soc, buy, sell, Theta.nominal(TIGHT)).compiled
