@@ -30,7 +30,7 @@ report: $(STAMP)
 
 ## the whole test suite: lint (ruff), unit tests and notebook tests, on every core
 ## (pytest-xdist; TEST_WORKERS=0 runs it in one process). Each notebook executes once, on
-## one worker (tests/conftest.py groups its tests).
+## one worker (tests/notebooks/test_notebooks.py groups its tests).
 TEST_WORKERS ?= auto
 test: $(STAMP)
 	$(BIN)/ruff check .

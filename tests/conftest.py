@@ -247,18 +247,3 @@ def learn_in_child(argv: list[str], env: dict[str, str]) -> int:
     _, status = os.waitpid(pid, 0)
     return status
 
-
-# -- pytest-xdist: one execution per notebook --------------------------------------------------
-def pytest_collection_modifyitems(config, items):
-    """Under ``make test`` (pytest-xdist, ``--dist loadgroup``) every test that needs a
-    notebook's execution (the session fixture ``executed`` of
-    tests/notebooks/test_notebooks.py, one execution per notebook and worker) goes into the
-    group of its notebook, so that each notebook runs once, on one worker, instead of once on
-    every worker that draws one of its tests. Without xdist the marks do nothing."""
-    for item in items:
-        if "executed" not in getattr(item, "fixturenames", ()):
-            continue
-        callspec = getattr(item, "callspec", None)
-        stem = callspec.params.get("stem") if callspec is not None else None
-        if stem is not None:
-            item.add_marker(pytest.mark.xdist_group(name=f"notebook-{stem}"))
