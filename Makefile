@@ -29,12 +29,12 @@ report: $(STAMP)
 	$(BIN)/python tools/update_run_times.py reports/summary.json
 
 ## the whole test suite: lint (ruff), unit tests and notebook tests, on every core
-## (pytest-xdist; TEST_WORKERS=0 runs it in one process). Each notebook executes once, on
-## one worker (tests/notebooks/test_notebooks.py groups its tests).
+## (pytest-xdist; TEST_WORKERS=0 runs it in one process). --dist loadfile keeps each test
+## file on one worker, so the notebook tests' session fixture executes each notebook once.
 TEST_WORKERS ?= auto
 test: $(STAMP)
 	$(BIN)/ruff check .
-	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadgroup
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile
 
 ## unit tests only (skips the notebook executions)
 test-fast: $(STAMP)

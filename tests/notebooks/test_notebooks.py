@@ -40,12 +40,6 @@ from mpcrl_lite.publish.report import (
 
 STEMS = nbref.stems()
 
-
-def _grouped(stems) -> list:
-    """``stems`` as parameters in the xdist group of their notebook: under ``make test``
-    (pytest-xdist, ``--dist loadgroup``) every test of one notebook's execution runs on one
-    worker, so that the session fixture ``executed`` runs each notebook once."""
-    return [pytest.param(s, marks=pytest.mark.xdist_group(name=f"notebook-{s}")) for s in stems]
 TOOLS = nbref.ROOT / "tools"
 README = nbref.NOTEBOOK_DIR / "README.md"
 
@@ -294,7 +288,7 @@ def executed(tmp_path_factory):
 
 
 @pytest.mark.notebook
-@pytest.mark.parametrize("stem", _grouped(STEMS))
+@pytest.mark.parametrize("stem", STEMS)
 def test_notebook_matches_reference_outputs(stem, executed):
     nb = executed(stem)
     reference = nbref.load_reference(stem)
@@ -308,7 +302,7 @@ def test_notebook_matches_reference_outputs(stem, executed):
 
 
 @pytest.mark.notebook
-@pytest.mark.parametrize("stem", _grouped(sorted(load_claims())))
+@pytest.mark.parametrize("stem", sorted(load_claims()))
 def test_prose_claims_hold_for_the_ci_profile(stem, executed):
     """The claims of notebooks/claims.yaml that hold in the ci profile (defaults of the
     package, run sizes) are true of the ci run; ``make report`` checks the full profile's."""
@@ -338,7 +332,7 @@ def test_every_code_cell_is_in_the_reference(stem):
 
 
 @pytest.mark.notebook
-@pytest.mark.parametrize("stem", _grouped(STEMS))
+@pytest.mark.parametrize("stem", STEMS)
 def test_ipopt_is_silent_and_no_warnings_leak(stem, executed):
     nb = executed(stem)
     for cell in nb.cells:
@@ -354,7 +348,7 @@ def test_ipopt_is_silent_and_no_warnings_leak(stem, executed):
 
 
 @pytest.mark.notebook
-@pytest.mark.parametrize("stem", _grouped(STEMS))
+@pytest.mark.parametrize("stem", STEMS)
 def test_summary_is_shown_with_finite_numbers(stem, executed):
     summary = read_summary(executed(stem))
     assert summary, f"{stem}: no summary"
