@@ -194,6 +194,19 @@ def _integer(name: str, value: Any, low: int) -> int:
     return int(value)
 
 
+def _grid_inputs(system: Any, points: Any, action_step: Any) -> tuple[int, float]:
+    """``(points, action_step)`` checked (a SystemConfig, at least 2 nodes, a positive finite
+    step), or a one-line ``ValueError``: the checks of every soc grid, one battery's or a
+    site's."""
+    if not isinstance(system, SystemConfig):
+        raise ValueError(f"system={system!r}: expected a SystemConfig")  # noqa: TRY004
+    G = _integer("points", points, 2)
+    if (isinstance(action_step, bool) or not isinstance(action_step, (int, float))
+            or not (math.isfinite(action_step) and action_step > 0)):
+        raise ValueError(f"action_step={action_step!r}: expected a positive number")
+    return G, float(action_step)
+
+
 def _ratio(x: float, step: float) -> int | None:
     """``x / step`` when it is an integer (to rounding), else None."""
     q = x / step
@@ -231,13 +244,8 @@ class SocGrid:
     """
 
     def __init__(self, system: SystemConfig, points: int = 41, action_step: float = 0.1) -> None:
-        if not isinstance(system, SystemConfig):
-            raise ValueError(f"system={system!r}: expected a SystemConfig")  # noqa: TRY004
-        G = _integer("points", points, 2)
-        if (isinstance(action_step, bool) or not isinstance(action_step, (int, float))
-                or not (math.isfinite(action_step) and action_step > 0)):
-            raise ValueError(f"action_step={action_step!r}: expected a positive number")
-        self.system, self.points, self.action_step = system, G, float(action_step)
+        G, step = _grid_inputs(system, points, action_step)
+        self.system, self.points, self.action_step = system, G, step
         self.h = 1.0 / (G - 1)
         self.h_y = system.alpha * self.action_step
         r = _ratio(self.h, self.h_y)

@@ -25,7 +25,6 @@ For identical batteries the result is the symmetric DP's to rounding (the tests 
 from __future__ import annotations
 
 import itertools
-import math
 import warnings
 from typing import Any
 
@@ -33,7 +32,7 @@ import numpy as np
 
 from ...config import PER_BATTERY, ConfigWarning, SystemConfig
 from ...system.battery import unchecked_penalty
-from .grid import SocGrid, _integer
+from .grid import SocGrid, _grid_inputs
 from .kernels import bellman_min3_mixed, bellman_min_mixed, expected_cost_rows, greedy_mixed
 
 __all__ = ["MAX_MIXED_BATTERIES", "BatteryGrids", "MixedContraction", "MixedStage",
@@ -78,13 +77,8 @@ class BatteryGrids:
     """
 
     def __init__(self, system: SystemConfig, points: int = 41, action_step: float = 0.1) -> None:
-        if not isinstance(system, SystemConfig):
-            raise ValueError(f"system={system!r}: expected a SystemConfig")  # noqa: TRY004
-        G = _integer("points", points, 2)
-        if (isinstance(action_step, bool) or not isinstance(action_step, (int, float))
-                or not (math.isfinite(action_step) and action_step > 0)):
-            raise ValueError(f"action_step={action_step!r}: expected a positive number")
-        self.system, self.points, self.action_step = system, G, float(action_step)
+        G, step = _grid_inputs(system, points, action_step)
+        self.system, self.points, self.action_step = system, G, step
         self.grids = []
         for i in range(system.n):
             own = battery_system(system, i)
