@@ -23,11 +23,13 @@ from __future__ import annotations
 
 import warnings
 
-import casadi as ca
 import numpy as np
 
+from .._util.lazy import lazy_module
 from ..config import PER_BATTERY, ConfigWarning, SystemConfig
 from ..mpc.formulation import MPC
+
+ca = lazy_module("casadi")  # CasADi (~0.1-0.2 s of import) loads when first used
 
 __all__ = ["LocalQP", "local_system"]
 

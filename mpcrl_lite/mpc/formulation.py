@@ -45,11 +45,13 @@ from __future__ import annotations
 from dataclasses import dataclass
 from functools import cached_property
 
-import casadi as ca
 import numpy as np
 
+from .._util.lazy import lazy_module
 from ..config import SystemConfig
 from ..theta import PARTS, Theta
+
+ca = lazy_module("casadi")  # CasADi (~0.1-0.2 s of import) loads when first used
 
 __all__ = ["GRID_INEQUALITIES", "INEQUALITIES", "MPC", "Plan", "QPData"]
 
@@ -123,7 +125,18 @@ class MPC:
         self.nin = (8 * n + 2) * N
         self.n_theta = len(PARTS) * n
         self.np = n + 2 * N + self.n_theta
-        self.build_problem()
+        # the symbolic problem (CasADi) is built when first used (:meth:`__getattr__`): the
+        # compiled back-end solves from closed forms, and a learner is ready without it
+
+    #: what :meth:`build_problem` sets
+    _BUILT = frozenset({"_x", "_p", "_f", "_g", "_h", "fgh", "qp_function"})
+
+    def __getattr__(self, name: str):
+        # only reached for names not set yet: the symbolic problem's, built on first read
+        if name in MPC._BUILT and "fgh" not in self.__dict__:
+            self.build_problem()
+            return self.__dict__[name]
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
 
     # -- layout ---------------------------------------------------------------------------
     def index(self, name: str, stage: int | None = None) -> np.ndarray:
@@ -220,7 +233,8 @@ class MPC:
         of eqs. 23a-23c, the model 9b, the relaxed soc band 9c-9d, the input bounds 9e, the
         grid peak limits 9f (eq. 7 for the plan) and the initial state 9g (substituted), in the
         layout of the module docstring; then the CasADi Functions :attr:`fgh` and
-        :attr:`qp_function` every back-end uses. Called once by the constructor."""
+        :attr:`qp_function` every back-end uses. Called once, on the first read of one of
+        them (a :class:`MPC` is cheap to make: the compiled back-end needs none of them)."""
         sysc, n, N = self.system, self.n, self.N
         x = ca.SX.sym("x", self.nx)
         p = ca.SX.sym("p", self.np)

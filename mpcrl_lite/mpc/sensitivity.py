@@ -27,12 +27,14 @@ formulation (:mod:`mpcrl_lite.mpc.formulation`) and the solution types (:mod:`mp
 
 from __future__ import annotations
 
-import casadi as ca
 import numpy as np
 
+from .._util.lazy import lazy_module
 from ..config import MPCConfig
 from .formulation import MPC
 from .solution import BatchSolution, MPCSolution, Sensitivity
+
+ca = lazy_module("casadi")  # CasADi (~0.1-0.2 s of import) loads when first used
 
 # Sensitivity is defined in mpcrl_lite.mpc.solution (below every back-end) and kept importable
 # from here.

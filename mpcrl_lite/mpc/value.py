@@ -48,15 +48,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import casadi as ca
 import numpy as np
 from scipy.sparse import csr_matrix
 
+from .._util.lazy import lazy_module
 from ..config import MPCConfig
 from .backends.ipopt import IpoptSolver, _ipopt_options, newton_polish
 from .formulation import MPC
 from .q_kernel import FixedActionKernel
 from .solution import BatchSolution, MPCSolution
+
+ca = lazy_module("casadi")  # CasADi (~0.1-0.2 s of import) loads when first used
 
 __all__ = ["MPCValue", "ValueDerivatives"]
 

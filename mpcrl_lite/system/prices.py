@@ -22,6 +22,7 @@ Three layers, each usable alone:
 from __future__ import annotations
 
 import datetime as _dt
+import itertools
 import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -86,6 +87,15 @@ def sell_prices(buy: np.ndarray, sell_ratio: float) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------
 
 
+def _read_small_csv(path: Path) -> tuple[list[str], list[list[str]]]:
+    """Header and rows (as strings, surrounding blanks removed) of a small comma-separated file."""
+    import csv
+
+    with open(path, newline="", encoding="utf-8") as fh:
+        rows = [[cell.strip() for cell in row] for row in csv.reader(fh) if row]
+    return (rows[0], rows[1:]) if rows else ([], [])
+
+
 @lru_cache(maxsize=1)
 def _default_profile_cached() -> np.ndarray:
     shape_path = DATA_DIR / _SHAPE_FILE
@@ -96,20 +106,27 @@ def _default_profile_cached() -> np.ndarray:
                 f"default price data {path.name} not found; expected it in the package's data "
                 f"folder, one of {[str(p) for p in candidate_folders('data')]}"
             )
-    shape = pd.read_csv(shape_path)
-    daily = pd.read_csv(daily_path, parse_dates=["date"])
-    if list(shape.columns) != ["hour", "shape"] or shape["hour"].tolist() != list(
-        range(HOURS_PER_DAY)
-    ):
+    # two small files of our own: the standard library reads them (pandas, ~0.7 s to import,
+    # is loaded only for users' price files)
+    shape_cols, shape_rows = _read_small_csv(shape_path)
+    daily_cols, daily_rows = _read_small_csv(daily_path)
+    if shape_cols != ["hour", "shape"] or [r[0] for r in shape_rows] != [
+        str(h) for h in range(HOURS_PER_DAY)
+    ]:
         raise ValueError(f"{shape_path}: expected columns hour,shape with hours 0..23 in order")
-    if list(daily.columns) != ["date", "daily_mean", "daily_std"]:
+    if daily_cols != ["date", "daily_mean", "daily_std"]:
         raise ValueError(f"{daily_path}: expected columns date,daily_mean,daily_std")
-    steps = daily["date"].diff().dropna()
-    if len(daily) == 0 or not (steps == pd.Timedelta(days=1)).all():
+    try:
+        dates = [_dt.date.fromisoformat(r[0]) for r in daily_rows]
+        mean = np.array([float(r[1]) for r in daily_rows])
+        std = np.array([float(r[2]) for r in daily_rows])
+        shape = np.array([float(r[1]) for r in shape_rows])
+    except (ValueError, IndexError) as exc:
+        raise ValueError(f"default price data: unreadable value ({exc})") from None
+    steps = {(b - a).days for a, b in itertools.pairwise(dates)}
+    if not dates or not steps <= {1}:
         raise ValueError(f"{daily_path}: expected consecutive dates, one row per day")
-    mean = daily["daily_mean"].to_numpy(dtype=float)
-    std = daily["daily_std"].to_numpy(dtype=float)
-    profile = mean[:, None] + std[:, None] * shape["shape"].to_numpy(dtype=float)[None, :]
+    profile = mean[:, None] + std[:, None] * shape[None, :]
     profile.setflags(write=False)
     return profile
 

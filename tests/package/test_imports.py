@@ -67,3 +67,39 @@ def test_a_solver_loads_numba_at_its_first_solve_only():
         "sol = solver.solve(np.full(3, 0.5), buy, 0.9 * buy, Theta.nominal(system))\n"
         "assert sol.success and solver._checked and 'numba' in sys.modules")
     assert "numba" in modules and heavy(modules) == []
+
+
+def test_an_experiment_is_built_without_casadi_or_the_compiler():
+    """``Experiment()`` (the default kernel back-end, the shipped prices) loads neither
+    CasADi nor numba nor pandas: the MPC's symbolic problem is built at its first use and
+    the default price profile is read without a data-frame library."""
+    probe = ("import sys\nfrom mpcrl_lite import Experiment\nexperiment = Experiment()\n"
+             "print('casadi' in sys.modules)")
+    modules = loaded_after(probe)
+    assert heavy(modules) == [] and "numba" not in modules
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"},
+                         check=True, timeout=300).stdout
+    assert out.strip().splitlines()[-1] == "False"
+
+
+def test_the_symbolic_problem_is_built_at_its_first_use():
+    """The MPC builds its CasADi problem at the first read of one of its names, once, and
+    it is the problem of an MPC whose functions were read at once: same numbers."""
+    import numpy as np
+
+    from mpcrl_lite import SystemConfig
+    from mpcrl_lite.mpc.formulation import MPC
+
+    system = SystemConfig(N=4)
+    mpc = MPC(system)
+    assert "fgh" not in vars(mpc) and mpc.nx > 0
+    fgh = mpc.fgh
+    assert "fgh" in vars(mpc) and mpc.fgh is fgh and mpc._x.shape[0] == mpc.nx
+    other = MPC(system)
+    x = np.linspace(0.0, 1.0, mpc.nx)
+    p = np.linspace(0.5, 1.5, mpc.np)
+    for a, b in zip(fgh(x, p), other.fgh(x, p)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    with pytest.raises(AttributeError, match="no attribute 'not_a_name'"):
+        mpc.not_a_name  # noqa: B018

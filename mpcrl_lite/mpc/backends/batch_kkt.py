@@ -65,13 +65,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import casadi as ca
 import numpy as np
 
+from ..._util.lazy import lazy_module
 from ...theta import PARTS
 from ..formulation import MPC
 from ..solution import BatchSolution, MPCSolution, check_parameters
 from .batch_linalg import cholesky, cholesky_solve, tridiag_inverse
+
+ca = lazy_module("casadi")  # CasADi (~0.1-0.2 s of import) loads when first used
 
 __all__ = ["TINY", "BatchData", "BatchKKT", "KKTFactor"]
 

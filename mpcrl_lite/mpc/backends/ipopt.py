@@ -16,13 +16,15 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-import casadi as ca
 import numpy as np
 
+from ..._util.lazy import lazy_module
 from ...config import MPCConfig
 from ..formulation import MPC
 from ..sensitivity import PolicySensitivity
 from ..solution import BackendBase, BatchSolution, MPCSolution, Sensitivity
+
+ca = lazy_module("casadi")  # CasADi (~0.1-0.2 s of import) loads when first used
 
 __all__ = ["STATUS_POLISH_FAILED", "IpoptSolver", "newton_polish"]
 

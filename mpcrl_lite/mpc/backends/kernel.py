@@ -42,7 +42,6 @@ import functools
 import logging
 import time
 
-import casadi as ca
 import numpy as np
 
 from ..._util.lazy import lazy_module
@@ -61,6 +60,8 @@ from ..solution import (
     StartSettings,
     check_parameters,
 )
+
+ca = lazy_module("casadi")  # CasADi (~0.1-0.2 s of import) loads when first used
 
 __all__ = ["KernelInputError", "KernelSolver", "cache_dir", "warm_up"]
 
