@@ -37,17 +37,25 @@ from .._util.lazy import lazy_module
 from .._util.resources import candidate_folders, package_folder
 from .._util.validate import check_instance, check_int, check_real
 from ..config import HOURS_PER_DAY, PRICE_LIMIT, PRICE_UNIT, PriceFileConfig, SystemConfig
-from .price_files.load import load_prices
-from .price_files.month import _as_date, daily_matrix, month_matrix
-from .price_files.nordpool_elspot import load_nordpool_csv, nordpool_areas
-from .price_files.series import LOCAL_TZ, PriceFileWarning
 
 #: pandas, imported when a CSV file is first read (it reads and parses every price file)
 pd = lazy_module("pandas")
 
 # The old Nord Pool reader and the day matrix moved to price_files; their names stay importable
-# here (``from mpcrl_lite.system.prices import load_nordpool_csv``).
-_MOVED = (LOCAL_TZ, daily_matrix, load_nordpool_csv, nordpool_areas)
+# here (``from mpcrl_lite.system.prices import load_nordpool_csv``), loaded on first use: the
+# readers (a dozen modules) are not needed to learn on the shipped month.
+_MOVED = {"LOCAL_TZ": "series", "PriceFileWarning": "series", "daily_matrix": "month",
+          "month_matrix": "month", "load_nordpool_csv": "nordpool_elspot",
+          "nordpool_areas": "nordpool_elspot", "load_prices": "load"}
+
+
+def __getattr__(name: str):
+    if name in _MOVED:
+        import importlib
+
+        module = importlib.import_module(f"{__package__}.price_files.{_MOVED[name]}")
+        return getattr(module, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = ["DATA_DIR", "Prices", "load_default_profile", "sell_prices"]
 
@@ -359,6 +367,9 @@ class Prices:
 
         Clock-change days are mapped onto 24 hours as :func:`daily_matrix` describes.
         """
+        from .price_files.month import _as_date, daily_matrix
+        from .price_files.series import LOCAL_TZ
+
         buy = daily_matrix(series, start, days)
         name = series.name if series.name is not None else "series"
         first = _as_date(start, LOCAL_TZ)
@@ -381,6 +392,8 @@ class Prices:
         ``system``'s, as for :meth:`default`; ``origin`` records the file, format, area,
         currency and conversion rate from the series' ``attrs``.
         """
+        from .price_files.month import month_matrix
+
         system = SystemConfig() if system is None else system
         unit = series.attrs.get("unit", PRICE_UNIT)
         if unit != PRICE_UNIT:
@@ -413,6 +426,9 @@ class Prices:
         currency, rate, format) through :func:`~mpcrl_lite.system.price_files.load.load_prices`
         and :meth:`from_month`; its first ``days`` days when given (the whole month must have
         a price every hour). Hours without a price outside the month are not reported."""
+        from .price_files.load import load_prices
+        from .price_files.series import PriceFileWarning
+
         check_instance("config", config, PriceFileConfig)
         if not config.file:
             raise ValueError("config.file is empty; expected a price file (Prices.month gives "

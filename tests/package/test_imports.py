@@ -103,3 +103,29 @@ def test_the_symbolic_problem_is_built_at_its_first_use():
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     with pytest.raises(AttributeError, match="no attribute 'not_a_name'"):
         mpc.not_a_name  # noqa: B018
+
+
+def test_a_learner_loads_only_the_back_end_and_readers_it_uses():
+    """The default learner needs the compiled back-end only: the numpy interior point, the
+    IPOPT wrapper and the price-file readers load at their first lookup, and are then the
+    same classes and functions as their modules'."""
+    probe = ("import json, sys\nfrom mpcrl_lite import Experiment\nExperiment()\n"
+             "print(json.dumps(sorted(m for m in sys.modules if m.startswith('mpcrl_lite'))))")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         cwd=ROOT, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"},
+                         check=True, timeout=300).stdout
+    loaded = json.loads(out.strip().splitlines()[-1])
+    assert "mpcrl_lite.mpc.backends.kernel" in loaded
+    for lazy in ("mpcrl_lite.mpc.backends.batch", "mpcrl_lite.mpc.backends.ipopt",
+                 "mpcrl_lite.system.price_files.load"):
+        assert lazy not in loaded
+    from mpcrl_lite.mpc.backends import batch, ipopt, registry
+    from mpcrl_lite.system import prices
+    from mpcrl_lite.system.price_files import load, nordpool_elspot
+
+    assert registry.REGISTRY["batch"] is batch.BatchSolver is registry.BatchSolver
+    assert registry.REGISTRY["ipopt"] is ipopt.IpoptSolver is registry.IpoptSolver
+    assert prices.load_prices is load.load_prices
+    assert prices.load_nordpool_csv is nordpool_elspot.load_nordpool_csv
+    with pytest.raises(AttributeError, match="no attribute 'NoSolver'"):
+        registry.NoSolver  # noqa: B018

@@ -22,19 +22,18 @@ Failures never raise mid-run and never leak NaN: a problem that did not converge
 
 from __future__ import annotations
 
+import importlib
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Iterator, MutableMapping
 
 from ...config import BACKENDS, MPCConfig
 from ...theta import Theta
 from ..formulation import MPC
 from ..solution import SolverBackend
-from .batch import BatchSolver
-from .ipopt import IpoptSolver
 from .kernel import KernelSolver
 
-# MPCSolution, BatchSolution, FALLBACK and IpoptSolver live in their own modules and stay
-# importable from here.
+# MPCSolution, BatchSolution, FALLBACK, BatchSolver and IpoptSolver live in their own modules
+# and stay importable from here (the two last loaded on first use, :func:`__getattr__`).
 __all__ = ["AUTO", "CONVEX_ONLY", "REGISTRY", "make_solver"]
 
 log = logging.getLogger(__name__)
@@ -46,13 +45,49 @@ AUTO = "auto"
 #: convex, :func:`make_solver` uses IPOPT instead, with a warning.
 CONVEX_ONLY = ("batch", "kernel")
 
+class _Registry(MutableMapping):
+    """Back-end classes by name, each imported at its first lookup: a learner on the default
+    compiled back-end never loads the numpy interior point or the IPOPT wrapper (about 30 ms
+    of start-up). An entry is a class or the ``'module:Class'`` path of one under this
+    package; setting and deleting entries work as on a dict."""
+
+    def __init__(self, entries: dict[str, object]) -> None:
+        self._entries = dict(entries)
+
+    def __getitem__(self, name: str) -> Callable[[MPC, MPCConfig], SolverBackend]:
+        entry = self._entries[name]
+        if isinstance(entry, str):
+            module, attr = entry.split(":")
+            entry = getattr(importlib.import_module(f"{__package__}.{module}"), attr)
+            self._entries[name] = entry
+        return entry
+
+    def __setitem__(self, name: str, value) -> None:
+        self._entries[name] = value
+
+    def __delitem__(self, name: str) -> None:
+        del self._entries[name]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._entries)
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+
 #: Back-end constructors ``(mpc, config) -> back-end`` by their name in
-#: :data:`mpcrl_lite.config.BACKENDS`.
-REGISTRY: dict[str, Callable[[MPC, MPCConfig], SolverBackend]] = {
-    "ipopt": IpoptSolver,
-    "batch": BatchSolver,
+#: :data:`mpcrl_lite.config.BACKENDS` (a mapping that imports a back-end at its first lookup).
+REGISTRY: MutableMapping[str, Callable[[MPC, MPCConfig], SolverBackend]] = _Registry({
+    "ipopt": "ipopt:IpoptSolver",
+    "batch": "batch:BatchSolver",
     "kernel": KernelSolver,
-}
+})
+
+
+def __getattr__(name: str):
+    if name in ("BatchSolver", "IpoptSolver"):
+        return REGISTRY[name[:-len("Solver")].lower()]
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _auto_backend(theta: Theta | None, mpc: MPC | None = None) -> str:
