@@ -132,7 +132,7 @@ from typing import Any
 import numpy as np
 
 # the shared validators, also importable from here (their home is mpcrl_lite._util.validate)
-from ._util.validate import (  # noqa: F401
+from ._util.validate import (
     InputTypeError,
     check_bool,
     check_choice,
@@ -156,6 +156,7 @@ __all__ = [
     "PAPER_STEP_SIZE",
     "PAPER_TAU",
     "PER_BATTERY",
+    "POLICY_CLASSES",
     "PRICE_LIMIT",
     "PRICE_UNIT",
     "RANGES",
@@ -165,10 +166,13 @@ __all__ = [
     "CoordinationConfig",
     "LearningConfig",
     "MPCConfig",
+    "PolicyClass",
     "PriceFileConfig",
     "SystemConfig",
     "check_grid_bound",
     "check_ranges",
+    "policy_class_configs",
+    "policy_class_of",
 ]
 
 #: Unit of every price in the project (see the module docstring for why).
@@ -547,6 +551,72 @@ class MPCConfig(_Config):
         """The nearly exact MPC, ``tau = PAPER_TAU = 1e-4`` (the paper does not give a
         barrier value); ``changes`` override any field."""
         return cls(**{"tau": PAPER_TAU, **changes})
+
+
+@dataclass(frozen=True)
+class PolicyClass:
+    """A named policy class of the centralized MPC: its horizon and its price forecast.
+
+    The MPC's formulation and its parameters theta are the same in every class; a class sets
+    only the two fields that say what the MPC plans over, :attr:`SystemConfig.N` (the hours of
+    the horizon) and :attr:`MPCConfig.forecast` (the prices it sees). ``--policy-class NAME`` on
+    the command line (``learn``, ``study``, ``tune``, ``baselines``, ``evaluate``, ``simulate``)
+    sets both (:func:`policy_class_configs`); :func:`policy_class_of` names the class of a pair
+    of configs, as recorded in a run's ``summary.json``. :data:`POLICY_CLASSES` lists them.
+    """
+
+    name: str
+    """The name ``--policy-class`` takes."""
+    N: int
+    """The MPC's horizon in hours (:attr:`SystemConfig.N`)."""
+    forecast: str
+    """The MPC's price forecast (:attr:`MPCConfig.forecast`, one of :data:`FORECASTS`)."""
+    extension: bool
+    """True for a class beyond the paper's (never a default)."""
+    about: str
+    """What the class is, in one sentence."""
+
+
+#: The policy classes by name (:class:`PolicyClass`). ``'paper'`` is the paper's MPC (eq. 9:
+#: a 12-hour window that reads on into the next day), the default; the others are
+#: **extensions beyond the paper**, labelled as such wherever they are reported:
+#:
+#: * ``'day_end'`` -- the paper's 12-hour MPC whose forecast prices are zero after the day's
+#:   midnight (``MPCConfig(forecast='until_midnight')``, :mod:`mpcrl_lite.system.forecast`):
+#:   the MPC knows that nothing after midnight counts in the day's cost.
+#: * ``'rest_of_day'`` -- the same forecast with a 24-hour horizon: at hour ``h`` the MPC plans
+#:   the whole rest of the day (``24 - h`` priced stages, then free stages after midnight), so
+#:   that already at 00:00 it sees the evening's peak that the 12-hour window misses
+#:   (measured in ``benchmarks/README.md``, "A policy class closer to J*").
+POLICY_CLASSES: dict[str, PolicyClass] = {
+    "paper": PolicyClass("paper", 12, "paper", False,
+                         "the paper's MPC: a 12-hour forecast reading on into the next day"),
+    "day_end": PolicyClass("day_end", 12, "until_midnight", True,
+                           "extension: the 12-hour MPC with zero prices after midnight"),
+    "rest_of_day": PolicyClass("rest_of_day", 24, "until_midnight", True,
+                               "extension: a 24-hour MPC with zero prices after midnight, so "
+                               "it plans the whole rest of the day"),
+}
+
+
+def policy_class_configs(name: str, system: SystemConfig | None = None,
+                         mpc: MPCConfig | None = None) -> tuple[SystemConfig, MPCConfig]:
+    """``system`` and ``mpc`` (default the defaults) with the horizon and the forecast of the
+    policy class ``name`` (a key of :data:`POLICY_CLASSES`); every other field is kept."""
+    name = check_choice("policy_class", name, tuple(POLICY_CLASSES))
+    cls = POLICY_CLASSES[name]
+    system = SystemConfig() if system is None else check_instance("system", system, SystemConfig)
+    mpc = MPCConfig() if mpc is None else check_instance("mpc", mpc, MPCConfig)
+    return system.replace(N=cls.N), mpc.replace(forecast=cls.forecast)
+
+
+def policy_class_of(system: SystemConfig, mpc: MPCConfig) -> str | None:
+    """The name of the policy class of ``system.N`` and ``mpc.forecast``
+    (:data:`POLICY_CLASSES`), or None for a horizon and forecast no class names."""
+    for cls in POLICY_CLASSES.values():
+        if system.N == cls.N and mpc.forecast == cls.forecast:
+            return cls.name
+    return None
 
 
 #: Names of the DPG update rules (:data:`mpcrl_lite.learning.update_rules.UPDATE_RULES`).

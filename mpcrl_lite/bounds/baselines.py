@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from .._util.stats import mean_ci
-from ..config import LearningConfig, MPCConfig, SystemConfig
+from ..config import LearningConfig, MPCConfig, SystemConfig, policy_class_of
 from ..learning import durable, outdir, rundir
 from ..learning.history import History
 from ..mpc.backends.registry import make_solver
@@ -303,6 +303,11 @@ def run_baselines_cli(
                           f"{tuned.get('forecast')!r}; evaluating it with forecast="
                           f"{mpc_config.forecast!r} (pass --forecast to match)", UserWarning,
                           stacklevel=2)
+        tuned_N = tuned.get("system", {}).get("N", system.N)
+        if tuned_N != system.N:
+            warnings.warn(f"--class-best {class_best} was searched with the horizon N={tuned_N}"
+                          f"; evaluating it with N={system.N} (pass --policy-class to match)",
+                          UserWarning, stacklevel=2)
         thetas["class_best"] = tuned["theta_best"]
     if rundir.inspect(out_dir, others=[BASELINES_JSON]).others and not force:
         raise outdir.RunDirError(f"--out {out_dir} already holds {BASELINES_JSON}; pass --force "
@@ -331,5 +336,6 @@ def run_baselines_cli(
                 policies["class_best"]["J_per_day"],
                 result["causal"]["J_star"] if star is None else star)
     result["history"] = None if history_dir is None else str(history_dir)
+    result["policy_class"] = policy_class_of(system, mpc_config)
     durable.write_json(out / BASELINES_JSON, result)
     return result

@@ -18,6 +18,7 @@ from ..config import (
     EUR_NOK_RATE,
     FORECASTS,
     PAPER_TAU,
+    POLICY_CLASSES,
     PRICE_UNIT,
     LearningConfig,
     MPCConfig,
@@ -148,6 +149,7 @@ def add_system_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend", choices=BACKENDS, default=None,
                    help=f"MPC solver back-end (default {MPC_DEFAULTS.backend})")
     add_forecast(p)
+    add_policy_class(p)
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -157,6 +159,32 @@ def add_forecast(p: argparse.ArgumentParser, help_text: str | None = None) -> No
                        f"the MPC's price forecast (default {MPC_DEFAULTS.forecast}: the paper's, "
                        "reading on into the next day; until_midnight is an extension beyond "
                        "the paper whose forecast stops at midnight)"))
+
+
+def add_policy_class(p: argparse.ArgumentParser, help_text: str | None = None) -> None:
+    names = ", ".join(f"{c.name}: {c.about}" for c in POLICY_CLASSES.values())
+    p.add_argument("--policy-class", choices=tuple(POLICY_CLASSES), default=None,
+                   help=help_text or (
+                       "the MPC's policy class, its horizon and forecast (default paper; "
+                       f"{names})"))
+
+
+def policy_class_fields(args: argparse.Namespace, system: dict[str, Any],
+                        mpc: dict[str, Any]) -> None:
+    """Put the horizon (``system['N']``) and the forecast (``mpc['forecast']``) of
+    ``--policy-class`` into the fields, refusing a ``--forecast`` or a ``--system`` file's
+    ``N`` that says otherwise (one line)."""
+    name = getattr(args, "policy_class", None)
+    if name is None:
+        return
+    cls = POLICY_CLASSES[name]
+    if mpc.get("forecast", cls.forecast) != cls.forecast:
+        raise UsageError(f"--forecast {mpc['forecast']} with --policy-class {name}: the class "
+                         f"has forecast {cls.forecast}; give one of the two")
+    if system.get("N", cls.N) != cls.N:
+        raise UsageError(f"N={system['N']} of --system with --policy-class {name}: the class "
+                         f"has N={cls.N}; give one of the two")
+    system["N"], mpc["forecast"] = cls.N, cls.forecast
 
 
 def add_price_args(p: argparse.ArgumentParser) -> None:
@@ -190,7 +218,8 @@ def add_force(p: argparse.ArgumentParser) -> None:
 def configs(args: argparse.Namespace, **learning: Any):
     """The three configs of the options: the fields of ``--system`` (if given), then the
     flags ``--p-bar``, ``--noise-var`` and ``--n`` over them, ``--tau``, ``--backend``,
-    ``--forecast``, ``--seed`` and the ``learning`` fields given (None: the default)."""
+    ``--forecast``, ``--policy-class`` (:func:`policy_class_fields`), ``--seed`` and the
+    ``learning`` fields given (None: the default)."""
     system = system_file(args)
     if args.p_bar is not None:
         system["P_bar"] = args.p_bar
@@ -205,6 +234,7 @@ def configs(args: argparse.Namespace, **learning: Any):
         mpc["backend"] = args.backend
     if args.forecast is not None:
         mpc["forecast"] = args.forecast
+    policy_class_fields(args, system, mpc)
     learning = {k: v for k, v in learning.items() if v is not None}
     try:
         with warnings.catch_warnings(record=True) as caught:  # a refusal is the one line

@@ -36,7 +36,7 @@ import numpy as np
 
 from .._util import jsonio
 from .._util.stats import mean_ci
-from ..config import LearningConfig, MPCConfig, SystemConfig
+from ..config import LearningConfig, MPCConfig, SystemConfig, policy_class_of
 from ..sim.record import RECORD_ARRAYS, MonthRecord, Record
 from ..theta import PARTS, Theta
 from . import rundir
@@ -139,6 +139,12 @@ class History:
     def months(self) -> int:
         """Number of months recorded."""
         return len(self.J)
+
+    @property
+    def policy_class(self) -> str | None:
+        """The named policy class of the run's MPC (its horizon ``system.N`` and
+        ``mpc.forecast``, :data:`mpcrl_lite.config.POLICY_CLASSES`), None if no class has them."""
+        return policy_class_of(self.system, self.mpc)
 
     def failed_solve_share(self) -> float:
         """Share of the learning months' MPC solves (hours x days) that failed (0 without

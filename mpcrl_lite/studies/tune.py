@@ -60,7 +60,7 @@ import numpy as np
 
 from .._util.stats import mean_ci
 from .._util.validate import check_instance, check_int, check_real
-from ..config import LearningConfig, MPCConfig, SystemConfig
+from ..config import LearningConfig, MPCConfig, SystemConfig, policy_class_of
 from ..learning import durable, outdir
 from ..mpc.backends.registry import make_solver
 from ..mpc.formulation import MPC
@@ -379,6 +379,7 @@ def tune(
             "system": system.to_dict(),
             "mpc": mpc_config.to_dict(),
             "forecast": mpc_config.forecast,
+            "policy_class": policy_class_of(system, mpc_config),
             "prices": prices.source,
             "days": prices.days,
             "workers": workers,
@@ -418,7 +419,10 @@ def plot_convergence(result: dict[str, Any], path: str | os.PathLike) -> Path:
                     max(top, held["mean"]) + 20.0)
         ax.set_xlabel("candidate evaluations")
         ax.set_ylabel("J (NOK/day)")
-        ax.set_title(f"Best theta of the class (forecast '{result['forecast']}', "
+        named = result.get("policy_class")
+        what = (f"'{named}'" if named else
+                f"forecast '{result['forecast']}', N={result['system']['N']}")
+        ax.set_title(f"Best theta of the class ({what}, "
                      f"{'tied' if result['settings']['tied'] else 'untied'})")
         ax.legend(loc="upper right", fontsize=8)
         path = Path(path)

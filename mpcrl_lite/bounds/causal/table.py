@@ -58,7 +58,7 @@ def stored_bound(
     """The stored J* as a :class:`CausalBound` without value tables, or None if not stored.
 
     Stored means: ``system`` differs from ``SystemConfig()`` in ``P_bar`` and ``noise_var``
-    at most, the table has that pair for ``grid`` and ``action_step``, and every day of
+    at most (and in the MPC's horizon ``N``, which the true system and J* do not have), the table has that pair for ``grid`` and ``action_step``, and every day of
     ``prices`` (default :meth:`Prices.default`) has the prices of one of the stored days.
 
     Returns
@@ -73,7 +73,9 @@ def stored_bound(
     table = _table()
     if isinstance(system.noise_var, tuple):  # the table has one noise variance per row
         return None
-    if table is None or system != SystemConfig(P_bar=system.P_bar, noise_var=system.noise_var):
+    # the MPC's horizon N is no part of the true system: J* does not depend on it
+    if table is None or system != SystemConfig(P_bar=system.P_bar, noise_var=system.noise_var,
+                                               N=system.N):
         return None
     rows = table[(table["P_bar"] == system.P_bar) & (table["noise_var"] == system.noise_var)
                  & (table["grid"] == grid) & (table["action_step"] == action_step)]

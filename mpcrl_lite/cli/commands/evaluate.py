@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 from ..._util import jsonio
+from ...config import POLICY_CLASSES, policy_class_of
 from ...learning import rundir
 from .. import args as _a
 from ..args import UsageError
@@ -37,6 +38,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     _a.add_price_args(p)
     _a.add_forecast(p, "the MPC's price forecast (default: the run's own; until_midnight is an "
                      "extension beyond the paper whose forecast stops at midnight)")
+    _a.add_policy_class(p, "the MPC's policy class, its horizon and forecast (default: the "
+                           "run's own; see learn --help)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
     return p
@@ -58,6 +61,11 @@ def run(args: argparse.Namespace) -> int:
     system, mpc_config = history.system, history.mpc
     if args.forecast is not None:
         mpc_config = mpc_config.replace(forecast=args.forecast)
+    if args.policy_class is not None:
+        fields = {"forecast": args.forecast} if args.forecast is not None else {}
+        _a.policy_class_fields(args, {}, fields)
+        system = system.replace(N=POLICY_CLASSES[args.policy_class].N)
+        mpc_config = mpc_config.replace(**fields)
     prices = _a.month_prices(args, system, args.days)
     days = prices.days if prices is not None else (args.days or history.learning.days_per_month)
     _a.budget(f"--draws {args.draws} --days {days} --n {system.n}", system.n, days,
@@ -73,11 +81,13 @@ def run(args: argparse.Namespace) -> int:
             tuned = load_class_best(args.class_best)
         except ValueError as err:
             raise UsageError(str(err)) from None
-        if tuned["theta_best"].n != system.n or tuned.get("forecast") != mpc_config.forecast:
+        tuned_N = tuned.get("system", {}).get("N", system.N)
+        if tuned["theta_best"].n != system.n or tuned.get("forecast") != mpc_config.forecast \
+                or tuned_N != system.N:
             raise UsageError(f"--class-best {args.class_best}: searched for n="
-                             f"{tuned['theta_best'].n}, forecast {tuned.get('forecast')!r}; "
-                             f"expected the run's class (n={system.n}, forecast "
-                             f"{mpc_config.forecast!r})")
+                             f"{tuned['theta_best'].n}, forecast {tuned.get('forecast')!r}, "
+                             f"N={tuned_N}; expected the run's class (n={system.n}, forecast "
+                             f"{mpc_config.forecast!r}, N={system.N})")
         thetas["class_best"] = tuned["theta_best"]
     out = _a.prepare_out(args, EVALUATE_OUTPUTS)
     if prices is None:
@@ -103,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
         "theta_learned": history.final_theta().to_dict(),
         "system": system.to_dict(),
         "mpc": mpc_config.to_dict(),
+        "policy_class": policy_class_of(system, mpc_config),
     }
     _a.write_json(out / rundir.SUMMARY, summary)
     policies = summary["policies"]

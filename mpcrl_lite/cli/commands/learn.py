@@ -9,7 +9,15 @@ from pathlib import Path
 from typing import Any
 
 from ..._util import jsonio
-from ...config import HESSIANS, LEARNERS, OPTIMIZERS, LearningConfig, MPCConfig
+from ...config import (
+    HESSIANS,
+    LEARNERS,
+    OPTIMIZERS,
+    LearningConfig,
+    MPCConfig,
+    SystemConfig,
+    policy_class_of,
+)
 from ...learning import durable, outdir, rundir
 from .. import args as _a
 from ..args import UsageError
@@ -104,6 +112,19 @@ def _run_learner(out: Path) -> dict[str, Any]:
     return {}
 
 
+def _run_policy_class(out: Path) -> str | None:
+    """The named policy class of the run in ``out`` (:func:`mpcrl_lite.config.policy_class_of`;
+    None if there is none to read or its horizon and forecast name no class)."""
+    for name in ("checkpoint.json", "history.json"):
+        try:
+            configs = json.loads((out / name).read_text())
+            return policy_class_of(SystemConfig.from_dict(configs["system"]),
+                                   MPCConfig.from_dict(configs["mpc"]))
+        except (OSError, ValueError, TypeError, KeyError, AttributeError):
+            continue
+    return None
+
+
 def _run_forecast(out: Path) -> str | None:
     """``mpc.forecast`` of the run in ``out`` (None if there is none to read: the resume then
     reports what is wrong)."""
@@ -141,8 +162,10 @@ def run(args: argparse.Namespace) -> int:
                                         or args.learner == run_learner.get("learner")):
                 chosen[key] = value
     kept = {**kept, **{k: v for k, v in chosen.items() if v is not None}}
-    if args.resume and args.forecast is None:  # and its MPC's forecast
-        args.forecast = _run_forecast(Path(args.out))
+    if args.resume and args.forecast is None and args.policy_class is None:
+        args.forecast = _run_forecast(Path(args.out))  # and its MPC's forecast
+        if args.system is None:  # and its policy class (horizon and forecast)
+            args.policy_class = _run_policy_class(Path(args.out))
     system, mpc_config, learning = _a.configs(
         args, months=args.months, days_per_month=args.days, step_size=args.step_size,
         optimizer=args.optimizer, exploration_std=args.exploration_std,
@@ -209,7 +232,8 @@ def _learn(args, out, system, mpc_config, learning, prices) -> int:
                           progress=not args.quiet, adopt=args.adopt)
     except (ValueError, OSError) as err:  # RunDirError, RunWriteError
         raise UsageError(str(err)) from None
-    summary = {**history.summary(), "forecast": history.mpc.forecast}
+    summary = {**history.summary(), "forecast": history.mpc.forecast,
+               "policy_class": history.policy_class}
     try:
         durable.write_json(out / rundir.SUMMARY, summary)
     except OSError as err:

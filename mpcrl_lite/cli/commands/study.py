@@ -39,6 +39,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="share of the gap nominal -> target a converged seed closes "
                         "(default 0.9)")
     _a.add_forecast(p)
+    _a.add_policy_class(p)
     p.add_argument("--class-best", type=Path, default=None, metavar="DIR",
                    help="a tune output directory of the study's class: split each seed's "
                         "regret into the learner's part and the class's part")
@@ -68,6 +69,11 @@ def run(args: argparse.Namespace) -> int:
         base["learning.eval_draws"] = args.eval_draws
     if args.forecast is not None:
         base["mpc.forecast"] = args.forecast
+    if args.policy_class is not None:  # its horizon and forecast reach every run
+        system = {k[len("system."):]: v for k, v in base.items() if k.startswith("system.")}
+        mpc = {"forecast": args.forecast} if args.forecast is not None else {}
+        _a.policy_class_fields(args, system, mpc)
+        base["system.N"], base["mpc.forecast"] = system["N"], mpc["forecast"]
     if args.hessian is not None and args.learner != "q":
         raise UsageError(f"--hessian {args.hessian} needs --learner q")
     if args.learner is not None:
