@@ -336,6 +336,6 @@ def run_baselines_cli(
                 policies["class_best"]["J_per_day"],
                 result["causal"]["J_star"] if star is None else star)
     result["history"] = None if history_dir is None else str(history_dir)
-    result["policy_class"] = policy_class_of(system, mpc_config)
+    result["policy_class"] = policy_class_of(system, mpc_config or MPCConfig())
     durable.write_json(out / BASELINES_JSON, result)
     return result
