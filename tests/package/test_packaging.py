@@ -69,9 +69,9 @@ def _shipped_files() -> dict[str, Path]:
     """Files of data/ and notebooks/ that the wheel must carry, by their name in the wheel."""
     files = {f"mpcrl_lite/data/{p.name}": p for p in (ROOT / "data").iterdir()
              if p.suffix in (".csv", ".md")}
-    # the stored result of the search for the class's best theta (notebook 08)
-    files |= {f"mpcrl_lite/data/class_best_paper/{p.name}": p
-              for p in (ROOT / "data" / "class_best_paper").glob("*.json")}
+    # the stored results of the search for a class's best theta (notebook 08, --class-best)
+    files |= {f"mpcrl_lite/data/{p.parent.name}/{p.name}": p
+              for p in (ROOT / "data").glob("class_best_*/*.json")}
     files |= {f"mpcrl_lite/notebooks/{p.name}": p
               for p in (ROOT / "notebooks").glob("[0-9][0-9]_*.ipynb")}
     files |= {f"mpcrl_lite/notebooks/{p.name}": p
