@@ -265,6 +265,62 @@ def test_single_solve_equals_batch_row(prices):
                                   solver.sensitivity(batch).grad[1])
 
 
+@pytest.mark.parametrize("method", METHODS)
+def test_results_do_not_depend_on_the_thread_count(prices, method):
+    """Problems spread over threads (any number) give the one-thread call's solutions and
+    sensitivities bit for bit, failed rows too; few problems stay on one thread."""
+    from mpcrl_lite.mpc.backends import kernel as kernel_module
+
+    mpc = cached_mpc(P_bar=1.0)
+    theta = Theta.nominal(mpc.system)
+    rng = np.random.default_rng(11)
+    days = 4 * kernel_module.THREAD_MIN_PROBLEMS + 3
+    soc0 = rng.uniform(0.0, 1.0, (days, mpc.n))
+    buy, sell = windows(prices, 9, mpc.N, days)
+
+    def run(threads, max_iter=None):
+        config = MPCConfig() if max_iter is None else MPCConfig(max_iter=max_iter)
+        solver = KernelSolver(mpc, config, method=method)
+        solver.threads = threads
+        sol = solver.solve_batch(soc0, buy, sell, theta)
+        return solver._threads(days), sol, solver.sensitivity(sol)
+
+    used, ref, ref_sens = run(1)
+    assert used == 1
+    for threads in (2, 3, 7, None):
+        used, sol, sens = run(threads)
+        if threads is not None:
+            assert used == min(threads, 4)
+        for a, b in ((sol.x, ref.x), (sol.lam, ref.lam), (sol.mu, ref.mu), (sol.cost, ref.cost),
+                     (sol.iterations, ref.iterations), (sol.action, ref.action),
+                     (sens.grad, ref_sens.grad), (sens.cond, ref_sens.cond)):
+            np.testing.assert_array_equal(a, b)
+        assert sol.status == ref.status and np.array_equal(sens.ok, ref_sens.ok)
+    _, short, short_sens = run(1, max_iter=3)
+    _, short2, short2_sens = run(3, max_iter=3)
+    assert not short.success.all() and short.status == short2.status
+    np.testing.assert_array_equal(short.x, short2.x)
+    np.testing.assert_array_equal(short_sens.grad, short2_sens.grad)
+    assert KernelSolver(mpc)._threads(2 * kernel_module.THREAD_MIN_PROBLEMS - 1) == 1
+    if method == "stage" and sys.platform.startswith("linux"):
+        # a forked child has no helper threads of its parent's: it starts its own
+        import multiprocessing
+
+        with multiprocessing.get_context("fork").Pool(1) as pool:
+            used, x = pool.apply(_solve_in_child, (soc0, buy, sell))
+        assert used == 1
+        np.testing.assert_array_equal(x, ref.x)
+
+
+def _solve_in_child(soc0, buy, sell):
+    """A child process: the automatic thread count, and the solutions with 2 threads forced."""
+    mpc = cached_mpc(P_bar=1.0)
+    solver = KernelSolver(mpc)
+    used = solver._threads(len(soc0))
+    solver.threads = 2
+    return used, solver.solve_batch(soc0, buy, sell, Theta.nominal(mpc.system)).x
+
+
 def test_shift_and_input_errors():
     mpc = cached_mpc()
     solver = KernelSolver(mpc)

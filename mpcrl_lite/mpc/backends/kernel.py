@@ -27,6 +27,15 @@ Shapes and layouts are those of every back-end (:class:`~mpcrl_lite.mpc.backends
 :class:`~mpcrl_lite.mpc.sensitivity.Sensitivity`); any ``n`` and ``N`` work with the same
 compiled code.
 
+Threads
+-------
+A call on many problems is spread over threads (:attr:`KernelSolver.threads`; by default the
+cores in the main process and one thread in a worker process, whose pool already uses the
+cores; at most one thread per :data:`THREAD_MIN_PROBLEMS` problems, so small calls, and the
+learning months' 30 problems, stay on the calling thread). The threads take blocks of
+:data:`THREAD_BLOCK` problems in turn, each solved alone by the same compiled code without
+the GIL: the results do not depend on the thread count, bit for bit.
+
 Cost (``benchmarks/bench_kernel.py``, closed-loop hours of a 30-day month, solve plus
 sensitivity per problem, measured beside the batch solver in the same run): about 55 us
 for the paper's size (n = 3, N = 12; 8x faster than the batch solver), 2.8 ms for
@@ -40,7 +49,11 @@ from __future__ import annotations
 
 import functools
 import logging
+import multiprocessing
+import os
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -95,7 +108,61 @@ _KKT_CHECK_TOL = 1e-9  # relative KKT residual of the formulation check at const
 # agents from which the 'agent' factorisation forms the adjoint structured (all columns at
 # once, no refinement; ~10x faster at n = 100) instead of column by column with refinement
 _STRUCTURED_MIN_N = 16
+#: problems per thread below which a call stays on one thread (a problem of the paper's size
+#: costs about 50 us to solve and 20 us for its sensitivity; handing work to another thread
+#: some ten): the learning months' calls (30 problems) stay on one thread, larger batches
+#: (evaluations, candidate searches in one process) spread
+THREAD_MIN_PROBLEMS = 32
+#: problems per block that a thread takes at a time (:func:`_run_blocks`)
+THREAD_BLOCK = 4
 
+
+def _auto_threads() -> int:
+    """Threads of a call with ``threads = None``: the cores this process may use
+    (``os.sched_getaffinity``) in the main process; one in a worker process (its pool already
+    spreads the work over the cores)."""
+    if multiprocessing.parent_process() is not None:
+        return 1
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+@functools.cache
+def _helpers(count: int, pid: int) -> ThreadPoolExecutor:
+    """``count`` helper threads (besides the calling one) of :func:`_run_blocks`, created at
+    the first call that needs them in process ``pid`` (a forked child gets its own: the
+    parent's threads do not exist there)."""
+    return ThreadPoolExecutor(count, thread_name_prefix="mpcrl_lite-kernel")
+
+
+def _run_blocks(rows, args: tuple, days: int, threads: int) -> None:
+    """``rows(*args, lo, hi)`` over the ``days`` problems in blocks of
+    :data:`THREAD_BLOCK` problems, taken in turn by ``threads`` threads (this one and
+    helpers; the kernels release the GIL): a thread on a busy core takes fewer blocks. Which
+    thread solves a problem does not change its result."""
+    if threads <= 1:
+        rows(*args, 0, days)
+        return
+    starts = iter(range(0, days, THREAD_BLOCK))
+    lock = threading.Lock()
+
+    def work() -> None:
+        while True:
+            with lock:
+                lo = next(starts, None)
+            if lo is None:
+                return
+            rows(*args, lo, min(lo + THREAD_BLOCK, days))
+
+    pool = _helpers(threads - 1, os.getpid())
+    futures = [pool.submit(work) for _ in range(threads - 1)]
+    try:
+        work()
+    finally:
+        for f in futures:
+            f.result()
 
 def cache_dir() -> str:
     """The folder numba caches the kernels in (see the module docstring)."""
@@ -150,6 +217,14 @@ class KernelSolver(StartSettings, BackendBase):
     """
 
     name = "kernel"
+    #: threads of one :meth:`solve_batch` or :meth:`sensitivity` call: ``None`` (default,
+    #: :func:`_auto_threads`: the cores, one in a worker process) or a number; at most one
+    #: per :data:`THREAD_MIN_PROBLEMS` problems, so that calls on fewer than twice as many
+    #: stay on the calling thread. The calling thread and helper threads take blocks of
+    #: :data:`THREAD_BLOCK` problems in turn (the kernels run without the GIL). Each problem
+    #: is solved alone by the same compiled code: the results do not depend on the thread
+    #: count (bit for bit). Only calls from the main thread split.
+    threads: int | None = None
 
     def __init__(self, mpc: MPC, config: MPCConfig | None = None, method: str = "auto") -> None:
         if method not in ("auto", "stage", "agent"):
@@ -281,6 +356,14 @@ class KernelSolver(StartSettings, BackendBase):
             return False
         return True
 
+    def _threads(self, days: int) -> int:
+        """Threads of a call on ``days`` problems (see :attr:`threads`)."""
+        if days < 2 * THREAD_MIN_PROBLEMS or threading.current_thread() is not \
+                threading.main_thread():
+            return 1
+        threads = _auto_threads() if self.threads is None else int(self.threads)
+        return max(1, min(threads, days // THREAD_MIN_PROBLEMS))
+
     # ------------------------------------------------------------------ solving ----------
     def _solve_parameters(self, P: np.ndarray, x0: np.ndarray | None,
                           opts: np.ndarray | None = None) -> BatchSolution:
@@ -295,8 +378,13 @@ class KernelSolver(StartSettings, BackendBase):
         x, lam, mu = np.empty((days, m.nx)), np.empty((days, m.neq)), np.empty((days, m.nin))
         cost, action = np.empty(days), np.empty((days, self.n))
         iters, status = np.empty(days, np.int64), np.empty(days, np.int64)
-        K.solve_batch(np.ascontiguousarray(P), x0, warm, opts, self._ubar, self._stagew, self.n,
-                      self.N, self._method, x, lam, mu, cost, iters, status, action)
+        args = (np.ascontiguousarray(P), x0, warm, opts, self._ubar, self._stagew, self.n,
+                self.N, self._method, x, lam, mu, cost, iters, status, action)
+        threads = self._threads(days)
+        if threads > 1:
+            _run_blocks(K.solve_rows, args, days, threads)
+        else:
+            K.solve_batch(*args)
         return BatchSolution(
             action=action, x=x, lam=lam, mu=mu, cost=cost,
             success=status == K.CONVERGED,
@@ -333,10 +421,14 @@ class KernelSolver(StartSettings, BackendBase):
         def rows(a: np.ndarray, width: int) -> np.ndarray:
             return np.ascontiguousarray(np.asarray(a, dtype=float).reshape(days, width))
 
-        K.sensitivity_batch(P, rows(solution.x, m.nx), rows(solution.lam, m.neq),
-                            rows(solution.mu, m.nin), success, self._opts(), self._ubar,
-                            self._stagew, self.n, self.N, self._method, self.structured_adjoint,
-                            grad, cond, back, code)
+        args = (P, rows(solution.x, m.nx), rows(solution.lam, m.neq), rows(solution.mu, m.nin),
+                success, self._opts(), self._ubar, self._stagew, self.n, self.N, self._method,
+                self.structured_adjoint, grad, cond, back, code)
+        threads = self._threads(days)
+        if threads > 1:
+            _run_blocks(K.sensitivity_rows, args, days, threads)
+        else:
+            K.sensitivity_batch(*args)
         ok = np.zeros(days, dtype=bool)
         reasons = []
         for d in range(days):

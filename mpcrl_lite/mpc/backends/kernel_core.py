@@ -68,6 +68,14 @@ checks turn into a failure status, never an exception mid-run. Non-finite direct
 detected in :func:`_solve` (``0 * v`` is NaN exactly when ``v`` is not finite), the residual
 in :func:`_residual`.
 
+Threads
+-------
+Each problem of a batch is solved (and its sensitivity formed) alone, with work arrays reused
+from problem to problem but never read before written: :func:`solve_rows` and
+:func:`sensitivity_rows` run a range of the problems without the GIL, so that
+:class:`~mpcrl_lite.mpc.backends.kernel.KernelSolver` can spread a large batch over threads,
+with the results of the one-thread call bit for bit.
+
 Every function is compiled with numba's on-disk cache; see :mod:`mpcrl_lite.mpc.backends.kernel`
 for where the cache lives and how to fill it.
 """
@@ -89,6 +97,8 @@ log = logging.getLogger("mpcrl_lite.mpc.backends.kernel")
 # ZeroDivisionError: no exception can escape mid-run, and divisions in loops vectorise
 _jit = njit_cached(error_model="numpy")
 _inline = njit_cached(error_model="numpy", inline="always")  # helpers of hot loops
+# the entries that run blocks of problems, callable from several threads at once
+_nogil = njit_cached(error_model="numpy", nogil=True)
 
 # status codes of a solve (strings in kernel_solver)
 CONVERGED, MAX_ITER, NON_FINITE, BREAKDOWN = 0, 1, 2, 3
@@ -849,7 +859,16 @@ def solve_batch(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, m
     ``x0`` (days, nx) is read only when ``warm``. Status codes: ``CONVERGED``, ``MAX_ITER``,
     ``NON_FINITE``, ``BREAKDOWN``; ``action_out`` is ``b_0 - s_0`` where converged, else 0.
     """
-    days = P.shape[0]
+    solve_rows(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu_out,
+                cost_out, iters_out, status_out, action_out, 0, P.shape[0])
+
+
+@_nogil
+def solve_rows(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu_out,
+                cost_out, iters_out, status_out, action_out, d_lo, d_hi):
+    """The problems ``d_lo <= d < d_hi`` of :func:`solve_batch`, with work arrays of its own
+    and without the GIL: blocks of problems may run on several threads at once (each problem
+    is solved alone, so the results do not depend on the blocks, bit for bit)."""
     (X, dX, base, r1, L, dL, rp, r2, rsp, Mu, S, IS, D, dS, dMu, Cr, R, F, FG, SI, AW, TI, MC,
      MS, w, wg) = _work(n, N, method)
     soc0, alpha, delta, qb, qs, hsoc, qsoc, e = _data_arrays(n, N)
@@ -860,7 +879,7 @@ def solve_batch(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, m
     m = S.size
     Xf, dXf, Lf, dLf = X.reshape(X.size), dX.reshape(dX.size), L.reshape(L.size), \
         dL.reshape(dL.size)
-    for d in range(days):
+    for d in range(d_lo, d_hi):
         scale, cconst = _problem_data(P[d], n, N, stagew, opts, soc0, alpha, delta, qb, qs,
                                       hsoc, qsoc, e)
         _initial_point(soc0, alpha, delta, hsoc, qsoc, x0[d] if warm else x0[0], warm, opts,
@@ -1237,7 +1256,15 @@ def sensitivity_batch(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, s
     ``structured`` (with the ``AGENT`` factorisation only): all columns at once by
     :func:`_adjoint_structured`; else column by column with iterative refinement.
     """
-    days = P.shape[0]
+    sensitivity_rows(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, structured,
+                      grad, cond, back, code, 0, P.shape[0])
+
+
+@_nogil
+def sensitivity_rows(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, structured,
+                      grad, cond, back, code, d_lo, d_hi):
+    """The problems ``d_lo <= d < d_hi`` of :func:`sensitivity_batch` (as
+    :func:`solve_rows`: own work arrays, no GIL)."""
     (X, zx, rx, r1, L, zl, rl, r2, rsp, Mu, S, IS, D, _ds, _dmu, _cr, _r, F, FG, SI, AW, TI,
      MC, MS, w, wg) = _work(n, N, method)
     cx, cl = np.empty((5, n, N)), np.empty((n, N))
@@ -1249,7 +1276,7 @@ def sensitivity_batch(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, s
     zxf, zlf, cxf, clf, rxf, rlf = (zx.reshape(zx.size), zl.reshape(zl.size),
                                     cx.reshape(cx.size), cl.reshape(cl.size),
                                     rx.reshape(rx.size), rl.reshape(rl.size))
-    for d in range(days):
+    for d in range(d_lo, d_hi):
         G = grad[d]
         G[:, :] = 0.0
         cond[d] = np.inf
@@ -1344,11 +1371,15 @@ def warm_up() -> None:
         for warm in (False, True):
             solve_batch(P, x.copy(), warm, opts, ubar, stagew, n, N, method, x, lam, mu, cost,
                         iters, status, action)
+            solve_rows(P, x.copy(), warm, opts, ubar, stagew, n, N, method, x, lam, mu, cost,
+                       iters, status, action, 0, 1)
         grad, cond, back = np.empty((1, 10 * n, n)), np.empty(1), np.empty(1)
         code = np.empty(1, np.int64)
         for structured in (False, True):
             sensitivity_batch(P, x, lam, mu, np.ones(1, np.bool_), opts, ubar, stagew, n, N,
                               method, structured, grad, cond, back, code)
+            sensitivity_rows(P, x, lam, mu, np.ones(1, np.bool_), opts, ubar, stagew, n, N,
+                             method, structured, grad, cond, back, code, 0, 1)
 
 
 def cache_dir() -> str:
@@ -1358,4 +1389,5 @@ def cache_dir() -> str:
 
 def ensure_compiled() -> None:
     """Load the kernels from the cache or compile them (logging one line if it compiles)."""
-    jit.ensure_compiled((solve_batch, sensitivity_batch), warm_up, "the MPC kernels (about a minute)")
+    jit.ensure_compiled((solve_batch, sensitivity_batch, solve_rows, sensitivity_rows), warm_up,
+                        "the MPC kernels (about a minute)")
