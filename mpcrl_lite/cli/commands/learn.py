@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -69,16 +70,21 @@ def add_parser(sub) -> argparse.ArgumentParser:
     return p
 
 
-def _run_eval_draws(out: Path) -> int | None:
-    """``learning.eval_draws`` of the run in ``out`` (None if there is none to read: the
-    resume then reports what is wrong)."""
+def _from_run(out: Path, read: Callable[[dict[str, Any]], Any], default: Any = None) -> Any:
+    """``read`` of the configs the run in ``out`` recorded (its ``checkpoint.json``, else its
+    ``history.json``); ``default`` if neither can be read (the resume then reports what is
+    wrong)."""
     for name in ("checkpoint.json", "history.json"):
         try:
-            learning = json.loads((out / name).read_text())["learning"]
-            return LearningConfig.from_dict(learning).eval_draws
+            return read(json.loads((out / name).read_text()))
         except (OSError, ValueError, TypeError, KeyError, AttributeError):
             continue
-    return None
+    return default
+
+
+def _run_eval_draws(out: Path) -> int | None:
+    """``learning.eval_draws`` of the run in ``out`` (None if there is none to read)."""
+    return _from_run(out, lambda c: LearningConfig.from_dict(c["learning"]).eval_draws)
 
 
 #: LearningConfig fields ``learn`` has no flag for: a resumed run keeps the run's own.
@@ -89,51 +95,34 @@ _RUN_FIELDS = ("exploration_bounds", "exploration_margin", "ridge", "value_featu
 
 
 def _run_learning(out: Path) -> dict[str, Any]:
-    """The fields of ``_RUN_FIELDS`` of the run in ``out`` ({} if there is none to read: the
-    resume then reports what is wrong)."""
-    for name in ("checkpoint.json", "history.json"):
-        try:
-            learning = LearningConfig.from_dict(json.loads((out / name).read_text())["learning"])
-            return {field: getattr(learning, field) for field in _RUN_FIELDS}
-        except (OSError, ValueError, TypeError, KeyError, AttributeError):
-            continue
-    return {}
+    """The fields of ``_RUN_FIELDS`` of the run in ``out`` ({} if there is none to read)."""
+    def read(configs: dict[str, Any]) -> dict[str, Any]:
+        learning = LearningConfig.from_dict(configs["learning"])
+        return {field: getattr(learning, field) for field in _RUN_FIELDS}
+
+    return _from_run(out, read, {})
 
 
 def _run_learner(out: Path) -> dict[str, Any]:
     """``learner`` and ``hessian`` of the run in ``out`` ({} if there is none to read)."""
-    for name in ("checkpoint.json", "history.json"):
-        try:
-            learning = LearningConfig.from_dict(json.loads((out / name).read_text())["learning"])
-            return {"learner": learning.learner, "hessian": learning.hessian,
-                    "newton_step": learning.newton_step}
-        except (OSError, ValueError, TypeError, KeyError, AttributeError):
-            continue
-    return {}
+    def read(configs: dict[str, Any]) -> dict[str, Any]:
+        learning = LearningConfig.from_dict(configs["learning"])
+        return {"learner": learning.learner, "hessian": learning.hessian,
+                "newton_step": learning.newton_step}
+
+    return _from_run(out, read, {})
 
 
 def _run_policy_class(out: Path) -> str | None:
     """The named policy class of the run in ``out`` (:func:`mpcrl_lite.config.policy_class_of`;
     None if there is none to read or its horizon and forecast name no class)."""
-    for name in ("checkpoint.json", "history.json"):
-        try:
-            configs = json.loads((out / name).read_text())
-            return policy_class_of(SystemConfig.from_dict(configs["system"]),
-                                   MPCConfig.from_dict(configs["mpc"]))
-        except (OSError, ValueError, TypeError, KeyError, AttributeError):
-            continue
-    return None
+    return _from_run(out, lambda c: policy_class_of(SystemConfig.from_dict(c["system"]),
+                                                    MPCConfig.from_dict(c["mpc"])))
 
 
 def _run_forecast(out: Path) -> str | None:
-    """``mpc.forecast`` of the run in ``out`` (None if there is none to read: the resume then
-    reports what is wrong)."""
-    for name in ("checkpoint.json", "history.json"):
-        try:
-            return MPCConfig.from_dict(json.loads((out / name).read_text())["mpc"]).forecast
-        except (OSError, ValueError, TypeError, KeyError, AttributeError):
-            continue
-    return None
+    """``mpc.forecast`` of the run in ``out`` (None if there is none to read)."""
+    return _from_run(out, lambda c: MPCConfig.from_dict(c["mpc"]).forecast)
 
 
 def run(args: argparse.Namespace) -> int:
