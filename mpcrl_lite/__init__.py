@@ -40,10 +40,10 @@ layers)::
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from ._util import gym_registration as _gym_registration
+from ._util.lazy import lazy_names as _lazy_names
 from ._util.version import __version__
 
 # gymnasium.make("mpcrl_lite/Batteries-v0") from now on, Gymnasium itself not imported here
@@ -120,13 +120,7 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str) -> Any:
-    home = _HOMES.get(name)
-    if home is None:
-        raise AttributeError(f"module 'mpcrl_lite' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{home}"), name)
-    globals()[name] = value  # later look-ups skip this function
-    return value
+__getattr__ = _lazy_names(__name__, {name: f"{__name__}.{home}" for name, home in _HOMES.items()})
 
 
 def __dir__() -> list[str]:

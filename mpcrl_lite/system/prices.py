@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from .._util.lazy import lazy_module
+from .._util.lazy import lazy_module, lazy_names
 from .._util.resources import candidate_folders, package_folder
 from .._util.validate import check_instance, check_int, check_real
 from ..config import HOURS_PER_DAY, PRICE_LIMIT, PRICE_UNIT, PriceFileConfig, SystemConfig
@@ -47,15 +47,8 @@ pd = lazy_module("pandas")
 _MOVED = {"LOCAL_TZ": "series", "PriceFileWarning": "series", "daily_matrix": "month",
           "month_matrix": "month", "load_nordpool_csv": "nordpool_elspot",
           "nordpool_areas": "nordpool_elspot", "load_prices": "load"}
-
-
-def __getattr__(name: str):
-    if name in _MOVED:
-        import importlib
-
-        module = importlib.import_module(f"{__package__}.price_files.{_MOVED[name]}")
-        return getattr(module, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_names(__name__, {name: f"{__package__}.price_files.{home}"
+                                    for name, home in _MOVED.items()})
 
 __all__ = ["DATA_DIR", "Prices", "load_default_profile", "sell_prices"]
 

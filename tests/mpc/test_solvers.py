@@ -90,7 +90,8 @@ SOLVER_LAYER = {
                             "mpc.solution", "theta", "_util.lazy",
                             "_util.validate"},  # ModelInputError
     "mpc.backends.registry": {"mpc.backends.batch", "config", "mpc.backends.ipopt",
-                              "mpc.backends.kernel", "mpc.formulation", "mpc.solution", "theta"},
+                              "mpc.backends.kernel", "mpc.formulation", "mpc.solution", "theta",
+                              "_util.lazy"},
 }
 
 

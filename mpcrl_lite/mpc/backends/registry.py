@@ -22,10 +22,11 @@ Failures never raise mid-run and never leak NaN: a problem that did not converge
 
 from __future__ import annotations
 
-import importlib
 import logging
+import sys
 from collections.abc import Callable, Iterator, MutableMapping
 
+from ..._util.lazy import lazy_names
 from ...config import BACKENDS, MPCConfig
 from ...theta import Theta
 from ..formulation import MPC
@@ -48,8 +49,8 @@ CONVEX_ONLY = ("batch", "kernel")
 class _Registry(MutableMapping):
     """Back-end classes by name, each imported at its first lookup: a learner on the default
     compiled back-end never loads the numpy interior point or the IPOPT wrapper (about 30 ms
-    of start-up). An entry is a class or the ``'module:Class'`` path of one under this
-    package; setting and deleting entries work as on a dict."""
+    of start-up). An entry is a class or the name of one in this module (loaded there on
+    first read, :func:`__getattr__`); setting and deleting entries work as on a dict."""
 
     def __init__(self, entries: dict[str, object]) -> None:
         self._entries = dict(entries)
@@ -57,9 +58,7 @@ class _Registry(MutableMapping):
     def __getitem__(self, name: str) -> Callable[[MPC, MPCConfig], SolverBackend]:
         entry = self._entries[name]
         if isinstance(entry, str):
-            module, attr = entry.split(":")
-            entry = getattr(importlib.import_module(f"{__package__}.{module}"), attr)
-            self._entries[name] = entry
+            entry = self._entries[name] = getattr(sys.modules[__name__], entry)
         return entry
 
     def __setitem__(self, name: str, value) -> None:
@@ -78,16 +77,14 @@ class _Registry(MutableMapping):
 #: Back-end constructors ``(mpc, config) -> back-end`` by their name in
 #: :data:`mpcrl_lite.config.BACKENDS` (a mapping that imports a back-end at its first lookup).
 REGISTRY: MutableMapping[str, Callable[[MPC, MPCConfig], SolverBackend]] = _Registry({
-    "ipopt": "ipopt:IpoptSolver",
-    "batch": "batch:BatchSolver",
+    "ipopt": "IpoptSolver",
+    "batch": "BatchSolver",
     "kernel": KernelSolver,
 })
 
 
-def __getattr__(name: str):
-    if name in ("BatchSolver", "IpoptSolver"):
-        return REGISTRY[name[:-len("Solver")].lower()]
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_names(__name__, {"BatchSolver": f"{__package__}.batch",
+                                    "IpoptSolver": f"{__package__}.ipopt"})
 
 
 def _auto_backend(theta: Theta | None, mpc: MPC | None = None) -> str:
