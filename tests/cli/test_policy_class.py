@@ -110,3 +110,21 @@ def test_tune_records_the_class(tmp_path, capsys):
     result = json.loads((out / "tune.json").read_text())
     assert result["policy_class"] == "rest_of_day"
     assert result["system"]["N"] == 24 and result["forecast"] == "until_midnight"
+
+
+def test_evaluate_judges_a_run_in_another_class_and_refuses_a_contradiction(tmp_path, capsys):
+    run = tmp_path / "run"
+    code, err = run_cli(["learn", "--months", "1", "--days", "1", "--out", run, "--no-figures",
+                         "--quiet"], capsys)
+    assert code == 0, err
+    out = tmp_path / "eval"
+    code, err = run_cli(["evaluate", "--history", run, "--days", "1", "--draws", "1", "--out",
+                         out, "--policy-class", "rest_of_day"], capsys)
+    assert code == 0, err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["policy_class"] == "rest_of_day"
+    assert summary["system"]["N"] == 24 and summary["mpc"]["forecast"] == "until_midnight"
+    code, err = run_cli(["evaluate", "--history", run, "--days", "1", "--draws", "1", "--out",
+                         tmp_path / "bad", "--policy-class", "day_end", "--forecast", "paper"],
+                        capsys)
+    assert code == 2 and len(err) == 1 and "--policy-class day_end" in err[0]

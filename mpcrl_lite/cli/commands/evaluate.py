@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from ..._util import jsonio
-from ...config import POLICY_CLASSES, policy_class_of
+from ...config import policy_class_of
 from ...learning import rundir
 from .. import args as _a
 from ..args import UsageError
@@ -61,11 +61,10 @@ def run(args: argparse.Namespace) -> int:
     system, mpc_config = history.system, history.mpc
     if args.forecast is not None:
         mpc_config = mpc_config.replace(forecast=args.forecast)
-    if args.policy_class is not None:
-        fields = {"forecast": args.forecast} if args.forecast is not None else {}
-        _a.policy_class_fields(args, {}, fields)
-        system = system.replace(N=POLICY_CLASSES[args.policy_class].N)
-        mpc_config = mpc_config.replace(**fields)
+    if args.policy_class is not None:  # its horizon and forecast, a contradiction refused
+        system_fields, mpc_fields = {}, {} if args.forecast is None else {"forecast": args.forecast}
+        _a.policy_class_fields(args, system_fields, mpc_fields)
+        system, mpc_config = system.replace(**system_fields), mpc_config.replace(**mpc_fields)
     prices = _a.month_prices(args, system, args.days)
     days = prices.days if prices is not None else (args.days or history.learning.days_per_month)
     _a.budget(f"--draws {args.draws} --days {days} --n {system.n}", system.n, days,
