@@ -52,6 +52,8 @@ OWN = {
                                                 "MIXED_MONTHS"},
     "07_parameter_study": {"P_BARS", "NOISE_VARS", "SEEDS", "WORKERS"},
     "08_q_learning_vs_policy_gradient": {"SEEDS", "THRESHOLD"},
+    "09_why_the_learner_stops_short": {"ROLLOUT_DRAWS", "ROLLOUT_SEED", "EPS_SLOPE", "EPS_WIDE",
+                                       "CRITIC_MONTHS"},
 }
 
 #: (notebook, parameter) -> (the value it uses instead of the package default, why).

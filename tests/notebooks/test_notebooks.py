@@ -45,7 +45,7 @@ README = nbref.NOTEBOOK_DIR / "README.md"
 
 
 def test_the_notebooks_exist():
-    assert [s[:2] for s in STEMS] == ["01", "02", "03", "04", "05", "06", "07", "08"], STEMS
+    assert [s[:2] for s in STEMS] == ["01", "02", "03", "04", "05", "06", "07", "08", "09"], STEMS
 
 
 # -- static structure ----------------------------------------------------------------------
