@@ -302,6 +302,9 @@ def test_results_do_not_depend_on_the_thread_count(prices, method):
     np.testing.assert_array_equal(short.x, short2.x)
     np.testing.assert_array_equal(short_sens.grad, short2_sens.grad)
     assert KernelSolver(mpc)._threads(2 * kernel_module.THREAD_MIN_PROBLEMS - 1) == 1
+    two = KernelSolver(mpc)
+    two.threads = 2
+    assert two._threads(30) == 2  # a learning month's call (30 days) uses both cores
     if method == "stage" and sys.platform.startswith("linux"):
         # a forked child has no helper threads of its parent's: it starts its own
         import multiprocessing
@@ -443,7 +446,7 @@ def test_formulation_mismatch_raises_at_the_first_solve():
 def test_warm_up_is_cheap_once_compiled_and_the_cache_is_where_it_says():
     assert warm_up() < 5.0
     assert Path(cache_dir()).is_dir()
-    assert any(Path(cache_dir()).glob("kernel_core.solve_batch-*.nbi"))
+    assert any(Path(cache_dir()).glob("kernel_core.solve_rows-*.nbi"))
 
 
 def test_compile_notice_is_one_line(caplog):

@@ -31,8 +31,8 @@ Threads
 -------
 A call on many problems is spread over threads (:attr:`KernelSolver.threads`; by default the
 cores in the main process and one thread in a worker process, whose pool already uses the
-cores; at most one thread per :data:`THREAD_MIN_PROBLEMS` problems, so small calls, and the
-learning months' 30 problems, stay on the calling thread). The threads take blocks of
+cores; at most one thread per :data:`THREAD_MIN_PROBLEMS` problems, so small calls stay on the
+calling thread, and the learning months' 30 problems go to two). The threads take blocks of
 :data:`THREAD_BLOCK` problems in turn, each solved alone by the same compiled code without
 the GIL: the results do not depend on the thread count, bit for bit.
 
@@ -108,11 +108,12 @@ _KKT_CHECK_TOL = 1e-9  # relative KKT residual of the formulation check at const
 # agents from which the 'agent' factorisation forms the adjoint structured (all columns at
 # once, no refinement; ~10x faster at n = 100) instead of column by column with refinement
 _STRUCTURED_MIN_N = 16
-#: problems per thread below which a call stays on one thread (a problem of the paper's size
-#: costs about 50 us to solve and 20 us for its sensitivity; handing work to another thread
-#: some ten): the learning months' calls (30 problems) stay on one thread, larger batches
-#: (evaluations, candidate searches in one process) spread
-THREAD_MIN_PROBLEMS = 32
+#: problems per thread below which a call stays on one thread. A problem of the paper's size
+#: costs about 40 us to solve and 13 us for its sensitivity, handing blocks to a second
+#: thread some ten: with 8 the learning months' calls (30 problems) use two threads, which
+#: took the 100-month `learn` command to 0.84x its wall time (6.9 s against 8.5 s, 1.10x the
+#: CPU; benchmarks/README.md), while single problems and small calls stay on one
+THREAD_MIN_PROBLEMS = 8
 #: problems per block that a thread takes at a time (:func:`_run_blocks`)
 THREAD_BLOCK = 4
 
@@ -384,7 +385,7 @@ class KernelSolver(StartSettings, BackendBase):
         if threads > 1:
             _run_blocks(K.solve_rows, args, days, threads)
         else:
-            K.solve_batch(*args)
+            K.solve_rows(*args, 0, days)
         return BatchSolution(
             action=action, x=x, lam=lam, mu=mu, cost=cost,
             success=status == K.CONVERGED,
@@ -428,7 +429,7 @@ class KernelSolver(StartSettings, BackendBase):
         if threads > 1:
             _run_blocks(K.sensitivity_rows, args, days, threads)
         else:
-            K.sensitivity_batch(*args)
+            K.sensitivity_rows(*args, 0, days)
         ok = np.zeros(days, dtype=bool)
         reasons = []
         for d in range(days):

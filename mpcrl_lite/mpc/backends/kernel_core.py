@@ -850,7 +850,6 @@ def _data_arrays(n, N):
             np.empty((n, N)), np.empty((n, N)), np.empty((n, N)))
 
 
-@_jit
 def solve_batch(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu_out,
                 cost_out, iters_out, status_out, action_out):
     """Solve every problem ``P[d]`` (``MPC.parameters`` layout); results in mpc's orderings.
@@ -858,6 +857,8 @@ def solve_batch(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, m
     ``ubar`` (n,) holds each battery's input bound ``U_bar^i``.
     ``x0`` (days, nx) is read only when ``warm``. Status codes: ``CONVERGED``, ``MAX_ITER``,
     ``NON_FINITE``, ``BREAKDOWN``; ``action_out`` is ``b_0 - s_0`` where converged, else 0.
+    A plain call of the compiled :func:`solve_rows` on all rows (one compiled entry less to
+    load from the cache at the first solve).
     """
     solve_rows(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu_out,
                 cost_out, iters_out, status_out, action_out, 0, P.shape[0])
@@ -1245,7 +1246,6 @@ def _adjoint_structured(X, L, Mu, IS, D, alpha, stagew, F, MC, MS, MM, G, Y, Q, 
     return zmax, back, finite == 0.0
 
 
-@_jit
 def sensitivity_batch(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, structured,
                       grad, cond, back, code):
     """``d pi / d theta`` at the solutions ``(x, lam, mu)`` (mpc orderings).
@@ -1254,7 +1254,8 @@ def sensitivity_batch(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, s
     normwise backward error of the adjoint columns) and ``code`` (``SENS_*``). Rows with
     ``solved[d]`` False are skipped. Where the result is not usable ``grad`` is 0.
     ``structured`` (with the ``AGENT`` factorisation only): all columns at once by
-    :func:`_adjoint_structured`; else column by column with iterative refinement.
+    :func:`_adjoint_structured`; else column by column with iterative refinement. A plain
+    call of the compiled :func:`sensitivity_rows` on all rows.
     """
     sensitivity_rows(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, structured,
                       grad, cond, back, code, 0, P.shape[0])
@@ -1369,25 +1370,21 @@ def warm_up() -> None:
         cost, action = np.empty(1), np.empty((1, n))
         iters, status = np.empty(1, np.int64), np.empty(1, np.int64)
         for warm in (False, True):
-            solve_batch(P, x.copy(), warm, opts, ubar, stagew, n, N, method, x, lam, mu, cost,
-                        iters, status, action)
             solve_rows(P, x.copy(), warm, opts, ubar, stagew, n, N, method, x, lam, mu, cost,
                        iters, status, action, 0, 1)
         grad, cond, back = np.empty((1, 10 * n, n)), np.empty(1), np.empty(1)
         code = np.empty(1, np.int64)
         for structured in (False, True):
-            sensitivity_batch(P, x, lam, mu, np.ones(1, np.bool_), opts, ubar, stagew, n, N,
-                              method, structured, grad, cond, back, code)
             sensitivity_rows(P, x, lam, mu, np.ones(1, np.bool_), opts, ubar, stagew, n, N,
                              method, structured, grad, cond, back, code, 0, 1)
 
 
 def cache_dir() -> str:
     """The folder numba caches these kernels in."""
-    return jit.cache_dir(solve_batch)
+    return jit.cache_dir(solve_rows)
 
 
 def ensure_compiled() -> None:
     """Load the kernels from the cache or compile them (logging one line if it compiles)."""
-    jit.ensure_compiled((solve_batch, sensitivity_batch, solve_rows, sensitivity_rows), warm_up,
+    jit.ensure_compiled((solve_rows, sensitivity_rows), warm_up,
                         "the MPC kernels (about a minute)")
