@@ -143,6 +143,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .._util.threads import auto_threads, run_blocks
 from ..config import CoordinationConfig, MPCConfig, SystemConfig
 from ..mpc.backends.ipopt import IpoptSolver
 from ..mpc.backends.kernel import KernelSolver
@@ -325,6 +326,13 @@ class _Rounds:
         self.worst = np.full(D, np.inf)
 
 
+#: days per call of the compiled rounds (:meth:`CoordinatedMPC._compiled_rounds`), taken in
+#: turn by the threads. Fixed, so that the thread count cannot change a result: within a call
+#: a day that stops early delays the next step of the others by one round (as in the
+#: reference's rounds), which matters only to a day that reaches ``max_iter``.
+COORDINATION_BLOCK = 4
+
+
 # -- the coordinated MPC ----------------------------------------------------------------------
 class CoordinatedMPC:
     """The ``n`` local MPCs with their grid limit coordinated by prices (module docstring).
@@ -339,6 +347,12 @@ class CoordinatedMPC:
         docstring).
     coordination : CoordinationConfig, optional
     """
+
+    #: threads of the compiled rounds of one hour: ``None`` (default: the cores in the main
+    #: process, one in a worker process or off the main thread) or a number. The days go to
+    #: the compiled rounds in blocks of :data:`COORDINATION_BLOCK`, whatever the number of
+    #: threads, and each block's days are solved alone: the results do not depend on it.
+    threads: int | None = None
 
     def __init__(
         self,
@@ -474,12 +488,23 @@ class CoordinatedMPC:
         if self._structure is None:
             self._structure = _coord_kernel.structure(*qp.a_pattern, qp.Cb)
         st = self._structure
-        _coord_kernel.coordinate(
-            c(hour.Hd), c(hour.q0), st.values(hour.A), c(hour.e), c(hour.scale),
-            *st.kernel_args(), c(qp.db),
-            self._kb, self._ks, self.system.n, float(self.system.P_bar),
-            float(self.mpc_config.tau), float(cfg.tol), int(cfg.max_iter), p.x, p.lam, p.mu,
-            p.nu, p.tau, state.rounds, state.done, state.stopped, state.worst)
+        n = self.system.n
+        rows = (c(hour.Hd), c(hour.q0), st.values(hour.A), c(hour.e), p.x, p.lam, p.mu)
+        days = (c(hour.scale), p.nu, p.tau, state.rounds, state.done, state.stopped,
+                state.worst)
+        fixed = (*st.kernel_args(), c(qp.db), self._kb, self._ks, n,
+                 float(self.system.P_bar), float(self.mpc_config.tau), float(cfg.tol),
+                 int(cfg.max_iter))
+
+        def block(lo: int, hi: int) -> None:
+            r = [a[lo * n : hi * n] for a in rows]
+            d = [a[lo:hi] for a in days]
+            _coord_kernel.coordinate(*r[:4], d[0], *fixed, *r[4:], *d[1:])
+
+        D = days[0].shape[0]
+        threads = auto_threads() if self.threads is None else int(self.threads)
+        run_blocks(block, (), D, max(1, min(threads, D // COORDINATION_BLOCK)),
+                   COORDINATION_BLOCK, whole=False)
         for d in np.flatnonzero(state.stopped):
             log.info("coordination stopped (day %d): singular or non-finite Newton system", d)
 

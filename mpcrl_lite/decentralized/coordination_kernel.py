@@ -59,6 +59,8 @@ from .._util import jit
 _FAST = {"reassoc", "contract", "nsz", "arcp"}
 _jit = jit.njit_cached(error_model="numpy", fastmath=_FAST)
 _inline = jit.njit_cached(error_model="numpy", fastmath=_FAST, inline="always")
+# the rounds of blocks of days, callable from several threads at once
+_nogil = jit.njit_cached(error_model="numpy", fastmath=_FAST, nogil=True)
 
 _ETA = 0.995  # fraction to the boundary
 _ARMIJO = 1e-4
@@ -487,12 +489,15 @@ def structure(a_rows: np.ndarray, a_cols: np.ndarray, Cb: np.ndarray) -> Structu
                      slots.astype(np.int64))
 
 
-@_jit
+@_nogil
 def coordinate(Hd, q0, aval, e, scale, acol, ablo, abhi, cr, cc, cv, wr, wa, wb, wv, perm, cstart,
                db, kb, ks,
                n, P_bar, tau_t, tol, max_iter, x, lam, mu, nu, tau, rounds, done, stopped,
                worst):
     """Every day's rounds of one hour, in place (the reference: ``CoordinatedMPC._round``).
+
+    Runs without the GIL, so blocks of days (slices of the day-indexed arguments) may run on
+    several threads at once; each call allocates its own work arrays.
 
     Parameters
     ----------

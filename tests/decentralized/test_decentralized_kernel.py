@@ -180,3 +180,28 @@ def test_warm_up_compiles_what_the_coordination_uses():
     soc, buy, sell = case(TIGHT, 2, 18, 8)
     assert CoordinatedMPC(TIGHT, FAST).solve(soc, buy, sell, Theta.nominal(TIGHT)).compiled
     assert len(_coord_kernel.coordinate.signatures) == 1
+
+
+@pytest.mark.parametrize("max_iter", [None, 3])
+def test_compiled_rounds_do_not_depend_on_the_thread_count(max_iter):
+    """The days go to the compiled rounds in blocks of COORDINATION_BLOCK on any number of
+    threads: 1, 2 and 3 threads give the same solutions bit for bit, unconverged days too."""
+    from mpcrl_lite.decentralized import coordination as coordination_module
+
+    days = 3 * coordination_module.COORDINATION_BLOCK + 2
+    soc, buy, sell = case(TIGHT, days, 18, 7)
+    theta = shaped_theta(TIGHT, 7)
+    config = CoordinationConfig() if max_iter is None else CoordinationConfig(max_iter=max_iter)
+
+    def run(threads):
+        mpc = CoordinatedMPC(TIGHT, FAST, config)
+        mpc.threads = threads
+        return mpc.solve(soc, buy, sell, theta)
+
+    ref = run(1)
+    assert ref.compiled and (ref.converged.all() if max_iter is None else not ref.converged.any())
+    for threads in (2, 3):
+        sol = run(threads)
+        for name in ("x", "lam", "mu", "price_buy", "price_sell", "action", "iterations",
+                     "converged"):
+            np.testing.assert_array_equal(getattr(sol, name), getattr(ref, name), err_msg=name)

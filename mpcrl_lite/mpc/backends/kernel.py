@@ -49,15 +49,13 @@ from __future__ import annotations
 
 import functools
 import logging
-import multiprocessing
-import os
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from ..._util.lazy import lazy_module
+from ..._util.threads import auto_threads, run_blocks
 from ..._util.validate import ModelInputError
 from ...config import MPCConfig, SystemConfig
 from ..formulation import MPC
@@ -119,51 +117,15 @@ THREAD_BLOCK = 4
 
 
 def _auto_threads() -> int:
-    """Threads of a call with ``threads = None``: the cores this process may use
-    (``os.sched_getaffinity``) in the main process; one in a worker process (its pool already
-    spreads the work over the cores)."""
-    if multiprocessing.parent_process() is not None:
-        return 1
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
-
-@functools.cache
-def _helpers(count: int, pid: int) -> ThreadPoolExecutor:
-    """``count`` helper threads (besides the calling one) of :func:`_run_blocks`, created at
-    the first call that needs them in process ``pid`` (a forked child gets its own: the
-    parent's threads do not exist there)."""
-    return ThreadPoolExecutor(count, thread_name_prefix="mpcrl_lite-kernel")
+    """Threads of a call with ``threads = None`` (:func:`mpcrl_lite._util.threads.auto_threads`)."""
+    return auto_threads()
 
 
 def _run_blocks(rows, args: tuple, days: int, threads: int) -> None:
-    """``rows(*args, lo, hi)`` over the ``days`` problems in blocks of
-    :data:`THREAD_BLOCK` problems, taken in turn by ``threads`` threads (this one and
-    helpers; the kernels release the GIL): a thread on a busy core takes fewer blocks. Which
-    thread solves a problem does not change its result."""
-    if threads <= 1:
-        rows(*args, 0, days)
-        return
-    starts = iter(range(0, days, THREAD_BLOCK))
-    lock = threading.Lock()
+    """``rows(*args, lo, hi)`` over the ``days`` problems in blocks of :data:`THREAD_BLOCK`
+    problems on ``threads`` threads (:func:`mpcrl_lite._util.threads.run_blocks`)."""
+    run_blocks(rows, args, days, threads, THREAD_BLOCK)
 
-    def work() -> None:
-        while True:
-            with lock:
-                lo = next(starts, None)
-            if lo is None:
-                return
-            rows(*args, lo, min(lo + THREAD_BLOCK, days))
-
-    pool = _helpers(threads - 1, os.getpid())
-    futures = [pool.submit(work) for _ in range(threads - 1)]
-    try:
-        work()
-    finally:
-        for f in futures:
-            f.result()
 
 def cache_dir() -> str:
     """The folder numba caches the kernels in (see the module docstring)."""

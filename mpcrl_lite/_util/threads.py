@@ -1,0 +1,78 @@
+"""Blocks of independent problems spread over threads, for compiled kernels without the GIL.
+
+A compiled kernel that solves problems one at a time (the MPC back-end's
+:func:`~mpcrl_lite.mpc.backends.kernel_core.solve_rows`, the coordination rounds'
+:func:`~mpcrl_lite.decentralized.coordination_kernel.coordinate`) can run on several threads
+at once when it releases the GIL (``nogil=True``). :func:`run_blocks` hands out blocks of
+problems in turn to the calling thread and helpers: a thread on a busy core takes fewer
+blocks, and since each problem is solved alone by the same compiled code, which thread solves
+it does not change its result.
+"""
+
+from __future__ import annotations
+
+import functools
+import multiprocessing
+import os
+import threading
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+
+__all__ = ["auto_threads", "run_blocks"]
+
+
+def auto_threads() -> int:
+    """The threads of a call that leaves the choice to the package: the cores this process
+    may use (``os.sched_getaffinity``) in the main process, one in a worker process (its
+    pool already spreads the work over the cores), and one off the main thread."""
+    if multiprocessing.parent_process() is not None:
+        return 1
+    if threading.current_thread() is not threading.main_thread():
+        return 1
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+@functools.cache
+def _helpers(count: int, pid: int) -> ThreadPoolExecutor:
+    """``count`` helper threads (besides the calling one), created at the first call that
+    needs them in process ``pid`` (a forked child gets its own: the parent's threads do not
+    exist there)."""
+    return ThreadPoolExecutor(count, thread_name_prefix="mpcrl_lite-kernel")
+
+
+def run_blocks(rows: Callable[..., None], args: tuple, size: int, threads: int, block: int,
+               *, whole: bool = True) -> None:
+    """``rows(*args, lo, hi)`` over ``0 <= lo < hi <= size`` in blocks of ``block``, taken in
+    turn by ``threads`` threads (this one and ``threads - 1`` helpers).
+
+    With one thread and ``whole`` the call is ``rows(*args, 0, size)``; with ``whole=False``
+    it goes through the same blocks as on several threads (for a kernel whose problems are
+    only independent within the blocks it is given)."""
+    if threads <= 1:
+        if whole:
+            rows(*args, 0, size)
+        else:
+            for lo in range(0, size, block):
+                rows(*args, lo, min(lo + block, size))
+        return
+    starts = iter(range(0, size, block))
+    lock = threading.Lock()
+
+    def work() -> None:
+        while True:
+            with lock:
+                lo = next(starts, None)
+            if lo is None:
+                return
+            rows(*args, lo, min(lo + block, size))
+
+    pool = _helpers(threads - 1, os.getpid())
+    futures = [pool.submit(work) for _ in range(threads - 1)]
+    try:
+        work()
+    finally:
+        for f in futures:
+            f.result()
