@@ -41,8 +41,9 @@ _shown.maxlist = _shown.maxtuple = _shown.maxdict = _shown.maxset = 6
 
 
 def show(value: Any) -> str:
-    """A short ``repr`` of a bad value for an error message (long ones are cut)."""
-    return _shown.repr(value)
+    """A short ``repr`` of a bad value for an error message (long ones are cut), on one line
+    (an array's ``repr`` may wrap)."""
+    return " ".join(_shown.repr(value).split())
 
 
 def _interval(low: float | None, high: float | None, low_open: bool, high_open: bool) -> str:

@@ -189,7 +189,10 @@ def _refers_to_itself(value: Any, path: tuple[int, ...] = ()) -> bool:
 
 def _read_grid_file(path: Path) -> Any:
     """The YAML document in ``path``; every way to fail is one :class:`GridError` line."""
-    where = f"grid file {path}"
+    name = str(path)
+    # a name with a line break or another unprintable character is quoted, so that the
+    # message stays one line
+    where = f"grid file {name if name.isprintable() else repr(name)}"
     try:
         raw = path.read_bytes()
     except FileNotFoundError:
