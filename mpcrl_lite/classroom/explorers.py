@@ -457,7 +457,8 @@ def value_fit(record: Record, features: str = "paper", days: int | None = None,
     if not 1 <= days <= D:
         raise ValueError(f"days={days!r}: expected an integer in [1, {D}]")
     gamma = record.system.gamma if gamma is None else float(gamma)
-    phi_all = value_baseline_features(record.soc[:, :days], features)   # (H + 1, days, m)
+    phi_all = value_baseline_features(record.soc[:, :days], features,  # (H + 1, days, m)
+                                      record.buy[:, :days])
     phi, phi_next = phi_all[:-1], phi_all[1:]
     done = np.broadcast_to((np.arange(H) == H - 1)[:, None], (H, days))
     cost = record.stage_cost[:, :days]

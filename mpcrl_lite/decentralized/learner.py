@@ -290,7 +290,7 @@ class DecentralizedExperiment(Learner):
             grad, info = lstd_policy_gradient(
                 record.soc[..., mine], record.a[..., mine], record.policy[..., mine],
                 extra.grad_pi[:, :, i, :, None], record.agent_cost[..., i], use,
-                self.learning, self.system.gamma,
+                self.learning, self.system.gamma, record.buy,
             )
             if use.any():  # the metric of the natural gradient and of the trust region
                 self.updaters[i].observe(extra.grad_pi[:, :, i, :, None][use])

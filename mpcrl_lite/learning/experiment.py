@@ -131,7 +131,7 @@ class Experiment(Learner):
         center = exploration_center(record.policy, self.system, self.learning.exploration_margin)
         grad, info = lstd_policy_gradient(
             record.soc, record.a, center, record.grad_pi, record.stage_cost, use,
-            self.learning, self.system.gamma,
+            self.learning, self.system.gamma, record.buy,
         )
         if use.any():
             self.updater.observe(record.grad_pi[use])  # the metric of the natural gradient

@@ -64,6 +64,17 @@ fit of :math:`\nabla_a \tilde L + \gamma\,\alpha\,\partial V^v / \partial\,\math
 hour, while the value of a unit of charge changes through the day (high before the evening
 peak, nothing at the end of the day, which restarts at ``soc0``); the policy gradient
 inherits that error. ``'hour*paper'`` gives every hour its own slope and curvature.
+
+The same argument holds across the days of a month: the value of a unit of charge at hour
+:math:`k` depends on the prices still to come that day, and so does the policy's sensitivity
+:math:`\nabla_\theta\pi`. With a slope that is the same on every day, the critic's gradient
+is :math:`\mathbb E[\nabla_\theta\pi\,(\nabla_a\tilde L + \gamma\alpha\,\overline{\partial V})]`
+instead of :math:`\mathbb E[\nabla_\theta\pi\,(\nabla_a\tilde L + \gamma\alpha\,\partial V_d)]`:
+it misses :math:`\gamma\alpha\,\mathrm{Cov}(\nabla_\theta\pi, \partial V_d)` over the days
+(an omitted variable; the exploration, independent of the day, does not remove it).
+``'hour*paper+price'`` (the default) adds :math:`soc_i \bar p_k` and :math:`soc_i \hat p_k`, the
+soc times the highest and the mean buy price of the hours left in the day
+(:func:`prices_left`), so that the slope follows the day's prices.
 """
 
 from __future__ import annotations
@@ -75,12 +86,16 @@ import numpy as np
 from .._util.validate import check_real
 from ..config import VALUE_FEATURES
 
+#: The value feature sets that read the day's prices (:func:`prices_left`).
+PRICE_FEATURES = ("hour*paper+price",)
+
 __all__ = [
     "LSTDResult",
     "compatible_features",
     "lstd_q",
     "lstd_v",
     "monte_carlo_returns",
+    "prices_left",
     "state_features",
     "value_baseline_features",
     "value_features",
@@ -109,7 +124,8 @@ def value_features(soc: np.ndarray) -> np.ndarray:
 
 
 def state_features(
-    soc: np.ndarray, hour: np.ndarray, kind: str = "paper", hours_per_day: int = 24
+    soc: np.ndarray, hour: np.ndarray, kind: str = "paper", hours_per_day: int = 24,
+    prices_left: np.ndarray | None = None,
 ) -> np.ndarray:
     r"""Features :math:`\Phi(s)` of a set of :data:`mpcrl_lite.config.VALUE_FEATURE_SETS` for states at known hours.
 
@@ -124,14 +140,22 @@ def state_features(
         the paper's constant replaced by the indicator :math:`e_k` of the hour;
         ``'hour'``: :math:`e_k` alone (a table over the hours); ``'hour*paper'``:
         :math:`e_k \otimes [soc_i^2, soc_i, 1]`, the paper's features once per hour (all
-        zero at an hour outside the range).
+        zero at an hour outside the range); ``'hour*paper+price'``: those and
+        :math:`soc_i \bar p_k, soc_i \hat p_k`, the soc times the highest and the mean buy
+        price of the hours left in the state's day (``prices_left``).
     hours_per_day : int, default 24
         Number of hour indicators.
+    prices_left : array, shape broadcastable to ``soc.shape[:-1] + (2,)``, optional
+        For ``'hour*paper+price'`` (required there): the highest and the mean buy price over
+        the hours ``k .. H - 1`` of each state's day (:func:`prices_left`; zero at the end of
+        the day).
 
     Returns
     -------
     array, shape ``(..., 2 n + 1)``, ``(..., 2 n + hours_per_day)``,
-    ``(..., hours_per_day)`` or ``(..., hours_per_day (2 n + 1))`` (hour-major)
+    ``(..., hours_per_day)``, ``(..., hours_per_day (2 n + 1))`` (hour-major) or
+    ``(..., hours_per_day (2 n + 1) + 2 n)`` (the price terms last: the highest price's
+    ``n``, then the mean's)
     """
     if kind not in VALUE_FEATURES:
         raise ValueError(f"kind={kind!r}: expected one of {list(VALUE_FEATURES)}")
@@ -149,13 +173,53 @@ def state_features(
     onehot = (hour[..., None] == np.arange(hours_per_day)).astype(float)
     if kind == "hour":
         return onehot
-    if kind == "hour*paper":
+    if kind in ("hour*paper", "hour*paper+price"):
         product = onehot[..., :, None] * paper[..., None, :]
-        return product.reshape(batch + (hours_per_day * paper.shape[-1],))
+        per_hour = product.reshape(batch + (hours_per_day * paper.shape[-1],))
+        if kind == "hour*paper":
+            return per_hour
+        if prices_left is None:
+            raise ValueError(f"kind={kind!r} needs prices_left (the highest and the mean buy "
+                             "price of the hours left in each state's day)")
+        left = np.asarray(prices_left, dtype=float)
+        try:
+            left = np.broadcast_to(left, batch + (2,))
+        except ValueError:
+            raise ValueError(f"prices_left has shape {left.shape}: expected a shape "
+                             f"broadcastable to {batch + (2,)}") from None
+        soc = np.asarray(soc, dtype=float)
+        return np.concatenate([per_hour, soc * left[..., :1], soc * left[..., 1:]], axis=-1)
     return np.concatenate([paper[..., :-1], onehot], axis=-1)
 
 
-def value_baseline_features(soc: np.ndarray, kind: str = "paper+hour") -> np.ndarray:
+def prices_left(buy: np.ndarray) -> np.ndarray:
+    r"""The highest and the mean buy price over the hours left in the day, at every hour.
+
+    Parameters
+    ----------
+    buy : array, shape ``(H, D)``
+        Buy price of every hour and day of a recorded period.
+
+    Returns
+    -------
+    array, shape ``(H + 1, D, 2)``
+        Row ``k``: :math:`\max_{j \ge k}` and :math:`\frac{1}{H - k}\sum_{j \ge k}` of
+        ``buy[j]``; row ``H`` (the end of the day, never bootstrapped from) is zero.
+    """
+    buy = np.asarray(buy, dtype=float)
+    if buy.ndim != 2 or buy.shape[0] == 0:
+        raise ValueError(f"buy has shape {buy.shape}; expected (H, D) with H >= 1")
+    H, D = buy.shape
+    backwards = buy[::-1]
+    highest = np.maximum.accumulate(backwards, axis=0)[::-1]
+    mean = (np.cumsum(backwards, axis=0) / np.arange(1, H + 1)[:, None])[::-1]
+    out = np.zeros((H + 1, D, 2))
+    out[:H, :, 0], out[:H, :, 1] = highest, mean
+    return out
+
+
+def value_baseline_features(soc: np.ndarray, kind: str = "paper+hour",
+                            buy: np.ndarray | None = None) -> np.ndarray:
     r"""Features :math:`\Phi` of the critic's value baseline :math:`V_v = \Phi^\top v` (paper
     eq. 16) for every state of a period.
 
@@ -167,6 +231,8 @@ def value_baseline_features(soc: np.ndarray, kind: str = "paper+hour") -> np.nda
     kind : str
         A name of :data:`mpcrl_lite.config.VALUE_FEATURE_SETS` (``LearningConfig.value_features``); see
         :func:`state_features`.
+    buy : array, shape ``(H, D)``, optional
+        The period's buy prices; needed by ``'hour*paper+price'`` (:func:`prices_left`).
 
     Returns
     -------
@@ -176,7 +242,16 @@ def value_baseline_features(soc: np.ndarray, kind: str = "paper+hour") -> np.nda
     if soc.ndim != 3:
         raise ValueError(f"soc has shape {soc.shape}; expected (H + 1, D, n)")
     hours = soc.shape[0] - 1
-    return state_features(soc, np.arange(hours + 1)[:, None], kind, hours_per_day=hours)
+    left = None
+    if kind in PRICE_FEATURES:
+        if buy is None:
+            raise ValueError(f"kind={kind!r} needs buy, the period's buy prices (H, D)")
+        if np.shape(buy) != (hours, soc.shape[1]):
+            raise ValueError(f"buy has shape {np.shape(buy)}: expected (H, D) = "
+                             f"{(hours, soc.shape[1])}")
+        left = prices_left(buy)
+    return state_features(soc, np.arange(hours + 1)[:, None], kind, hours_per_day=hours,
+                          prices_left=left)
 
 
 def compatible_features(grad_pi: np.ndarray, a: np.ndarray, pi: np.ndarray) -> np.ndarray:

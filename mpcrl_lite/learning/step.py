@@ -37,6 +37,7 @@ def lstd_policy_gradient(
     use: np.ndarray,
     learning: LearningConfig,
     gamma: float,
+    buy: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """LSTD critic and policy gradient of one month (see the module docstring).
 
@@ -55,6 +56,9 @@ def lstd_policy_gradient(
     learning : LearningConfig
         ``value_features`` and ``ridge``.
     gamma : float
+    buy : (H, D), optional
+        The month's buy prices, read by the value features that use them
+        (``'hour*paper+price'``).
 
     Returns
     -------
@@ -67,7 +71,7 @@ def lstd_policy_gradient(
     if not use.any():
         return np.zeros(grad_pi.shape[2]), {"lstd": "no usable samples"}
     H = cost.shape[0]
-    features = value_baseline_features(soc, learning.value_features)
+    features = value_baseline_features(soc, learning.value_features, buy)
     phi, phi_next = features[:-1], features[1:]
     psi = compatible_features(grad_pi, a, policy)
     done = np.broadcast_to((np.arange(H) == H - 1)[:, None], use.shape)

@@ -31,7 +31,7 @@ def test_defaults_are_the_documented_ones():
     assert mpc.tau == 0.1
     assert learning.optimizer == "adam" and learning.step_size == 0.02
     assert learning.exploration_std == 0.2
-    assert learning.value_features == "hour*paper"
+    assert learning.value_features == "hour*paper+price"
     assert learning.tie_agents and learning.exploration_bounds == "symmetric"
     assert learning.eval_every == 5
     paper = LearningConfig.paper()

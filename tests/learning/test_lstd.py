@@ -28,6 +28,7 @@ from mpcrl_lite.learning.lstd import (
     lstd_q,
     lstd_v,
     monte_carlo_returns,
+    prices_left,
     state_features,
     value_baseline_features,
     value_features,
@@ -75,10 +76,12 @@ def test_feature_sets_are_the_configs_and_agree_with_each_other():
     assert tuple(VALUE_FEATURE_SETS) == VALUE_FEATURES
     soc = np.random.default_rng(1).uniform(size=(6, 2, 3))  # a 5-hour day, 2 days
     hour = np.array([0, 1, 2, 3, 4, 5])[:, None]           # 5 is the end of the day
+    buy = np.random.default_rng(2).uniform(10.0, 90.0, size=(5, 2))
     for kind in VALUE_FEATURE_SETS:
         # states at given hours and the states of a recorded period give the same features
         np.testing.assert_array_equal(
-            state_features(soc, hour, kind, hours_per_day=5), value_baseline_features(soc, kind)
+            state_features(soc, hour, kind, hours_per_day=5, prices_left=prices_left(buy)),
+            value_baseline_features(soc, kind, buy),
         )
     both = state_features(soc, hour, "paper+hour", hours_per_day=5)
     np.testing.assert_array_equal(both[..., :6], value_features(soc)[..., :6])
@@ -96,6 +99,12 @@ def test_feature_sets_are_the_configs_and_agree_with_each_other():
     assert np.all(per_hour[5] == 0)
     with pytest.raises(ValueError, match="kind='cubic'"):
         state_features(soc, hour, "cubic")
+    with pytest.raises(ValueError, match="needs prices_left"):
+        state_features(soc, hour, "hour*paper+price", hours_per_day=5)
+    with pytest.raises(ValueError, match="needs buy"):
+        value_baseline_features(soc, "hour*paper+price")
+    with pytest.raises(ValueError, match=r"buy has shape \(4, 2\)"):
+        value_baseline_features(soc, "hour*paper+price", buy[:4])
     with pytest.raises(ValueError, match=r"hour has shape \(3,\)"):
         state_features(soc, np.arange(3), "hour")
 
@@ -443,3 +452,26 @@ def test_monte_carlo_returns():
     np.testing.assert_allclose(const[:, 0], [(1 - 0.5 ** (10 - k)) / 0.5 for k in range(10)])
     with pytest.raises(ValueError, match="gamma=0"):
         monte_carlo_returns(costs, 0.0)
+
+
+def test_prices_left_and_the_price_features():
+    """The highest and the mean buy price of the hours left, by hand; the price features are
+    the per-hour quadratics followed by soc times each of them, zero at the end of the day."""
+    buy = np.array([[30.0, 10.0], [50.0, 40.0], [20.0, 70.0]])  # 3 hours, 2 days
+    left = prices_left(buy)
+    assert left.shape == (4, 2, 2)
+    np.testing.assert_array_equal(left[:3, 0, 0], [50.0, 50.0, 20.0])
+    np.testing.assert_array_equal(left[:3, 1, 0], [70.0, 70.0, 70.0])
+    np.testing.assert_allclose(left[:3, 0, 1], [100.0 / 3, 35.0, 20.0])
+    np.testing.assert_allclose(left[:3, 1, 1], [40.0, 55.0, 70.0])
+    assert np.all(left[3] == 0)
+    soc = np.random.default_rng(3).uniform(size=(4, 2, 3))
+    features = value_baseline_features(soc, "hour*paper+price", buy)
+    per_hour = value_baseline_features(soc, "hour*paper")
+    assert features.shape == (4, 2, per_hour.shape[-1] + 6)
+    np.testing.assert_array_equal(features[..., : per_hour.shape[-1]], per_hour)
+    np.testing.assert_allclose(features[..., -6:-3], soc * left[..., :1])
+    np.testing.assert_allclose(features[..., -3:], soc * left[..., 1:])
+    assert np.all(features[3] == 0)
+    with pytest.raises(ValueError, match=r"buy has shape \(3,\)"):
+        prices_left(buy[:, 0])

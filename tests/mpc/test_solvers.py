@@ -87,7 +87,7 @@ SOLVER_LAYER = {
                            "theta", "_util.lazy"},
     "mpc.backends.kernel_core": {"_util", "_util.jit"},
     "mpc.backends.kernel": {"mpc.backends.kernel_core", "config", "mpc.formulation",
-                            "mpc.solution", "theta", "_util.lazy",
+                            "mpc.solution", "theta", "_util.lazy", "_util.threads",
                             "_util.validate"},  # ModelInputError
     "mpc.backends.registry": {"mpc.backends.batch", "config", "mpc.backends.ipopt",
                               "mpc.backends.kernel", "mpc.formulation", "mpc.solution", "theta",

@@ -14,6 +14,9 @@ from ...config import (
     HESSIANS,
     LEARNERS,
     OPTIMIZERS,
+    PRICE_FEATURES_MIN_DAYS,
+    VALUE_FEATURE_SETS,
+    VALUE_FEATURES,
     LearningConfig,
     MPCConfig,
     SystemConfig,
@@ -46,6 +49,12 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help=f"DPG update rule (default {_a.LEARNING.optimizer}; sgd is the "
                         "paper's plain gradient step)")
     p.add_argument("--exploration-std", type=_a.finite_float, default=None)
+    p.add_argument("--value-features", choices=VALUE_FEATURES, default=None,
+                   help=f"features of the critic's value baseline (default "
+                        f"{_a.LEARNING.value_features}, hour*paper for months of fewer than "
+                        f"{PRICE_FEATURES_MIN_DAYS} days; "
+                        + "; ".join(f"{k}: {v}" for k, v in VALUE_FEATURE_SETS.items())
+                        + "; a resumed run keeps its own)")
     p.add_argument("--learner", choices=LEARNERS, default=None,
                    help="dpg: the paper's policy gradient (default); q: LSTD Q-learning with the "
                         "MPC as the action-value function (a resumed run keeps its own)")
@@ -151,6 +160,13 @@ def run(args: argparse.Namespace) -> int:
                                         or args.learner == run_learner.get("learner")):
                 chosen[key] = value
     kept = {**kept, **{k: v for k, v in chosen.items() if v is not None}}
+    if args.value_features is not None:
+        if args.resume and kept.get("value_features", args.value_features) != \
+                args.value_features:
+            raise UsageError(f"--value-features {args.value_features} with --resume: the run "
+                             f"in {args.out} learns with {kept['value_features']!r}; expected "
+                             "that or no --value-features")
+        kept["value_features"] = args.value_features
     if args.resume and args.forecast is None and args.policy_class is None:
         args.forecast = _run_forecast(Path(args.out))  # and its MPC's forecast
         if args.system is None:  # and its policy class (horizon and forecast)

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from ...config import HESSIANS, LEARNERS
+from ...config import HESSIANS, LEARNERS, VALUE_FEATURES
 from .. import args as _a
 from ..args import UsageError
 
@@ -54,6 +54,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="dpg (the policy gradient, default) or q (LSTD Q-learning)")
     p.add_argument("--hessian", choices=HESSIANS, default=None,
                    help="--learner q: the curvature of the update (see learn --help)")
+    p.add_argument("--value-features", choices=VALUE_FEATURES, default=None,
+                   help="features of the critic's value baseline of every run (default "
+                        "LearningConfig().value_features; see learn --help)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -80,6 +83,8 @@ def run(args: argparse.Namespace) -> int:
         base["learning.learner"] = args.learner
     if args.hessian is not None:
         base["learning.hessian"] = args.hessian
+    if args.value_features is not None:
+        base["learning.value_features"] = args.value_features
     prices = _a.month_prices(args, _a.SYSTEM, args.days)  # checked before any work
     if prices is not None:
         base.update(_a.price_base(args))
