@@ -247,3 +247,11 @@ def learn_in_child(argv: list[str], env: dict[str, str]) -> int:
     _, status = os.waitpid(pid, 0)
     return status
 
+
+def run_cli(argv: list[str], capsys) -> tuple[int, str, str]:
+    """``python -m mpcrl_lite ARGV`` in this process: its exit status, stdout and stderr."""
+    from mpcrl_lite.cli.main import main
+
+    capsys.readouterr()
+    status = main(argv)
+    return status, *capsys.readouterr()

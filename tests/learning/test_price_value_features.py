@@ -8,6 +8,7 @@ import json
 
 import numpy as np
 import pytest
+from conftest import run_cli
 
 from mpcrl_lite.classroom.explorers import value_fit
 from mpcrl_lite.cli.main import main
@@ -69,22 +70,16 @@ def test_the_classroom_value_fit_takes_the_price_features(record):
     assert np.isfinite(out["rmse"]) and out["r2"] <= 1.0
 
 
-def _cli(argv, capsys):
-    capsys.readouterr()
-    status = main(argv)
-    return status, *capsys.readouterr()
-
-
 def test_learn_takes_the_option_and_a_resumed_run_keeps_it(tmp_path, capsys):
     base = ["learn", "--days", "2", "--n", "2", "--quiet", "--no-figures"]
     out = str(tmp_path / "run")
-    status, stdout, _ = _cli([*base, "--months", "1", "--value-features", PRICE, "--out", out],
+    status, stdout, _ = run_cli([*base, "--months", "1", "--value-features", PRICE, "--out", out],
                              capsys)
     assert status == 0 and json.loads(stdout)["months"] == 1
     assert History.load(out).learning.value_features == PRICE
-    status, _, _ = _cli([*base, "--months", "2", "--out", out, "--resume"], capsys)
+    status, _, _ = run_cli([*base, "--months", "2", "--out", out, "--resume"], capsys)
     assert status == 0 and History.load(out).learning.value_features == PRICE
-    status, _, err = _cli([*base, "--months", "3", "--value-features", "hour*paper",
+    status, _, err = run_cli([*base, "--months", "3", "--value-features", "hour*paper",
                            "--out", out, "--resume"], capsys)
     assert status == 2 and len(err.strip().splitlines()) == 1
     assert "--value-features hour*paper" in err and PRICE in err

@@ -8,8 +8,8 @@ import json
 
 import numpy as np
 import pytest
+from conftest import run_cli
 
-from mpcrl_lite.cli.main import main
 from mpcrl_lite.config import LearningConfig, SystemConfig
 from mpcrl_lite.learning import rundir
 from mpcrl_lite.learning.experiment import Experiment
@@ -198,25 +198,19 @@ def test_resume_equals_the_run_alone_and_a_mismatch_is_refused(q_learning, tmp_p
             out=tmp_path / "whole", resume=True, progress=False)
 
 
-def _cli(argv, capsys):
-    capsys.readouterr()
-    status = main(argv)
-    return status, *capsys.readouterr()
-
-
 def test_learn_command_runs_resumes_and_refuses_mismatches(tmp_path, capsys):
     base = ["learn", "--days", "1", "--n", "2", "--quiet", "--no-figures"]
     out = str(tmp_path / "q")
-    status, stdout, _ = _cli([*base, "--months", "1", "--learner", "q", "--out", out], capsys)
+    status, stdout, _ = run_cli([*base, "--months", "1", "--learner", "q", "--out", out], capsys)
     assert status == 0 and json.loads(stdout)["months"] == 1
-    status, _, _ = _cli([*base, "--months", "2", "--out", out, "--resume"], capsys)
+    status, _, _ = run_cli([*base, "--months", "2", "--out", out, "--resume"], capsys)
     assert status == 0 and History.load(out).learning.learner == "q"
-    status, _, err = _cli([*base, "--months", "3", "--learner", "dpg", "--out", out,
+    status, _, err = run_cli([*base, "--months", "3", "--learner", "dpg", "--out", out,
                            "--resume"], capsys)
     assert status == 2 and len(err.strip().splitlines()) == 1 and "q-learning run" in err
-    status, _, err = _cli([*base, "--months", "1", "--hessian", "full", "--out",
+    status, _, err = run_cli([*base, "--months", "1", "--hessian", "full", "--out",
                            str(tmp_path / "d")], capsys)
     assert status == 2 and "--learner q" in err
-    status, _, err = _cli([*base, "--months", "1", "--learner", "q", "--decentralized",
+    status, _, err = run_cli([*base, "--months", "1", "--learner", "q", "--decentralized",
                            "--out", str(tmp_path / "e")], capsys)
     assert status == 2 and "decentralized" in err
