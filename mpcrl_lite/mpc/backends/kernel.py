@@ -37,9 +37,10 @@ calling thread, and the learning months' 30 problems go to two). The threads tak
 the GIL: the results do not depend on the thread count, bit for bit.
 
 Cost (``benchmarks/bench_kernel.py``, closed-loop hours of a 30-day month, solve plus
-sensitivity per problem, measured beside the batch solver in the same run): about 55 us
-for the paper's size (n = 3, N = 12; 8x faster than the batch solver), 2.8 ms for
-n = 100 (5x) and 0.2 ms for N = 48 (11x). Loading numba and the kernels adds about a second
+sensitivity per problem, measured beside the batch solver in the same run; benchmarks/README.md
+keeps the history): for the paper's size (n = 3, N = 12) about 34 us of wall time and 59 us
+of CPU on two cores (11x faster than the batch solver), about 3 ms for n = 100 and 0.2 ms
+for N = 48. Loading numba and the kernels adds about a second
 to the first use in a process and about 100 MB of resident memory: importing this module
 and building a :class:`KernelSolver` load neither (numba comes with the first solver built,
 the kernels with its first solve or sensitivity).
@@ -112,19 +113,9 @@ _STRUCTURED_MIN_N = 16
 #: took the 100-month `learn` command to 0.84x its wall time (6.9 s against 8.5 s, 1.10x the
 #: CPU; benchmarks/README.md), while single problems and small calls stay on one
 THREAD_MIN_PROBLEMS = 8
-#: problems per block that a thread takes at a time (:func:`_run_blocks`)
+#: problems per block that a thread takes at a time
+#: (:func:`mpcrl_lite._util.threads.run_blocks`)
 THREAD_BLOCK = 4
-
-
-def _auto_threads() -> int:
-    """Threads of a call with ``threads = None`` (:func:`mpcrl_lite._util.threads.auto_threads`)."""
-    return auto_threads()
-
-
-def _run_blocks(rows, args: tuple, days: int, threads: int) -> None:
-    """``rows(*args, lo, hi)`` over the ``days`` problems in blocks of :data:`THREAD_BLOCK`
-    problems on ``threads`` threads (:func:`mpcrl_lite._util.threads.run_blocks`)."""
-    run_blocks(rows, args, days, threads, THREAD_BLOCK)
 
 
 def cache_dir() -> str:
@@ -181,8 +172,9 @@ class KernelSolver(StartSettings, BackendBase):
 
     name = "kernel"
     #: threads of one :meth:`solve_batch` or :meth:`sensitivity` call: ``None`` (default,
-    #: :func:`_auto_threads`: the cores, one in a worker process) or a number; at most one
-    #: per :data:`THREAD_MIN_PROBLEMS` problems, so that calls on fewer than twice as many
+    #: :func:`~mpcrl_lite._util.threads.auto_threads`: the cores, one in a worker process)
+    #: or a number; at most one per :data:`THREAD_MIN_PROBLEMS` problems, so that calls on
+    #: fewer than twice as many
     #: stay on the calling thread. The calling thread and helper threads take blocks of
     #: :data:`THREAD_BLOCK` problems in turn (the kernels run without the GIL). Each problem
     #: is solved alone by the same compiled code: the results do not depend on the thread
@@ -324,7 +316,7 @@ class KernelSolver(StartSettings, BackendBase):
         if days < 2 * THREAD_MIN_PROBLEMS or threading.current_thread() is not \
                 threading.main_thread():
             return 1
-        threads = _auto_threads() if self.threads is None else int(self.threads)
+        threads = auto_threads() if self.threads is None else int(self.threads)
         return max(1, min(threads, days // THREAD_MIN_PROBLEMS))
 
     # ------------------------------------------------------------------ solving ----------
@@ -343,11 +335,7 @@ class KernelSolver(StartSettings, BackendBase):
         iters, status = np.empty(days, np.int64), np.empty(days, np.int64)
         args = (np.ascontiguousarray(P), x0, warm, opts, self._ubar, self._stagew, self.n,
                 self.N, self._method, x, lam, mu, cost, iters, status, action)
-        threads = self._threads(days)
-        if threads > 1:
-            _run_blocks(K.solve_rows, args, days, threads)
-        else:
-            K.solve_rows(*args, 0, days)
+        run_blocks(K.solve_rows, args, days, self._threads(days), THREAD_BLOCK)
         return BatchSolution(
             action=action, x=x, lam=lam, mu=mu, cost=cost,
             success=status == K.CONVERGED,
@@ -387,11 +375,7 @@ class KernelSolver(StartSettings, BackendBase):
         args = (P, rows(solution.x, m.nx), rows(solution.lam, m.neq), rows(solution.mu, m.nin),
                 success, self._opts(), self._ubar, self._stagew, self.n, self.N, self._method,
                 self.structured_adjoint, grad, cond, back, code)
-        threads = self._threads(days)
-        if threads > 1:
-            _run_blocks(K.sensitivity_rows, args, days, threads)
-        else:
-            K.sensitivity_rows(*args, 0, days)
+        run_blocks(K.sensitivity_rows, args, days, self._threads(days), THREAD_BLOCK)
         ok = np.zeros(days, dtype=bool)
         reasons = []
         for d in range(days):

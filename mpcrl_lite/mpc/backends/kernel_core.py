@@ -850,26 +850,18 @@ def _data_arrays(n, N):
             np.empty((n, N)), np.empty((n, N)), np.empty((n, N)))
 
 
-def solve_batch(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu_out,
-                cost_out, iters_out, status_out, action_out):
-    """Solve every problem ``P[d]`` (``MPC.parameters`` layout); results in mpc's orderings.
-
-    ``ubar`` (n,) holds each battery's input bound ``U_bar^i``.
-    ``x0`` (days, nx) is read only when ``warm``. Status codes: ``CONVERGED``, ``MAX_ITER``,
-    ``NON_FINITE``, ``BREAKDOWN``; ``action_out`` is ``b_0 - s_0`` where converged, else 0.
-    A plain call of the compiled :func:`solve_rows` on all rows (one compiled entry less to
-    load from the cache at the first solve).
-    """
-    solve_rows(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu_out,
-                cost_out, iters_out, status_out, action_out, 0, P.shape[0])
-
-
 @_nogil
 def solve_rows(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu_out,
                 cost_out, iters_out, status_out, action_out, d_lo, d_hi):
-    """The problems ``d_lo <= d < d_hi`` of :func:`solve_batch`, with work arrays of its own
-    and without the GIL: blocks of problems may run on several threads at once (each problem
-    is solved alone, so the results do not depend on the blocks, bit for bit)."""
+    """Solve the problems ``P[d]``, ``d_lo <= d < d_hi`` (``MPC.parameters`` layout); results
+    in the mpc's orderings, written into row ``d`` of the outputs.
+
+    ``ubar`` (n,) holds each battery's input bound ``U_bar^i``. ``x0`` (days, nx) is read only
+    when ``warm``. Writes ``x_out``, ``lam_out``, ``mu_out``, ``cost_out``, ``iters_out``,
+    ``status_out`` (``CONVERGED``, ``MAX_ITER``, ``NON_FINITE`` or ``BREAKDOWN``) and
+    ``action_out`` (``b_0 - s_0`` where converged, else 0). With work arrays of its own and
+    without the GIL: blocks of problems may run on several threads at once (each problem is
+    solved alone, so the results do not depend on the blocks, bit for bit)."""
     (X, dX, base, r1, L, dL, rp, r2, rsp, Mu, S, IS, D, dS, dMu, Cr, R, F, FG, SI, AW, TI, MC,
      MS, w, wg) = _work(n, N, method)
     soc0, alpha, delta, qb, qs, hsoc, qsoc, e = _data_arrays(n, N)
@@ -1246,26 +1238,18 @@ def _adjoint_structured(X, L, Mu, IS, D, alpha, stagew, F, MC, MS, MM, G, Y, Q, 
     return zmax, back, finite == 0.0
 
 
-def sensitivity_batch(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, structured,
-                      grad, cond, back, code):
-    """``d pi / d theta`` at the solutions ``(x, lam, mu)`` (mpc orderings).
+@_nogil
+def sensitivity_rows(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, structured,
+                      grad, cond, back, code, d_lo, d_hi):
+    """``d pi / d theta`` at the solutions ``(x, lam, mu)`` (mpc orderings) of the problems
+    ``d_lo <= d < d_hi``.
 
     Writes ``grad`` (days, 10 n, n), ``cond`` (``||K||_max ||Z||_max``), ``back`` (largest
     normwise backward error of the adjoint columns) and ``code`` (``SENS_*``). Rows with
     ``solved[d]`` False are skipped. Where the result is not usable ``grad`` is 0.
     ``structured`` (with the ``AGENT`` factorisation only): all columns at once by
-    :func:`_adjoint_structured`; else column by column with iterative refinement. A plain
-    call of the compiled :func:`sensitivity_rows` on all rows.
-    """
-    sensitivity_rows(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, structured,
-                      grad, cond, back, code, 0, P.shape[0])
-
-
-@_nogil
-def sensitivity_rows(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, structured,
-                      grad, cond, back, code, d_lo, d_hi):
-    """The problems ``d_lo <= d < d_hi`` of :func:`sensitivity_batch` (as
-    :func:`solve_rows`: own work arrays, no GIL)."""
+    :func:`_adjoint_structured`; else column by column with iterative refinement. As
+    :func:`solve_rows`: own work arrays, no GIL."""
     (X, zx, rx, r1, L, zl, rl, r2, rsp, Mu, S, IS, D, _ds, _dmu, _cr, _r, F, FG, SI, AW, TI,
      MC, MS, w, wg) = _work(n, N, method)
     cx, cl = np.empty((5, n, N)), np.empty((n, N))
