@@ -88,6 +88,13 @@ Choices the paper leaves open (each is a field below, with the reason in its com
   fitted across the month's days: below :data:`PRICE_FEATURES_MIN_DAYS` (25) days a month the
   default falls back to ``'hour*paper'``, with which short months learn more reliably.
   ``'paper'`` keeps the paper's 2n + 1.
+* **The gradient's source.** The critic's estimate, not the update, is most of what keeps the
+  learner from its class's best theta: with the exact derivative of the simulated month's cost
+  (``LearningConfig.gradient = 'pathwise'``, an extension that needs the model and the month's
+  noise, never the default) the same Adam update ends about 1 NOK/day from the rest-of-day
+  class's best theta and 9 from the paper class's (with a wider Adam scale of the terminal
+  weights, :data:`PATHWISE_TERMINAL_SCALE`), against 20-41 with the critic
+  (``benchmarks/README.md``). The default stays the paper's model-free critic.
 * **Shared parameters.** The three batteries are identical and play the same part in the
   cost, so the best causal policy treats them alike. Learning one parameter set per battery
   (the paper's 24 parameters) lets the first, noisiest months push a single battery into a
@@ -156,6 +163,7 @@ __all__ = [
     "EUR_NOK_RATE",
     "EXPLORATION_BOUNDS",
     "FORECASTS",
+    "GRADIENTS",
     "HESSIANS",
     "HOURS_PER_DAY",
     "LEARNERS",
@@ -163,12 +171,14 @@ __all__ = [
     "PAPER_EXPLORATION_STD",
     "PAPER_STEP_SIZE",
     "PAPER_TAU",
+    "PATHWISE_TERMINAL_SCALE",
     "PER_BATTERY",
     "POLICY_CLASSES",
     "PRICE_FEATURES_MIN_DAYS",
     "PRICE_LIMIT",
     "PRICE_UNIT",
     "RANGES",
+    "TERMINAL_SCALE",
     "VALUE_FEATURES",
     "VALUE_FEATURE_SETS",
     "ConfigWarning",
@@ -634,6 +644,18 @@ OPTIMIZERS = ("sgd", "adam", "natural")
 #: paper's deterministic policy gradient with the LSTD compatible critic, and ``'q'``, LSTD
 #: Q-learning with the MPC itself as the action-value function (:mod:`mpcrl_lite.learning.qlearning`).
 LEARNERS = ("dpg", "q")
+#: Where the policy gradient of ``learner='dpg'`` comes from (:attr:`LearningConfig.gradient`):
+#: ``'critic'``, the paper's compatible critic fitted by LSTD from explored actions, or
+#: ``'pathwise'``, the exact derivative of the simulated month's cost on its noise
+#: (:mod:`mpcrl_lite.learning.pathwise`; an extension that needs the model).
+GRADIENTS = ("critic", "pathwise")
+#: Adam's typical magnitude of the terminal weights T1, T2, T3 with the critic's gradient
+#: (:attr:`LearningConfig.terminal_scale`; that of ``mpcrl_lite.learning.dpg.DEFAULT_SCALE``).
+TERMINAL_SCALE = 100.0
+#: The same with ``gradient='pathwise'``: chosen on the seeds 4000-4002 of the paper's class
+#: (learner gap 8, 6, 5 NOK/day against 28-31 with 100), judged on 5000-5019
+#: (``benchmarks/README.md``).
+PATHWISE_TERMINAL_SCALE = 3000.0
 #: The curvature of a Q-learning update (:attr:`LearningConfig.hessian`): ``'none'`` (a
 #: first-order step with ``optimizer``), ``'approx'`` (Gauss-Newton) or ``'full'``.
 HESSIANS = ("none", "approx", "full")
@@ -809,6 +831,28 @@ class LearningConfig(_Config):
     (seed 0): 0.1 learns steadily but slowly, 0.3 reaches the DPG's level of J_eval, 1.0
     (the full step) throws theta where the MPC no longer solves; the ``'full'`` Hessian is
     less stable than Gauss-Newton at the same step."""
+    gradient: str = "critic"
+    """``learner='dpg'`` only (:data:`GRADIENTS`): ``'critic'`` (the default, the paper's
+    method) estimates the policy gradient with the compatible critic fitted by LSTD from the
+    month's explored actions. ``'pathwise'`` is an **extension beyond the paper** that needs
+    what a real battery does not have, the model's derivatives and the month's noise: the
+    month is simulated without exploration and the gradient is the exact derivative of its
+    discounted cost in theta, carried through the closed loop
+    (:mod:`mpcrl_lite.learning.pathwise`). Its learner does what the paper's would do with an
+    exact critic, so the two split the learner's part of the regret into the critic's error
+    and what the step rule leaves. It does not support ``optimizer='natural'`` or
+    ``max_policy_change`` (both use the critic's sensitivities of the explored month). A
+    ``to_dict`` with ``'critic'`` leaves the field out (files read as before it existed)."""
+    terminal_scale: float | None = None
+    """Adam's typical magnitude of the terminal cost weights ``T1, T2, T3`` (NOK per unit of
+    soc or soc^2, times ``SystemConfig.price_scale``; :data:`mpcrl_lite.learning.dpg.DEFAULT_SCALE`
+    has the other parts). ``None`` (the default) is resolved when the config is made:
+    :data:`TERMINAL_SCALE` (100) with ``gradient='critic'``, :data:`PATHWISE_TERMINAL_SCALE`
+    (3000) with ``'pathwise'``. With the exact gradient the paper's class learns a terminal
+    weight of about 1000 (its best theta found by search: 477), which Adam's pace at 100 does
+    not reach in 100 months; with the critic's noisy estimate a wider scale gained nothing on
+    fresh seeds (``benchmarks/README.md``). ``replace`` of a config made with ``None``
+    resolves it again; ``to_dict`` leaves out the value 100 (files read as before)."""
 
     def __post_init__(self) -> None:
         set_ = self._set
@@ -854,6 +898,22 @@ class LearningConfig(_Config):
         set_("learner", check_choice("learner", self.learner, LEARNERS))
         set_("hessian", check_choice("hessian", self.hessian, HESSIANS))
         set_("newton_step", check_real("newton_step", self.newton_step, 0.0, low_open=True))
+        set_("gradient", check_choice("gradient", self.gradient, GRADIENTS))
+        auto_scale = self.terminal_scale is None
+        if auto_scale:
+            set_("terminal_scale", PATHWISE_TERMINAL_SCALE if self.gradient == "pathwise"
+                 else TERMINAL_SCALE)
+        object.__setattr__(self, "_auto_terminal_scale", auto_scale)
+        set_("terminal_scale", check_real("terminal_scale", self.terminal_scale, 0.0,
+                                          low_open=True))
+        if self.gradient == "pathwise" and (self.learner != "dpg" or self.optimizer == "natural"
+                                            or self.max_policy_change):
+            raise ValueError(
+                f"gradient='pathwise' with learner={self.learner!r}, optimizer="
+                f"{self.optimizer!r}, max_policy_change={self.max_policy_change!r}: the "
+                "pathwise gradient is the policy gradient's and has no metric of explored "
+                "actions; expected learner 'dpg', optimizer 'adam' or 'sgd' and no "
+                "max_policy_change")
         if self.learner == "q" and (self.optimizer == "natural" or self.max_policy_change):
             raise ValueError(
                 f"learner='q' with optimizer={self.optimizer!r}, max_policy_change="
@@ -867,6 +927,10 @@ class LearningConfig(_Config):
         their defaults) leaves out ``learner``, ``hessian`` and ``newton_step``, so its files
         are those of before the fields."""
         out = super().to_dict()
+        if self.gradient == "critic":
+            out.pop("gradient")
+        if self.terminal_scale == TERMINAL_SCALE:
+            out.pop("terminal_scale")
         if self.learner == "dpg" and self.hessian == "approx" and self.newton_step == 0.3:
             for key in ("learner", "hessian", "newton_step"):
                 out.pop(key)
@@ -886,6 +950,8 @@ class LearningConfig(_Config):
         ``value_features`` was chosen by its days (``None``), the copy chooses again."""
         if getattr(self, "_auto_value_features", False) and "value_features" not in changes:
             changes = {**changes, "value_features": None}
+        if getattr(self, "_auto_terminal_scale", False) and "terminal_scale" not in changes:
+            changes = {**changes, "terminal_scale": None}
         return super().replace(**changes)
 
     @classmethod

@@ -246,6 +246,9 @@ class DecentralizedExperiment(Learner):
         self.system, self.mpc_config, self.learning, self.prices, theta0 = resolve_setup(
             system, mpc_config, learning, prices, theta0
         )
+        if self.learning.gradient != "critic":
+            raise ValueError(f"learning.gradient={self.learning.gradient!r}: the decentralized "
+                             "learners use their critics; expected 'critic'")
         self.coordination = coordination or CoordinationConfig()
         self.thetas = split_theta(theta0)
         self.callbacks = list(callbacks)

@@ -335,6 +335,8 @@ class DPGUpdater:
         """Build from the two configs (``n``, ``alpha`` and ``price_scale`` taken from
         ``system``)."""
         kwargs.setdefault("price_scale", system.price_scale if system.price_scale > 0 else 1.0)
+        terminal = learning.terminal_scale * kwargs["price_scale"]  # as part_scales scales
+        kwargs.setdefault("scale", {"T1": terminal, "T2": terminal, "T3": terminal})
         kwargs.setdefault("groups", system.battery_groups())
         return cls(learning, system.n, system.alpha, **kwargs)
 

@@ -60,6 +60,7 @@ from .dpg import DPGUpdater
 from .history import History
 from .learner import Learner, resolve_setup
 from .outdir import RunDirError
+from .pathwise import pathwise_policy_gradient
 from .step import lstd_policy_gradient
 
 # run_month (mpcrl_lite.sim.closed_loop), value_baseline_features (mpcrl_lite.learning.lstd), run_months
@@ -124,7 +125,19 @@ class Experiment(Learner):
     # -- one learning step ----------------------------------------------------------------
     def learning_step(self, record: MonthRecord) -> tuple[np.ndarray, int, dict[str, Any]]:
         """LSTD + policy gradient from a month (:func:`mpcrl_lite.learning.step.lstd_policy_gradient`
-        on all batteries and the stage cost); returns ``(grad, skipped, info)``."""
+        on all batteries and the stage cost); returns ``(grad, skipped, info)``.
+
+        With ``LearningConfig.gradient = 'pathwise'`` the gradient is instead the exact
+        derivative of the month's discounted cost in theta on the month's noise
+        (:func:`mpcrl_lite.learning.pathwise.pathwise_policy_gradient` at the current theta,
+        the one the month was simulated with); a day with a failed solve is left out
+        (``skipped`` counts its hours)."""
+        if self.learning.gradient == "pathwise":
+            result = pathwise_policy_gradient(self.theta, self.solver, self.prices, self.system,
+                                              record.noise, soc0=record.soc[0])
+            days_left_out = int(np.count_nonzero(~result.ok))
+            return result.grad, days_left_out * record.hours, {
+                "gradient": "pathwise", "days_used": int(result.ok.sum())}
         use = record.sens_ok & record.solver_ok
         skipped = int(use.size - np.count_nonzero(use))
         # the critic's compatible features are a minus the exploration's centre (zero mean)
@@ -179,6 +192,9 @@ class Experiment(Learner):
         """The keyword arguments of :func:`~mpcrl_lite.sim.closed_loop.run_month` besides theta,
         solver, prices, system and rng (runs with equal options can share a loop,
         :mod:`mpcrl_lite.studies.lockstep`)."""
+        if self.learning.gradient == "pathwise":  # the deterministic policy's month; the
+            # gradient carries its own sensitivities (learning_step)
+            return {"exploration_std": 0.0, "sensitivities": False}
         return {"exploration_std": self.learning.exploration_std, "sensitivities": True,
                 "exploration_bounds": self.learning.exploration_bounds,
                 "exploration_margin": self.learning.exploration_margin}

@@ -51,7 +51,7 @@ SUBLAYERS: dict[str, list[set[str]]] = {
     "mpc.backends": [{"batch_linalg", "kernel_core"}, {"batch_kkt"}, {"batch_adjoint"},
                      {"batch", "ipopt", "kernel"}, {"registry"}],
     "sim": [{"record", "exploration_kernel"}, {"exploration"}, {"closed_loop"}, {"candidates", "env"}],
-    "learning": [{"lstd", "update_rules", "durable", "rollout_gradient"}, {"outdir"}, {"rundir"}, {"dpg", "history"},
+    "learning": [{"lstd", "update_rules", "durable", "rollout_gradient", "pathwise"}, {"outdir"}, {"rundir"}, {"dpg", "history"},
                  {"step", "checkpoint", "qlearning"}, {"learner"}, {"experiment"},
                  {"q_experiment"}],
     "decentralized": [{"local_qp", "coordination_kernel"}, {"coordination"}, {"learner"}],

@@ -71,6 +71,8 @@ BAD = [
     (LearningConfig, "learner", "td", "one of 'dpg', 'q'"),
     (LearningConfig, "hessian", "exact", "one of 'none', 'approx', 'full'"),
     (LearningConfig, "newton_step", 0.0, "a value in (0, inf)"),
+    (LearningConfig, "gradient", "exact", "one of 'critic', 'pathwise'"),
+    (LearningConfig, "terminal_scale", -100.0, "a value in (0, inf)"),
     (LearningConfig, "exploration_std", -0.1, "a value in [0, inf)"),
     (LearningConfig, "ridge", -1e-6, "a value in [0, inf)"),
     (LearningConfig, "value_features", "quadratic",

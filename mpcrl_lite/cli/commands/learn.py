@@ -11,6 +11,7 @@ from typing import Any
 
 from ..._util import jsonio
 from ...config import (
+    GRADIENTS,
     HESSIANS,
     LEARNERS,
     OPTIMIZERS,
@@ -55,6 +56,16 @@ def add_parser(sub) -> argparse.ArgumentParser:
                         f"{PRICE_FEATURES_MIN_DAYS} days; "
                         + "; ".join(f"{k}: {v}" for k, v in VALUE_FEATURE_SETS.items())
                         + "; a resumed run keeps its own)")
+    p.add_argument("--gradient", choices=GRADIENTS, default=None,
+                   help="where the policy gradient comes from: critic (default, the paper's "
+                        "LSTD compatible critic from explored actions) or pathwise (extension: "
+                        "the exact derivative of the month's simulated cost on its noise, "
+                        "which needs the model; mpcrl_lite.learning.pathwise); a resumed run "
+                        "keeps its own")
+    p.add_argument("--terminal-scale", type=_a.finite_float, default=None,
+                   help="Adam's typical magnitude of the terminal weights T1, T2 (default 100 "
+                        "with --gradient critic, 3000 with pathwise; a resumed run keeps its "
+                        "own)")
     p.add_argument("--learner", choices=LEARNERS, default=None,
                    help="dpg: the paper's policy gradient (default); q: LSTD Q-learning with the "
                         "MPC as the action-value function (a resumed run keeps its own)")
@@ -97,7 +108,8 @@ def _run_eval_draws(out: Path) -> int | None:
 
 
 #: LearningConfig fields ``learn`` has no flag for: a resumed run keeps the run's own.
-_RUN_FIELDS = ("exploration_bounds", "exploration_margin", "ridge", "value_features",
+_RUN_FIELDS = ("exploration_bounds", "exploration_margin", "ridge", "value_features", "gradient",
+               "terminal_scale",
                "learn_constants", "grad_clip", "tie_agents", "natural_damping", "step_warmup",
                "step_decay", "max_policy_change", "average_months", "keep_well_posed",
                "alpha_min")
@@ -160,13 +172,19 @@ def run(args: argparse.Namespace) -> int:
                                         or args.learner == run_learner.get("learner")):
                 chosen[key] = value
     kept = {**kept, **{k: v for k, v in chosen.items() if v is not None}}
-    if args.value_features is not None:
-        if args.resume and kept.get("value_features", args.value_features) != \
-                args.value_features:
-            raise UsageError(f"--value-features {args.value_features} with --resume: the run "
-                             f"in {args.out} learns with {kept['value_features']!r}; expected "
-                             "that or no --value-features")
-        kept["value_features"] = args.value_features
+    for flag, field in (("--value-features", "value_features"), ("--gradient", "gradient"),
+                        ("--terminal-scale", "terminal_scale")):
+        value = getattr(args, field)
+        if value is None:
+            continue
+        if args.resume and kept.get(field, value) != value:
+            raise UsageError(f"{flag} {value} with --resume: the run in {args.out} learns with "
+                             f"{kept[field]!r}; expected that or no {flag}")
+        kept[field] = value
+    if args.decentralized and args.gradient not in (None, "critic"):
+        raise UsageError(f"--gradient {args.gradient} with --decentralized: the "
+                         "decentralized learners use their critics; expected --gradient "
+                         "critic or no --decentralized")
     if args.resume and args.forecast is None and args.policy_class is None:
         args.forecast = _run_forecast(Path(args.out))  # and its MPC's forecast
         if args.system is None:  # and its policy class (horizon and forecast)

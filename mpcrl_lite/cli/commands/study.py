@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from ...config import HESSIANS, LEARNERS, VALUE_FEATURES
+from ...config import GRADIENTS, HESSIANS, LEARNERS, VALUE_FEATURES
 from .. import args as _a
 from ..args import UsageError
 
@@ -57,6 +57,12 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--value-features", choices=VALUE_FEATURES, default=None,
                    help="features of the critic's value baseline of every run (default "
                         "LearningConfig().value_features; see learn --help)")
+    p.add_argument("--gradient", choices=GRADIENTS, default=None,
+                   help="where every run's policy gradient comes from: critic (default, the "
+                        "paper's) or pathwise (extension; see learn --help)")
+    p.add_argument("--terminal-scale", type=_a.finite_float, default=None,
+                   help="Adam's typical magnitude of the terminal weights of every run "
+                        "(see learn --help)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -85,6 +91,10 @@ def run(args: argparse.Namespace) -> int:
         base["learning.hessian"] = args.hessian
     if args.value_features is not None:
         base["learning.value_features"] = args.value_features
+    if args.gradient is not None:
+        base["learning.gradient"] = args.gradient
+    if args.terminal_scale is not None:
+        base["learning.terminal_scale"] = args.terminal_scale
     prices = _a.month_prices(args, _a.SYSTEM, args.days)  # checked before any work
     if prices is not None:
         base.update(_a.price_base(args))
