@@ -91,10 +91,11 @@ Choices the paper leaves open (each is a field below, with the reason in its com
 * **The gradient's source.** The critic's estimate, not the update, is most of what keeps the
   learner from its class's best theta: with the exact derivative of the simulated month's cost
   (``LearningConfig.gradient = 'pathwise'``, an extension that needs the model and the month's
-  noise, never the default) the same Adam update ends about 1 NOK/day from the rest-of-day
-  class's best theta and 9 from the paper class's (with a wider Adam scale of the terminal
-  weights, :data:`PATHWISE_TERMINAL_SCALE`), against 20-41 with the critic
-  (``benchmarks/README.md``). The default stays the paper's model-free critic.
+  noise, never the default) the same Adam update, with a wider scale of the terminal weights
+  (:data:`PATHWISE_TERMINAL_SCALE`), ends 9 NOK/day above the paper class's best theta found
+  by search and 2 below the rest-of-day class's, against 20-41 above with the critic (medians
+  over 20 fresh seeds, ``benchmarks/README.md``). The default stays the paper's model-free
+  critic.
 * **Shared parameters.** The three batteries are identical and play the same part in the
   cost, so the best causal policy treats them alike. Learning one parameter set per battery
   (the paper's 24 parameters) lets the first, noisiest months push a single battery into a
@@ -653,7 +654,8 @@ GRADIENTS = ("critic", "pathwise")
 #: (:attr:`LearningConfig.terminal_scale`; that of ``mpcrl_lite.learning.dpg.DEFAULT_SCALE``).
 TERMINAL_SCALE = 100.0
 #: The same with ``gradient='pathwise'``: chosen on the seeds 4000-4002 of the paper's class
-#: (learner gap 8, 6, 5 NOK/day against 28-31 with 100), judged on 5000-5019
+#: (learner gap 8, 6, 5 NOK/day against 28-31 with 100), checked on 4000-4009 of the
+#: rest-of-day class (median gap -2.3 against 1.0 with 100) and judged on 5000-5019 in both
 #: (``benchmarks/README.md``).
 PATHWISE_TERMINAL_SCALE = 3000.0
 #: The curvature of a Q-learning update (:attr:`LearningConfig.hessian`): ``'none'`` (a

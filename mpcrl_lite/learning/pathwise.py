@@ -42,7 +42,7 @@ import numpy as np
 
 from .._util.validate import check_real
 from ..config import SystemConfig
-from ..sim.closed_loop import HourStep, MPCPolicy, simulate
+from ..sim.closed_loop import HourStep, MPCPolicy, _TiledPrices, simulate
 from ..system.battery import battery_values
 from ..theta import Theta
 
@@ -187,8 +187,10 @@ def pathwise_policy_gradient(
         :class:`~mpcrl_lite.system.prices.Prices`), one row per day.
     system : SystemConfig
         The true system.
-    noise : array_like, shape ``(H, D, n)``
-        The noise of every hour and day.
+    noise : array_like, shape ``(H, K * D, n)``
+        The noise of every hour and day: ``K >= 1`` draws of the month stacked draw by draw,
+        as :func:`~mpcrl_lite.sim.closed_loop.evaluate_mpc` stacks them (day ``d`` of draw
+        ``k`` is column ``k * D + d``).
     soc0 : float or array_like, optional
         State at the start of the days (default ``system.soc0``).
     soc_step : float, default :data:`DEFAULT_SOC_STEP`
@@ -199,7 +201,15 @@ def pathwise_policy_gradient(
     """
     if not isinstance(theta, Theta) or theta.n != system.n:
         raise ValueError(f"theta={theta!r}: expected a Theta with n={system.n}")
-    H = system.hours_per_day
+    H, n = system.hours_per_day, system.n
+    noise = np.asarray(noise, dtype=float)
+    days = int(prices.days)
+    if noise.ndim != 3 or noise.shape[0] != H or noise.shape[2] != n or noise.shape[1] == 0 \
+            or noise.shape[1] % days:
+        raise ValueError(f"noise has shape {noise.shape}: expected (hours, K * days, n) = "
+                         f"({H}, K * {days}, {n}) for K >= 1 draws of the month")
+    if noise.shape[1] > days:
+        prices = _TiledPrices(prices, noise.shape[1] // days)
     recorder = PathwiseRecorder(solver, system, soc_step)
     simulate(MPCPolicy(solver, theta, prices, sensitivities=True),
              np.asarray(prices.buy)[:, :H], np.asarray(prices.sell)[:, :H], system,

@@ -49,7 +49,12 @@ def load(path: str | Path = RUN_TIMES) -> dict[str, Any]:
 def record(summary: dict[str, Any], source: str, data: dict[str, Any] | None = None
            ) -> dict[str, Any]:
     """``data`` with the seconds of a report's ``summary`` (its ``profile`` and
-    ``notebooks[stem]['seconds']``) replacing the older ones of that profile."""
+    ``notebooks[stem]['seconds']``) replacing the older ones of that profile.
+
+    A report of every notebook the profile has times for becomes the profile's ``source``; a
+    report of some of them keeps it and records ``source`` for those notebooks alone
+    (``notebook_sources``), so that the table never credits the other notebooks' times to
+    it."""
     data = {"profiles": {}} if data is None else json.loads(json.dumps(data))
     profile = summary.get("profile")
     notebooks = summary.get("notebooks")
@@ -58,7 +63,13 @@ def record(summary: dict[str, Any], source: str, data: dict[str, Any] | None = N
                          f"{list(_PROFILE_ORDER)}, notebooks with seconds), got profile "
                          f"{profile!r}")
     entry = data["profiles"].setdefault(profile, {"source": source, "seconds": {}})
-    entry["source"] = source
+    if set(notebooks) >= set(entry["seconds"]):
+        entry["source"] = source
+        entry.pop("notebook_sources", None)
+    else:
+        alone = entry.setdefault("notebook_sources", {})
+        alone.update(dict.fromkeys(notebooks, source))
+        entry["notebook_sources"] = dict(sorted(alone.items()))
     for stem, info in notebooks.items():
         entry["seconds"][stem] = float(info["seconds"])
     entry["seconds"] = dict(sorted(entry["seconds"].items()))
@@ -87,7 +98,10 @@ def table(data: dict[str, Any]) -> str:
     lines.append("")
     sources: dict[str, list[str]] = {}
     for p in profiles:
-        sources.setdefault(data["profiles"][p]["source"], []).append(p)
+        entry = data["profiles"][p]
+        text = "; ".join([entry["source"]] + [
+            f"{stem} alone: {source}" for stem, source in entry.get("notebook_sources", {}).items()])
+        sources.setdefault(text, []).append(p)
     said = "; ".join(f"{', '.join(ps)}: {source}" for source, ps in sources.items())
     lines.append("Wall-clock time of each notebook in the last report of each profile "
                  "(`make report`, `REPORT_PROFILE=classroom|ci`), kernel start included ("

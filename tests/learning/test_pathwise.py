@@ -92,6 +92,21 @@ def test_it_agrees_with_the_replayed_days(setup):
                                atol=1e-3 * np.abs(replayed.grad).max())
 
 
+def test_stacked_draws_are_the_draws_alone(setup):
+    """K draws of the month stacked as evaluate_mpc stacks them: the days of each draw are
+    those of the draw alone, and the gradient is the mean over all."""
+    prices, solver, noise = setup
+    theta = Theta.nominal(SYSTEM)
+    other = sample_noise(np.random.default_rng(6), (H, DAYS, SYSTEM.n), SYSTEM)
+    both = pathwise_policy_gradient(theta, solver, prices, SYSTEM,
+                                    np.concatenate([noise, other], axis=1))
+    alone = [pathwise_policy_gradient(theta, solver, prices, SYSTEM, z) for z in (noise, other)]
+    np.testing.assert_allclose(both.per_day, np.concatenate([a.per_day for a in alone]),
+                               rtol=1e-9, atol=1e-9 * np.abs(both.per_day).max())
+    np.testing.assert_allclose(both.grad, (alone[0].grad + alone[1].grad) / 2, rtol=1e-9,
+                               atol=1e-9 * np.abs(both.grad).max())
+
+
 def test_the_low_level_controllers_clipping_is_differentiated():
     """With large noise and a start near empty the low-level controller clips many hours (the
     applied power is then the bound's, not the MPC's); the derivative still equals finite
@@ -118,6 +133,8 @@ def test_bad_input_is_refused(setup):
         pathwise_policy_gradient(Theta.nominal(SystemConfig(n=2)), solver, prices, SYSTEM, noise)
     with pytest.raises(ValueError, match="noise has shape"):
         pathwise_policy_gradient(theta, solver, prices, SYSTEM, noise[:, :, :2])
+    with pytest.raises(ValueError, match="K >= 1 draws"):
+        pathwise_policy_gradient(theta, solver, prices, SYSTEM, noise[:, :2])
     with pytest.raises(ValueError, match="soc_step"):
         PathwiseRecorder(solver, SYSTEM, soc_step=0.0)
     with pytest.raises(ValueError, match="expected a SystemConfig"):

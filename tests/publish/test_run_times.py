@@ -33,13 +33,20 @@ def test_a_report_summary_replaces_its_profile_only():
                          "ci": {"source": "old ci", "seconds": {"01_a": 3.0}}}}
     summary = {"profile": "full", "notebooks": {"02_b": {"seconds": 31.4, "results": {}}}}
     new = run_times.record(summary, "report of 2026-12-02", data)
-    assert new["profiles"]["full"] == {"source": "report of 2026-12-02",
+    # a report of one notebook: the profile keeps its source, the notebook gets its own
+    assert new["profiles"]["full"] == {"source": "old",
+                                       "notebook_sources": {"02_b": "report of 2026-12-02"},
                                        "seconds": {"01_a": 10.0, "02_b": 31.4}}
+    assert "full: old; 02_b alone: report of 2026-12-02; ci: old ci" in run_times.table(new)
     assert new["profiles"]["ci"] == data["profiles"]["ci"]
     assert data["profiles"]["full"]["seconds"]["02_b"] == 20.0  # a copy
     table = run_times.table(new)
     assert "| `02_b` | 31 s | 3 s |" not in table  # 02_b has no ci time
     assert "| `02_b` | 31 s | – |" in table and "| all | 41 s | 3 s |" in table
+    # a report of every notebook of the profile becomes its source, and the notes go
+    whole = {"profile": "full", "notebooks": {"01_a": {"seconds": 9.0}, "02_b": {"seconds": 30.0}}}
+    assert run_times.record(whole, "report of 2026-12-03", new)["profiles"]["full"] == {
+        "source": "report of 2026-12-03", "seconds": {"01_a": 9.0, "02_b": 30.0}}
     with pytest.raises(ValueError, match="profile"):
         run_times.record({"profile": "fast", "notebooks": {}}, "x", data)
 
