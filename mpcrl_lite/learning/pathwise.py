@@ -42,7 +42,7 @@ import numpy as np
 
 from .._util.validate import check_real
 from ..config import SystemConfig
-from ..sim.closed_loop import HourStep, MPCPolicy, _TiledPrices, simulate
+from ..sim.closed_loop import HourStep, MPCPolicy, simulate, stacked_draws
 from ..system.battery import battery_values
 from ..theta import Theta
 
@@ -201,15 +201,8 @@ def pathwise_policy_gradient(
     """
     if not isinstance(theta, Theta) or theta.n != system.n:
         raise ValueError(f"theta={theta!r}: expected a Theta with n={system.n}")
-    H, n = system.hours_per_day, system.n
-    noise = np.asarray(noise, dtype=float)
-    days = int(prices.days)
-    if noise.ndim != 3 or noise.shape[0] != H or noise.shape[2] != n or noise.shape[1] == 0 \
-            or noise.shape[1] % days:
-        raise ValueError(f"noise has shape {noise.shape}: expected (hours, K * days, n) = "
-                         f"({H}, K * {days}, {n}) for K >= 1 draws of the month")
-    if noise.shape[1] > days:
-        prices = _TiledPrices(prices, noise.shape[1] // days)
+    H = system.hours_per_day
+    noise, prices = stacked_draws(prices, system, noise)
     recorder = PathwiseRecorder(solver, system, soc_step)
     simulate(MPCPolicy(solver, theta, prices, sensitivities=True),
              np.asarray(prices.buy)[:, :H], np.asarray(prices.sell)[:, :H], system,

@@ -45,7 +45,13 @@ import numpy as np
 
 from .._util.validate import check_real
 from ..config import SystemConfig
-from ..sim.closed_loop import MPCPolicy, SensitivityRecorder, _TiledPrices, simulate
+from ..sim.closed_loop import (
+    MPCPolicy,
+    SensitivityRecorder,
+    _TiledPrices,
+    simulate,
+    stacked_draws,
+)
 from ..system.battery import step
 from ..theta import Theta
 
@@ -127,16 +133,8 @@ def rollout_policy_gradient(
         raise ValueError(f"theta={theta!r}: expected a Theta with n={system.n}")
     eps = check_real("eps", eps, 0.0, low_open=True)
     H, n, gamma = system.hours_per_day, system.n, system.gamma
-    noise = np.asarray(noise, dtype=float)
-    days = int(prices.days)
-    if noise.ndim != 3 or noise.shape[0] != H or noise.shape[2] != n or noise.shape[1] == 0 \
-            or noise.shape[1] % days:
-        raise ValueError(f"noise has shape {noise.shape}: expected (hours, K * days, n) = "
-                         f"({H}, K * {days}, {n}) for K >= 1 draws of the month")
-    if not np.isfinite(noise).all():
-        raise ValueError("noise has non-finite entries: expected finite MW")
+    noise, prices = stacked_draws(prices, system, noise)
     D = noise.shape[1]
-    prices = _TiledPrices(prices, D // days)
     sens = SensitivityRecorder()
     record = simulate(MPCPolicy(solver, theta, prices, sensitivities=True),
                       np.asarray(prices.buy)[:, :H], np.asarray(prices.sell)[:, :H], system,

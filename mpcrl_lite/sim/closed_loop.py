@@ -57,7 +57,7 @@ from .exploration import (
 )
 from .record import MonthRecord, Record
 
-__all__ = ["ActionHook", "DayHook", "Decision", "HourHook", "HourStep", "MPCPolicy", "Policy", "RunBlocks", "SensitivityRecorder", "draw_J", "evaluate_mpc", "evaluation_rng", "rollout", "run_month", "simulate"]
+__all__ = ["ActionHook", "DayHook", "Decision", "HourHook", "HourStep", "MPCPolicy", "Policy", "RunBlocks", "SensitivityRecorder", "draw_J", "evaluate_mpc", "evaluation_rng", "rollout", "run_month", "simulate", "stacked_draws"]
 
 #: A plain policy: ``policy(hour, soc)`` with ``soc`` of shape ``(days, n)`` returns the
 #: commanded net powers ``a`` of shape ``(days, n)``.
@@ -514,6 +514,23 @@ def evaluation_rng(seed: int, draw: int) -> np.random.Generator:
     if isinstance(draw, bool) or not isinstance(draw, (int, np.integer)) or draw < 0:
         raise ValueError(f"draw={draw!r}: expected an integer >= 0")
     return np.random.default_rng(seed if draw == 0 else [int(seed), int(draw)])
+
+
+def stacked_draws(prices: Any, system: SystemConfig, noise: Any) -> tuple[np.ndarray, Any]:
+    """``noise`` of ``K >= 1`` draws of the month stacked draw by draw, as
+    :func:`evaluate_mpc` stacks them (``(H, K * days, n)``: day ``d`` of draw ``k`` is column
+    ``k * days + d``), checked, and ``prices`` with its days repeated to match; a
+    ``ValueError`` naming the shape expected otherwise."""
+    H, n = system.hours_per_day, system.n
+    noise = np.asarray(noise, dtype=float)
+    days = int(prices.days)
+    if noise.ndim != 3 or noise.shape[0] != H or noise.shape[2] != n or noise.shape[1] == 0 \
+            or noise.shape[1] % days:
+        raise ValueError(f"noise has shape {noise.shape}: expected (hours, K * days, n) = "
+                         f"({H}, K * {days}, {n}) for K >= 1 draws of the month")
+    if not np.isfinite(noise).all():
+        raise ValueError("noise has non-finite entries: expected finite MW")
+    return noise, _TiledPrices(prices, noise.shape[1] // days)
 
 
 class _TiledPrices:

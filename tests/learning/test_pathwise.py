@@ -126,6 +126,21 @@ def test_the_low_level_controllers_clipping_is_differentiated():
     assert max(errors) < 1e-5, errors
 
 
+def test_batteries_that_differ():
+    """A mixed site (each battery its own alpha, noise and penalty weight, one parameter set
+    each): the derivative still equals finite differences of J."""
+    system = SystemConfig(alpha=(1 / 24, 1 / 12, 1 / 12), noise_var=(1.0, 0.5, 0.5),
+                          p=(800.0, 1000.0, 1200.0))
+    prices = Prices.month(system, DAYS)
+    theta = Theta.nominal(system)
+    solver = make_solver(MPC(system), MPCConfig(), theta)
+    noise = sample_noise(np.random.default_rng(9), (H, DAYS, system.n), system)
+    result = pathwise_policy_gradient(theta, solver, prices, system, noise)
+    assert result.ok.all()
+    errors = _fd_errors(solver, prices, noise, theta, result.grad, system)
+    assert max(errors) < 1e-5, errors
+
+
 def test_bad_input_is_refused(setup):
     prices, solver, noise = setup
     theta = Theta.nominal(SYSTEM)
