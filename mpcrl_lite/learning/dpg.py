@@ -515,6 +515,8 @@ class DPGUpdater:
         moved = start - step
         raw = np.maximum(moved, self._lower) if config.keep_well_posed else moved
         hit = raw != moved
+        if config.reset_momentum_at_bounds and hit.any() and "m" in self.rule.STATE:
+            self.rule.m[hit] = 0.0  # no momentum into a bound the projection holds
         if config.average_months:
             self.raw = raw
             new = current + (raw - current) / min(self.step_count + 1, config.average_months)

@@ -212,6 +212,34 @@ def test_projection_keeps_the_mpc_well_posed():
     assert not updater(step_size=0.01).step(theta, grad).is_convex()
 
 
+def test_momentum_into_a_held_bound_is_reset_on_request():
+    """Adam's first moment of an entry the projection holds at its bound is zeroed with
+    reset_momentum_at_bounds: when the gradient turns, the entry leaves the bound at once,
+    while without the option the momentum keeps it there; the other entries keep theirs."""
+    n_phi1, n_phi2 = Theta.index(N, "phi1"), Theta.index(N, "phi2")
+    theta = theta_from(6).replace(phi1=np.zeros(N), T1=np.ones(N))
+    push = np.zeros(10 * N)
+    push[n_phi1], push[n_phi2] = 1.0, 1.0  # phi1 would go below 0
+    turn = np.zeros(10 * N)
+    turn[n_phi1], turn[n_phi2] = -0.5, 1.0  # now phi1 should grow (a weaker pull)
+    ends = {}
+    for reset in (False, True):
+        up = DPGUpdater.from_configs(LearningConfig(reset_momentum_at_bounds=reset),
+                                     SystemConfig(n=N))
+        held = up.step(theta, push)
+        np.testing.assert_array_equal(held.phi1, 0.0)
+        assert up.last_info["projected"] == ["phi1[1]", "phi1[2]", "phi1[3]"]
+        assert np.all(up.rule.m[n_phi2] != 0.0)
+        assert np.all((up.rule.m[n_phi1] == 0.0) == reset)
+        ends[reset] = up.step(held, turn)
+    np.testing.assert_array_equal(ends[False].phi1, 0.0)  # still pushed into the bound
+    assert np.all(ends[True].phi1 > 0.0)
+    np.testing.assert_array_equal(ends[True].phi2, ends[False].phi2)
+    assert "reset_momentum_at_bounds" not in LearningConfig().to_dict()
+    on = LearningConfig(reset_momentum_at_bounds=True)
+    assert LearningConfig.from_dict(on.to_dict()) == on
+
+
 # -- Adam --------------------------------------------------------------------------------------
 def test_adam_first_and_second_steps_by_hand():
     theta = theta_from(7)
@@ -415,3 +443,19 @@ def test_step_errors():
 def test_from_configs():
     up = DPGUpdater.from_configs(LearningConfig(), SystemConfig(n=2))
     assert up.n == 2 and up.system_alpha == pytest.approx(1 / 12) and up.mask.sum() == 16
+
+
+def test_learn_resets_momentum_at_bounds_on_request(tmp_path, capsys):
+    """learn --reset-momentum-at-bounds records the option, a resume keeps it."""
+    from conftest import run_cli
+
+    from mpcrl_lite.learning.history import History
+
+    out = tmp_path / "run"
+    common = ["learn", "--days", "3", "--out", str(out), "--no-figures", "--eval-draws", "1"]
+    status, _, err = run_cli([*common, "--months", "1", "--reset-momentum-at-bounds"], capsys)
+    assert status == 0, err
+    status, _, err = run_cli([*common, "--months", "2", "--resume"], capsys)
+    assert status == 0, err
+    history = History.load(out)
+    assert history.months == 2 and history.learning.reset_momentum_at_bounds

@@ -66,6 +66,11 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="Adam's typical magnitude of the terminal weights T1, T2 (default 100 "
                         "with --gradient critic, 3000 with pathwise; a resumed run keeps its "
                         "own)")
+    p.add_argument("--reset-momentum-at-bounds", action="store_const", const=True,
+                   default=None,
+                   help="reset the update's momentum of entries the projection holds at a "
+                        "bound (LearningConfig.reset_momentum_at_bounds; a resumed run keeps "
+                        "its own)")
     p.add_argument("--learner", choices=LEARNERS, default=None,
                    help="dpg: the paper's policy gradient (default); q: LSTD Q-learning with the "
                         "MPC as the action-value function (a resumed run keeps its own)")
@@ -109,7 +114,7 @@ def _run_eval_draws(out: Path) -> int | None:
 
 #: LearningConfig fields ``learn`` has no flag for: a resumed run keeps the run's own.
 _RUN_FIELDS = ("exploration_bounds", "exploration_margin", "ridge", "value_features", "gradient",
-               "terminal_scale",
+               "terminal_scale", "reset_momentum_at_bounds",
                "learn_constants", "grad_clip", "tie_agents", "natural_damping", "step_warmup",
                "step_decay", "max_policy_change", "average_months", "keep_well_posed",
                "alpha_min")
@@ -173,7 +178,8 @@ def run(args: argparse.Namespace) -> int:
                 chosen[key] = value
     kept = {**kept, **{k: v for k, v in chosen.items() if v is not None}}
     for flag, field in (("--value-features", "value_features"), ("--gradient", "gradient"),
-                        ("--terminal-scale", "terminal_scale")):
+                        ("--terminal-scale", "terminal_scale"),
+                        ("--reset-momentum-at-bounds", "reset_momentum_at_bounds")):
         value = getattr(args, field)
         if value is None:
             continue

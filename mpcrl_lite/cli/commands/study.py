@@ -63,6 +63,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--terminal-scale", type=_a.finite_float, default=None,
                    help="Adam's typical magnitude of the terminal weights of every run "
                         "(see learn --help)")
+    p.add_argument("--reset-momentum-at-bounds", action="store_true",
+                   help="every run resets the update's momentum of entries the projection "
+                        "holds at a bound (LearningConfig.reset_momentum_at_bounds)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -93,6 +96,8 @@ def run(args: argparse.Namespace) -> int:
         base["learning.value_features"] = args.value_features
     if args.gradient is not None:
         base["learning.gradient"] = args.gradient
+    if args.reset_momentum_at_bounds:
+        base["learning.reset_momentum_at_bounds"] = True
     if args.terminal_scale is not None:
         base["learning.terminal_scale"] = args.terminal_scale
     prices = _a.month_prices(args, _a.SYSTEM, args.days)  # checked before any work
