@@ -112,7 +112,8 @@ def _run_eval_draws(out: Path) -> int | None:
     return _from_run(out, lambda c: LearningConfig.from_dict(c["learning"]).eval_draws)
 
 
-#: LearningConfig fields ``learn`` has no flag for: a resumed run keeps the run's own.
+#: LearningConfig fields a resumed run keeps (those ``learn`` has a flag for are checked
+#: against it in :func:`run`: another value with ``--resume`` is refused).
 _RUN_FIELDS = ("exploration_bounds", "exploration_margin", "ridge", "value_features", "gradient",
                "terminal_scale", "reset_momentum_at_bounds",
                "learn_constants", "grad_clip", "tie_agents", "natural_damping", "step_warmup",
