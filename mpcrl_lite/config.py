@@ -93,9 +93,9 @@ Choices the paper leaves open (each is a field below, with the reason in its com
   (``LearningConfig.gradient = 'pathwise'``, an extension that needs the model and the month's
   noise, never the default) the same Adam update, with a wider scale of the terminal weights
   (:data:`PATHWISE_TERMINAL_SCALE`), ends 9 NOK/day above the paper class's best theta found
-  by search and 2 below the rest-of-day class's, against 20-41 above with the critic (medians
-  over 20 fresh seeds, ``benchmarks/README.md``). The default stays the paper's model-free
-  critic.
+  by search and 2 below the rest-of-day class's (medians over 20 fresh seeds), against 41 and
+  27 above with the critic (20 and 10 fresh seeds; ``benchmarks/README.md``). The default
+  stays the paper's model-free critic.
 * **Shared parameters.** The three batteries are identical and play the same part in the
   cost, so the best causal policy treats them alike. Learning one parameter set per battery
   (the paper's 24 parameters) lets the first, noisiest months push a single battery into a

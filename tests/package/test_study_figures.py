@@ -1,4 +1,4 @@
-"""The study figures README.md quotes are those of the stored study summaries
+"""The study figures README.md and notebook 09 quote are those of the stored study summaries
 (benchmarks/studies/*/study.json): median and IQR of the final J_eval, worst seed, seeds
 converged, median regret and the learner's part of it, each rounded as quoted."""
 
@@ -11,6 +11,10 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 README = (ROOT / "README.md").read_text()
+NOTEBOOK_09 = " ".join(
+    "".join(cell["source"]) for cell in json.loads(
+        (ROOT / "notebooks" / "09_why_the_learner_stops_short.ipynb").read_text())["cells"]
+    if cell["cell_type"] == "markdown").replace("\n", " ")
 STUDIES = ROOT / "benchmarks" / "studies"
 #: stored study -> the words that pick its row of README's results table
 ROWS = {"paper_pathwise_5000": "the paper's MPC, pathwise gradient",
@@ -41,3 +45,24 @@ def test_readme_quotes_the_stored_study(name):
     share = max(study["late_regression_share"].values()) \
         if isinstance(study["late_regression_share"], dict) else study["late_regression_share"]
     assert cells[7] == f"{100 * share:.2f} % of the gap"
+
+
+def _gap(name: str) -> float:
+    return json.loads((STUDIES / name / "study.json").read_text())["class_split"][
+        "learner_gap_median"]
+
+
+def test_the_learner_gaps_quoted_in_prose_are_the_stored_ones():
+    """The sentences that compare the critic's learner with the pathwise one."""
+    paper, rest = _gap("paper_pathwise_5000"), _gap("rest_of_day_pathwise_5000")
+    critic_paper, critic_rest = _gap("paper_critic_5000"), _gap("rest_of_day_critic_4000")
+    text = " ".join(README.split())
+    assert f"the rest-of-day learner ends {-rest:.1f} NOK/day *below*" in text
+    assert f"(the critic: {critic_rest:.1f} above, on the seeds 4000-4009)" in text
+    assert f"paper class's learner {paper:.1f} above its class's best" in text
+    assert f"(the critic on the same seeds: {critic_paper:.1f})" in text
+    notebook = " ".join(NOTEBOOK_09.split())
+    assert f"a median {paper:.0f} NOK/day above the paper class's" in notebook
+    assert f"and {-rest:.0f} NOK/day *below* the rest-of-day class's" in notebook
+    assert f"stays {critic_paper:.0f} above (paper, the same seeds) and {critic_rest:.0f} " \
+           "above (rest of the day, seeds 4000-4009)" in notebook
