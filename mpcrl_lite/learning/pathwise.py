@@ -139,9 +139,10 @@ class PathwiseRecorder:
         """:math:`\\partial\\pi/\\partial soc` (D, n, n) at the hour's states by central
         differences (one solver call of ``2 n D`` rows, warm-started at the solution), and
         the rows whose every solve succeeded."""
-        P = np.asarray(sol.p, dtype=float)
-        D, N = P.shape[0], self.solver.mpc.N
-        soc, buy, sell, theta = P[:, :n], P[:, n:n + N], P[:, n + N:n + 2 * N], P[:, n + 2 * N:]
+        P, mpc = np.asarray(sol.p, dtype=float), self.solver.mpc
+        D, N = P.shape[0], mpc.N
+        soc, buy, sell = P[:, :n], P[:, n:n + N], P[:, n + N:n + 2 * N]
+        theta = P[:, mpc.theta_slice]
         h = self.soc_step
         shifts = np.zeros((2 * n, n))
         for i in range(n):
