@@ -86,7 +86,8 @@ SOLVER_LAYER = {
     "mpc.backends.ipopt": {"config", "mpc.formulation", "mpc.sensitivity", "mpc.solution",
                            "theta", "_util.lazy"},
     "mpc.backends.kernel_core": {"_util", "_util.jit"},
-    "mpc.backends.kernel": {"mpc.backends.kernel_core", "config", "mpc.formulation",
+    "mpc.backends.kernel_sizes": set(),  # imports kernel_core (or its copy) by name
+    "mpc.backends.kernel": {"mpc.backends.kernel_core", "mpc.backends.kernel_sizes", "config", "mpc.formulation",
                             "mpc.solution", "theta", "_util.lazy", "_util.threads",
                             "_util.validate"},  # ModelInputError
     "mpc.backends.registry": {"mpc.backends.batch", "config", "mpc.backends.ipopt",

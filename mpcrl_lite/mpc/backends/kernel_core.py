@@ -129,6 +129,23 @@ _BACKWARD_ERROR_GOOD = 1e-14
 
 
 # ----------------------------------------------------------------------------- helpers ----
+#: the problem's sizes ``n, N`` fixed at compile time, or 0 where they are read from the arrays
+#: (this module). :func:`mpcrl_lite.mpc.backends.kernel.kernels` imports a copy of this module
+#: with both set for the sizes it serves most (the paper's); the compiler then knows every
+#: loop bound and unrolls and vectorises the small loops. The copy does the same operations
+#: in the same order: its results are those of this module, bit for bit.
+FIXED_N = 0
+FIXED_HORIZON = 0
+
+
+@_inline
+def _dims(n, N):
+    """``n, N`` as given, or the compile-time sizes of a specialised copy."""
+    if FIXED_N > 0:
+        return FIXED_N, FIXED_HORIZON
+    return n, N
+
+
 def choose_method(n: int, N: int) -> int:
     """``STAGE`` when its block Cholesky (``~2 N n^3`` flops per step) is cheaper than the
     agent method's Schur complement (``~4 n N^2 + 8 N^3 / 3``)."""
@@ -201,7 +218,7 @@ def _problem_data(p, n, N, stagew, opts, soc0, alpha, delta, qb, qs, hsoc, qsoc,
 @_jit
 def _slacks(X, U, P, hi, lo, S):
     """``S = d - C x`` (flat); ``U`` (n,) holds each battery's input bound."""
-    n, N = X.shape[1], X.shape[2]
+    n, N = _dims(X.shape[1], X.shape[2])
     SA, SG = _ag(S, n, N), _gr(S, n, N)
     for i in range(n):
         for j in range(N):
@@ -231,7 +248,7 @@ def _residual(X, L, Mu, S, alpha, qb, qs, hsoc, qsoc, stagew, e, opts, U, scale,
     ``max(max(|r_d|, |mu S - tau|) / scale, |r_p|)`` of the batch solver (inf if anything
     is not finite) and ``sum(mu S)``; ``U`` (n,) the input bounds. (Flat indices: group ``g``, agent ``i``, stage ``j``
     at ``g n N + i N + j``, grid row ``v`` at ``8 n N + v N + j``.)"""
-    n, N = L.shape
+    n, N = _dims(L.shape[0], L.shape[1])
     nN = n * N
     go = 8 * nN
     P, hi, lo, tau = opts[O_P], opts[O_HI], opts[O_LO], opts[O_TAU]
@@ -342,7 +359,7 @@ def _cholesky_solve(Lc, x, m):
 def _factor(S, Mu, IS, D, alpha, hsoc, method, F, FG, SI, AW, TI, MC, MS, tmp):
     """Factorise the reduced KKT matrix at ``S, mu`` (``IS = 1 / S``, ``D = mu / S`` are
     filled too); False on breakdown."""
-    n, N = alpha.shape[0], FG.shape[1]
+    n, N = _dims(alpha.shape[0], FG.shape[1])
     nN = n * N
     go = 8 * nN
     for k in range(S.size):
@@ -397,7 +414,7 @@ def _factor_stage(alpha, F, FG, SI, A, dv):
     ``SI[j] = Sigma_j^{-1}`` (symmetric, both triangles) from ``Sigma_j = T_jj - diag(V_{j-1})
     Sigma_{j-1}^{-1} diag(V_{j-1})``, each by an ``L D L'`` factorisation (``A``, ``dv``
     scratch); False if a ``Sigma_j`` is not positive definite."""
-    n, N = alpha.shape[0], F.shape[2]
+    n, N = _dims(alpha.shape[0], F.shape[2])
     for j in range(N):
         kb, ks = FG[G_KB, j], FG[G_KS, j]
         for i in range(n):
@@ -450,7 +467,7 @@ def _factor_agent(alpha, F, FG, TI, MC, MS):
     """Per-agent tridiagonal factors (reciprocal backward pivots ``F_IPIV``, ratios
     ``F_RAT``) and the Jacobi-scaled Cholesky factor ``MC`` of the grid Schur complement
     (scaling ``MS``); the scaled ``M`` itself is kept in ``TI`` (lower triangle)."""
-    n, N = alpha.shape[0], F.shape[2]
+    n, N = _dims(alpha.shape[0], F.shape[2])
     m = 2 * N
     for a in range(m):
         for b in range(a + 1):
@@ -520,7 +537,7 @@ def _factor_agent(alpha, F, FG, TI, MC, MS):
 @_inline
 def _tri_solve(F, i, x):
     """``x[:N] <- T_i^{-1} x[:N]`` with the backward pivots of agent ``i`` (``T = U G U'``)."""
-    N = F.shape[2]
+    N = _dims(1, F.shape[2])[1]
     for j in range(N - 2, -1, -1):
         x[j] += F[F_RAT, i, j] * x[j + 1]
     for j in range(N):
@@ -537,7 +554,7 @@ def _solve(r1, r2, dx, dl, alpha, F, FG, method, SI, AW, MC, MS, rsp, w, wg, onl
     agent method then skips the other agents' local solves). Returns False when the result
     is not finite.
     """
-    n, N = alpha.shape[0], r2.shape[1]
+    n, N = _dims(alpha.shape[0], r2.shape[1])
     for i in range(n):
         for j in range(N):
             rsp[i, j] = r1[2, i, j] + F[F_C4, i, j] * r1[3, i, j] - F[F_C5, i, j] * r1[4, i, j]
@@ -563,7 +580,7 @@ def _solve(r1, r2, dx, dl, alpha, F, FG, method, SI, AW, MC, MS, rsp, w, wg, onl
 @_jit
 def _solve_stage(r1, r2, dx, dl, alpha, F, FG, SI, rsp, w):
     """Block-tridiagonal solve (``STAGE``), then ``db, ds``."""
-    n, N = alpha.shape[0], r2.shape[1]
+    n, N = _dims(alpha.shape[0], r2.shape[1])
     # forward: w_j = Sigma_j^{-1} (rho_j + V_{j-1} w_{j-1}), kept in dl[:, j]
     for j in range(N):
         kb, ks = FG[G_KB, j], FG[G_KS, j]
@@ -606,7 +623,7 @@ def _solve_stage(r1, r2, dx, dl, alpha, F, FG, SI, rsp, w):
 def _grid_block(r1, dl, alpha, F, dx, v, fv, sgn, kap, sv, dg, j):
     """``d = W^{-1} (r + sgn alpha dl)`` of the ``b`` (``v = 0``) or ``s`` block of stage
     ``j`` by Sherman-Morrison, ``W^{-1} = diag(vb) - kappa vb vb'``."""
-    n = alpha.shape[0]
+    n = _dims(alpha.shape[0], 1)[0]
     t = 0.0
     for i in range(n):
         t += F[fv, i, j] * (r1[v, i, j] + sgn * alpha[i] * dl[i, j])
@@ -626,7 +643,7 @@ def _grid_block(r1, dl, alpha, F, dx, v, fv, sgn, kap, sv, dg, j):
 @_jit
 def _solve_agent(r1, r2, dx, dl, alpha, F, FG, MC, MS, rsp, w, wg, only):
     """Per-agent local solves, grid forces from ``M``, every agent's response (``AGENT``)."""
-    n, N = alpha.shape[0], r2.shape[1]
+    n, N = _dims(alpha.shape[0], r2.shape[1])
     for a in range(2 * N):
         wg[a] = 0.0
     for i in range(n):
@@ -711,7 +728,7 @@ def _direction(t, has_corr, Cr, S, IS, Mu, D, base, rp, alpha, F, FG, method, SI
     ``has_corr``); fills ``dX, dL, dS, dMu`` and returns ``(ok, ap, ad)``: False when not
     finite, and the largest primal and dual steps keeping ``S`` and ``mu`` positive
     (``min S / -dS``, ``min mu / -dmu``; huge if nothing decreases)."""
-    n, N = alpha.shape[0], FG.shape[1]
+    n, N = _dims(alpha.shape[0], FG.shape[1])
     nN = n * N
     go = 8 * nN
     # U = (t - corr) / S, kept in dMu until dMu = U - mu - D dS overwrites it
@@ -766,7 +783,7 @@ def _initial_point(soc0, alpha, delta, hsoc, qsoc, x0, warm, opts, U, scale, X, 
     """Strictly interior start on the central path of ``t0`` (the batch solver's rule):
     ``b^i = s^i`` a fraction of ``min(U[i], P / n)``, each battery's own; a warm start kept
     one margin (relative to the smallest of these) inside the bounds."""
-    n, N = L.shape
+    n, N = _dims(L.shape[0], L.shape[1])
     P, hi, lo = opts[O_P], opts[O_HI], opts[O_LO]
     cap_min = np.inf
     for i in range(n):
@@ -862,6 +879,7 @@ def solve_rows(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu
     ``action_out`` (``b_0 - s_0`` where converged, else 0). With work arrays of its own and
     without the GIL: blocks of problems may run on several threads at once (each problem is
     solved alone, so the results do not depend on the blocks, bit for bit)."""
+    n, N = _dims(n, N)
     (X, dX, base, r1, L, dL, rp, r2, rsp, Mu, S, IS, D, dS, dMu, Cr, R, F, FG, SI, AW, TI, MC,
      MS, w, wg) = _work(n, N, method)
     soc0, alpha, delta, qb, qs, hsoc, qsoc, e = _data_arrays(n, N)
@@ -929,9 +947,9 @@ def solve_rows(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu
             if not (ok and math.isfinite(ap) and math.isfinite(ad)):
                 failed = True
                 continue
-            for k in range(Xf.size):
+            for k in range(5 * n * N):
                 Xf[k] += ap * dXf[k]
-            for k in range(Lf.size):
+            for k in range(n * N):
                 Lf[k] += ad * dLf[k]
             for k in range(m):
                 Mu[k] += ad * dMu[k]
@@ -968,7 +986,7 @@ def _backward_error(zx, zl, r1, D, alpha, hsoc, rx, rl, magnitudes):
     """Residual ``(rx, rl) = K z - (r1, 0)`` of an adjoint column (``K`` the reduced KKT
     matrix) and, with ``magnitudes``, its normwise backward error
     ``max |K z - r| / (max |K| |z| + 1)`` (inf if not finite, or without ``magnitudes``)."""
-    n, N = zl.shape
+    n, N = _dims(zl.shape[0], zl.shape[1])
     nN = n * N
     go = 8 * nN
     res = 0.0
@@ -1049,7 +1067,7 @@ def _unpack_solution(x, lam, mu, n, N, X, L, Mu):
 def _grad_column(X, L, zx, zl, stagew, grad, o):
     """``grad[:, o] = -(dR/dtheta)' Z`` for the adjoint column ``Z = (zx, zl)`` of agent
     ``o`` (the batch solver's table; phi3 and T3 rows stay 0)."""
-    n, N = L.shape
+    n, N = _dims(L.shape[0], L.shape[1])
     for i in range(n):
         g0 = 0.0
         g1 = 0.0
@@ -1085,7 +1103,7 @@ def _zmax(zx, zl, IS, zmax):
     """``max(zmax, |Z|)`` over the primal, dual and multiplier rows of an adjoint column,
     with ``Z_mu = C Z_x / S`` (``IS = 1 / S``; the conditioning proxy's ``||Z||_max``; NaN
     if not finite)."""
-    n, N = zl.shape
+    n, N = _dims(zl.shape[0], zl.shape[1])
     nN = n * N
     go = 8 * nN
     check = 0.0
@@ -1123,7 +1141,7 @@ def _adjoint_structured(X, L, Mu, IS, D, alpha, stagew, F, MC, MS, MM, G, Y, Q, 
     error of the 2N solves, finite)``. Scratch: ``Y`` (n, N), ``Q`` (2N, n), ``RL``
     (N + 1, n), ``acc`` (n), ``w`` (2N).
     """
-    n, N = L.shape
+    n, N = _dims(L.shape[0], L.shape[1])
     m2 = 2 * N
     IA, DA = _ag(IS, n, N), _ag(D, n, N)
     off = 8 * n * N
@@ -1250,6 +1268,7 @@ def sensitivity_rows(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, st
     ``structured`` (with the ``AGENT`` factorisation only): all columns at once by
     :func:`_adjoint_structured`; else column by column with iterative refinement. As
     :func:`solve_rows`: own work arrays, no GIL."""
+    n, N = _dims(n, N)
     (X, zx, rx, r1, L, zl, rl, r2, rsp, Mu, S, IS, D, _ds, _dmu, _cr, _r, F, FG, SI, AW, TI,
      MC, MS, w, wg) = _work(n, N, method)
     cx, cl = np.empty((5, n, N)), np.empty((n, N))
@@ -1309,15 +1328,15 @@ def sensitivity_rows(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, st
                 bcol = _backward_error(zx, zl, r1, D, alpha, hsoc, rx, rl, step > 0)
                 if step == _REFINE_MAX or (step > 0 and bcol <= _BACKWARD_ERROR_GOOD):
                     break
-                for k in range(rxf.size):
+                for k in range(5 * n * N):
                     rxf[k] = -rxf[k]
-                for k in range(rlf.size):
+                for k in range(n * N):
                     rlf[k] = -rlf[k]
                 usable &= _solve(rx, rl, cx, cl, alpha, F, FG, method, SI, AW, MC, MS, rsp, w,
                                  wg, -1)
-                for k in range(zxf.size):
+                for k in range(5 * n * N):
                     zxf[k] += cxf[k]
-                for k in range(zlf.size):
+                for k in range(n * N):
                     zlf[k] += clf[k]
             bmax = max(bmax, bcol)
             _grad_column(X, L, zx, zl, stagew, G, o)
@@ -1338,16 +1357,18 @@ def sensitivity_rows(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, st
 # ------------------------------------------------------------------ compilation, cache ----
 def warm_up() -> None:
     """Run every kernel (both factorisations, cold and warm start, the sensitivity) on a
-    tiny problem, which compiles them or loads them from numba's cache."""
-    n, N = 1, 2
+    tiny problem (of the fixed sizes in a specialised copy), which compiles them or loads them
+    from numba's cache."""
+    n, N = (FIXED_N, FIXED_HORIZON) if FIXED_N > 0 else (1, 2)
     opts = np.zeros(N_OPTS)
     opts[[O_TAU, O_TOL, O_MAX_ITER, O_P, O_HI, O_LO]] = (0.1, 1e-10, 50, 1.0, 0.9, 0.1)
     ubar = np.ones(n)
     opts[[O_U0, O_T0_COLD, O_T0_WARM, O_WARM_MARGIN, O_WARM_WEIGHT, O_SLACK_MARGIN,
           O_SWITCH]] = (0.5, 0.1, 0.1, 1e-2, 0.3, 0.3, 1.0)
     stagew = np.ones((5, N))
-    theta = np.array([0.1, 0.0, 0.0, 0.0, 1.0, -1.0, 0.0, 1.0, -1.0, 0.0])
-    P = np.concatenate([[0.5], [10.0, 20.0], [5.0, 10.0], theta])[None, :]
+    theta = np.repeat(np.array([0.1, 0.0, 0.0, 0.0, 1.0, -1.0, 0.0, 1.0, -1.0, 0.0]), n)
+    buy = np.linspace(10.0, 20.0, N)
+    P = np.concatenate([np.full(n, 0.5), buy, 0.5 * buy, theta])[None, :]
     nx, neq, nin = 5 * n * N, n * N, (8 * n + 2) * N
     for method in (STAGE, AGENT):
         x, lam, mu = np.zeros((1, nx)), np.empty((1, neq)), np.empty((1, nin))

@@ -1,0 +1,118 @@
+"""Copies of the compiled kernels with the problem's sizes fixed at compile time.
+
+:mod:`~mpcrl_lite.mpc.backends.kernel_core` reads the number of batteries ``n`` and the
+horizon ``N`` from its arrays, so one compiled version serves every size. For the sizes in
+:data:`SPECIALISED_SIZES` (the paper's, which every learning run, study and search of the
+package uses) :func:`kernels` imports a copy of that module whose two constants
+``FIXED_N`` and ``FIXED_HORIZON`` hold the sizes. The compiler then knows the bounds of the
+small loops over batteries and stages, unrolls them and keeps their values in registers:
+about 1.5x less CPU per problem at n = 3, N = 12 (``benchmarks/README.md``). The copy does
+the same operations in the same order, so its results are those of the generic kernels bit
+for bit (``tests/mpc/test_kernel_sizes.py``).
+
+The copy is written beside the generic kernels' numba cache (``specialised/`` in
+:func:`~mpcrl_lite.mpc.backends.kernel.cache_dir`), only when its text changes (with the
+modification time of ``kernel_core.py``, so that processes writing it at once leave the
+same file and numba's cache of it stays valid), and compiled into numba's cache like the
+generic kernels (``python -m mpcrl_lite.cli.warm`` does it ahead; about half a minute).
+Other sizes use the generic kernels; so does a :class:`~mpcrl_lite.mpc.backends.kernel.
+KernelSolver` with ``specialise = False``.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import sys
+import tempfile
+import threading
+from pathlib import Path
+from types import ModuleType
+
+__all__ = ["SPECIALISED_SIZES", "kernels", "source"]
+
+#: the sizes ``(n, N)`` served by a specialised copy: the paper's three batteries and
+#: 12-hour horizon (the package's defaults)
+SPECIALISED_SIZES = frozenset({(3, 12)})
+
+_GENERIC = "mpcrl_lite.mpc.backends.kernel_core"
+_MARK = "FIXED_N = 0\nFIXED_HORIZON = 0\n"
+_lock = threading.Lock()
+_loaded: dict[tuple[int, int], ModuleType] = {}
+
+
+def _generic() -> ModuleType:
+    return importlib.import_module(_GENERIC)
+
+
+def source(n: int, N: int) -> str:
+    """The text of the copy of the kernels for ``n`` batteries and horizon ``N``."""
+    if int(n) < 1 or int(N) < 2:
+        raise ValueError(f"n={n}, N={N}: expected n >= 1 and N >= 2")
+    text = Path(_generic().__file__).read_text(encoding="utf-8")
+    if text.count(_MARK) != 1:
+        raise RuntimeError(f"{_GENERIC} no longer holds the line pair {_MARK!r} exactly once")
+    header = (f"# Generated from kernel_core.py by mpcrl_lite.mpc.backends.kernel_sizes for "
+              f"n = {int(n)}, N = {int(N)}; do not edit.\n")
+    return header + text.replace(_MARK, f"FIXED_N = {int(n)}\nFIXED_HORIZON = {int(N)}\n")
+
+
+def _folder() -> Path:
+    """Where the copies go: ``specialised/`` in the generic kernels' numba cache folder if it
+    can be written, else a folder in the system's temporary directory."""
+    for base in (_generic().cache_dir(),
+                 os.path.join(tempfile.gettempdir(), f"mpcrl_lite-kernels-{os.getuid()}"
+                              if hasattr(os, "getuid") else "mpcrl_lite-kernels")):
+        folder = Path(base) / "specialised"
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError:
+            continue
+        if os.access(folder, os.W_OK):
+            return folder
+    raise RuntimeError("no writable folder for the specialised kernels")
+
+
+def _write(path: Path, text: str, mtime: float) -> None:
+    """Write ``text`` to ``path`` unless it holds it already (atomically, with ``mtime``)."""
+    try:
+        if path.read_text(encoding="utf-8") == text:
+            return
+    except OSError:
+        pass
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+    tmp.write_text(text, encoding="utf-8")
+    os.utime(tmp, (mtime, mtime))
+    os.replace(tmp, path)
+
+
+def _load(n: int, N: int) -> ModuleType:
+    text = source(n, N)
+    path = _folder() / f"kernel_core_n{n}_N{N}.py"
+    _write(path, text, os.stat(_generic().__file__).st_mtime)
+    name = f"{_GENERIC}_n{n}_N{N}"
+    spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None or spec.loader is None:
+        raise RuntimeError(f"cannot import the specialised kernels from {path}")
+    module = importlib.util.module_from_spec(spec)
+    module.__package__ = _GENERIC.rpartition(".")[0]  # its relative imports are the original's
+    sys.modules[name] = module
+    try:
+        spec.loader.exec_module(module)
+    except BaseException:
+        sys.modules.pop(name, None)
+        raise
+    return module
+
+
+def kernels(n: int, N: int, specialise: bool = True) -> ModuleType:
+    """The kernel module for problems of ``n`` batteries and horizon ``N``: the specialised
+    copy if ``(n, N)`` is in :data:`SPECIALISED_SIZES` and ``specialise``, else
+    :mod:`~mpcrl_lite.mpc.backends.kernel_core`. Both have the same functions and constants."""
+    key = (int(n), int(N))
+    if not specialise or key not in SPECIALISED_SIZES:
+        return _generic()
+    with _lock:
+        if key not in _loaded:
+            _loaded[key] = _load(*key)
+        return _loaded[key]

@@ -1,0 +1,95 @@
+"""The copy of the kernels compiled for the paper's sizes (:mod:`mpcrl_lite.mpc.backends.
+kernel_sizes`) gives the generic kernels' results bit for bit, and is used where it applies."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mpcrl_lite.config import MPCConfig, SystemConfig
+from mpcrl_lite.mpc.backends import kernel_core, kernel_sizes
+from mpcrl_lite.mpc.backends.kernel import KernelSolver
+from mpcrl_lite.mpc.formulation import MPC
+from mpcrl_lite.theta import Theta
+
+
+@pytest.fixture(scope="module")
+def mpc() -> MPC:
+    return MPC(SystemConfig())
+
+
+def _problems(mpc: MPC, days: int, seed: int) -> np.ndarray:
+    """Parameter rows of ``days`` problems: states outside [0.1, 0.9] too, random prices and a
+    different theta per row (every fourth the nominal one)."""
+    rng = np.random.default_rng(seed)
+    nominal = Theta.nominal(mpc.system).to_vector()
+    rows = []
+    for d in range(days):
+        theta = nominal + (0.0 if d % 4 == 0 else
+                           rng.normal(0.0, 0.3, nominal.size) * np.abs(nominal).clip(0.1))
+        buy = rng.uniform(5.0, 130.0, mpc.N)
+        rows.append(mpc.parameters(rng.uniform(-0.05, 1.05, mpc.n), buy, 0.5 * buy,
+                                   Theta.from_vector(theta, mpc.n)))
+    return np.array(rows)
+
+
+@pytest.mark.parametrize("method", ["stage", "agent"])
+def test_specialised_kernels_equal_the_generic_ones_bit_for_bit(mpc, method):
+    assert (mpc.n, mpc.N) in kernel_sizes.SPECIALISED_SIZES
+    P = _problems(mpc, 23, seed=5)
+    results = []
+    for specialise in (True, False):
+        solver = KernelSolver(mpc, MPCConfig(), method=method)
+        solver.specialise = specialise
+        sol = solver._solve_parameters(P, None)
+        warm = solver._solve_parameters(P, mpc.shift(sol.x))
+        short = KernelSolver(mpc, MPCConfig(max_iter=2), method=method)
+        short.specialise = specialise
+        failed = short._solve_parameters(P, None)
+        sens = solver.sensitivity(warm)
+        used = solver._kernels
+        results.append((sol, warm, failed, sens))
+        assert (used is kernel_core) == (not specialise)
+        if specialise:
+            assert used.FIXED_N == mpc.n and used.FIXED_HORIZON == mpc.N
+    (a, aw, af, asens), (b, bw, bf, bsens) = results
+    assert a.success.all() and not af.success.all()
+    for x, y in ((a, b), (aw, bw), (af, bf)):
+        for field in ("x", "lam", "mu", "cost", "action", "iterations"):
+            np.testing.assert_array_equal(getattr(x, field), getattr(y, field))
+        assert x.status == y.status
+    for field in ("grad", "cond", "ok"):
+        np.testing.assert_array_equal(getattr(asens, field), getattr(bsens, field))
+
+
+def test_other_sizes_use_the_generic_kernels():
+    assert kernel_sizes.kernels(2, 12) is kernel_core
+    assert kernel_sizes.kernels(3, 12, specialise=False) is kernel_core
+    small = KernelSolver(MPC(SystemConfig(n=2, P_bar=1.0)))
+    small.solve(np.array([0.5, 0.5]), np.linspace(10, 50, 12), np.linspace(5, 25, 12),
+                Theta.nominal(small.mpc.system))
+    assert small._kernels is kernel_core
+
+
+def test_the_copy_is_written_once_and_differs_only_in_the_sizes():
+    module = kernel_sizes.kernels(3, 12)
+    path = module.__file__
+    stamp = os.stat(path).st_mtime_ns
+    generic = Path(kernel_core.__file__).read_text(encoding="utf-8").splitlines()
+    copy = Path(path).read_text(encoding="utf-8").splitlines()
+    assert copy[0].startswith("# Generated from kernel_core.py")
+    changed = [(g, c) for g, c in zip(generic, copy[1:]) if g != c]
+    assert changed == [("FIXED_N = 0", "FIXED_N = 3"), ("FIXED_HORIZON = 0", "FIXED_HORIZON = 12")]
+    assert len(copy) == len(generic) + 1
+    # loading again (another process would) leaves the file, and numba's cache of it, alone
+    kernel_sizes._load(3, 12)
+    assert os.stat(path).st_mtime_ns == stamp
+    assert os.stat(path).st_mtime == os.stat(kernel_core.__file__).st_mtime
+
+
+def test_bad_sizes():
+    with pytest.raises(ValueError, match="n=0, N=12"):
+        kernel_sizes.source(0, 12)
