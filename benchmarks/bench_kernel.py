@@ -5,7 +5,10 @@ hours (as ``run_month``: warm start from the shifted previous plan, Gaussian exp
 true system), once with :class:`~mpcrl_lite.mpc.backends.kernel.KernelSolver` and once with
 :class:`~mpcrl_lite.mpc.backends.batch.BatchSolver` from the same states, prices and random draws
 (their policies agree to 1e-14, so both see the same problems). Only the solver calls are
-timed: ``solve_batch`` + ``sensitivity`` of every hour. Reported per problem (one day-hour)
+timed: ``solve_batch`` + ``sensitivity`` of every hour. Where the size has a copy of the
+kernels compiled for it (:data:`~mpcrl_lite.mpc.backends.kernel_sizes.SPECIALISED_SIZES`, the
+paper's), the generic kernels run too (``kernel_generic_*``, ``specialised_speedup_cpu``:
+generic / specialised CPU, ``specialised_same_bits``: the same actions and sensitivities). Reported per problem (one day-hour)
 in microseconds, wall (``time.perf_counter``) and CPU (``time.process_time``), the median
 over ``--repeats`` runs (and, ``*_min``, the least contended run: on a shared machine the
 closest figure to an idle one), the ratio batch / kernel from the same run, the largest
@@ -33,6 +36,7 @@ from _common import machine, median, print_result
 from mpcrl_lite.config import ConfigWarning, LearningConfig, MPCConfig, SystemConfig
 from mpcrl_lite.mpc.backends.batch import BatchSolver
 from mpcrl_lite.mpc.backends.kernel import KernelSolver, warm_up
+from mpcrl_lite.mpc.backends.kernel_sizes import SPECIALISED_SIZES
 from mpcrl_lite.mpc.formulation import MPC
 from mpcrl_lite.sim.closed_loop import MPCPolicy, SensitivityRecorder, simulate
 from mpcrl_lite.sim.exploration import GaussianExploration
@@ -101,14 +105,20 @@ def bench(n: int, N: int, hours: int, days: int, repeats: int) -> dict:
     prices = Prices.month(system, days)
     config = MPCConfig()
     kernel, batch = KernelSolver(mpc, config), BatchSolver(mpc, config)
-    closed_loop(kernel, system, prices, 1, 0)  # first calls (caches, allocations)
-    closed_loop(batch, system, prices, 1, 0)
-    runs = {"kernel": [], "batch": []}
+    # the generic kernels, where the sizes have a specialised copy (kernel_sizes)
+    generic = KernelSolver(mpc, config)
+    generic.specialise = False
+    solvers = {"kernel": kernel, "batch": batch}
+    if (n, N) in SPECIALISED_SIZES:
+        solvers["kernel_generic"] = generic
+    for solver in solvers.values():
+        closed_loop(solver, system, prices, 1, 0)  # first calls (caches, allocations)
+    runs = {name: [] for name in solvers}
     for r in range(repeats):
-        # alternate the order so that a change of the machine's load hits both alike
-        for name in (("kernel", "batch") if r % 2 == 0 else ("batch", "kernel")):
-            runs[name].append(closed_loop(kernel if name == "kernel" else batch, system,
-                                          prices, hours, seed=1))
+        # alternate the order so that a change of the machine's load hits all alike
+        order = list(solvers) if r % 2 == 0 else list(solvers)[::-1]
+        for name in order:
+            runs[name].append(closed_loop(solvers[name], system, prices, hours, seed=1))
     k, b = runs["kernel"][-1], runs["batch"][-1]
     problems = hours * days
     out = {"n": n, "N": N, "days": days, "hours": hours, "method": kernel.method,
@@ -126,6 +136,15 @@ def bench(n: int, N: int, hours: int, days: int, repeats: int) -> dict:
     out["ratio_cpu"] = out["batch_cpu_us_per_problem"] / out["kernel_cpu_us_per_problem"]
     out["ratio_cpu_min"] = (out["batch_cpu_us_per_problem_min"]
                             / out["kernel_cpu_us_per_problem_min"])
+    if "kernel_generic" in runs:
+        # what the copy with the sizes fixed at compile time saves (same results bit for bit)
+        out["specialised_speedup_cpu"] = (out["kernel_generic_cpu_us_per_problem"]
+                                          / out["kernel_cpu_us_per_problem"])
+        out["specialised_speedup_cpu_min"] = (out["kernel_generic_cpu_us_per_problem_min"]
+                                              / out["kernel_cpu_us_per_problem_min"])
+        g = runs["kernel_generic"][-1]
+        out["specialised_same_bits"] = bool(np.array_equal(g["action"], k["action"])
+                                            and np.array_equal(g["grad"], k["grad"]))
     out["max_action_diff"] = float(np.max(np.abs(k["action"] - b["action"])))
     scale = np.maximum(np.abs(b["grad"]).max(axis=-2, keepdims=True), 1e-300)
     out["max_sens_diff_column_relative"] = float(np.max(np.abs(k["grad"] - b["grad"]) / scale))
@@ -166,6 +185,9 @@ def main(argv: list[str] | None = None) -> int:
         "batch_cpu_us_per_problem_min": main_row["batch_cpu_us_per_problem_min"],
         "ratio": main_row["ratio"],
         "ratio_cpu": main_row["ratio_cpu"],
+        "kernel_generic_cpu_us_per_problem": main_row.get("kernel_generic_cpu_us_per_problem"),
+        "specialised_speedup_cpu": main_row.get("specialised_speedup_cpu"),
+        "specialised_same_bits": main_row.get("specialised_same_bits"),
         "sizes": rows,
         "warm_up_s": compile_s,
         "total_s": time.perf_counter() - t0,

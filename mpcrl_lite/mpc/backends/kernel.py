@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import multiprocessing
 import threading
 import time
 
@@ -329,6 +330,22 @@ class KernelSolver(StartSettings, BackendBase):
         threads = auto_threads() if self.threads is None else int(self.threads)
         return max(1, min(threads, days // THREAD_MIN_PROBLEMS))
 
+    def _run(self, rows: str, args: tuple, days: int) -> None:
+        """The kernel ``rows`` (``'solve_rows'`` or ``'sensitivity_rows'``) on the ``days``
+        problems of ``args``: on the calling thread; or, with several threads (:meth:`_threads`),
+        in one call of its ``*_parallel`` entry, a block of problems per numba thread (in the
+        process that was started, not forked: numba's OpenMP threads do not survive a fork), in
+        a forked child on Python threads, blocks of :data:`THREAD_BLOCK` in turn."""
+        kernels = self._kernels
+        threads = self._threads(days)
+        if threads <= 1:
+            getattr(kernels, rows)(*args, 0, days)
+        elif multiprocessing.parent_process() is None:
+            threads = kernels.set_threads(threads)
+            getattr(kernels, rows + "_parallel")(*args, 0, days, -(-days // threads))
+        else:
+            run_blocks(getattr(kernels, rows), args, days, threads, THREAD_BLOCK)
+
     # ------------------------------------------------------------------ solving ----------
     def _solve_parameters(self, P: np.ndarray, x0: np.ndarray | None,
                           opts: np.ndarray | None = None) -> BatchSolution:
@@ -345,7 +362,7 @@ class KernelSolver(StartSettings, BackendBase):
         iters, status = np.empty(days, np.int64), np.empty(days, np.int64)
         args = (np.ascontiguousarray(P), x0, warm, opts, self._ubar, self._stagew, self.n,
                 self.N, self._method, x, lam, mu, cost, iters, status, action)
-        run_blocks(self._kernels.solve_rows, args, days, self._threads(days), THREAD_BLOCK)
+        self._run("solve_rows", args, days)
         return BatchSolution(
             action=action, x=x, lam=lam, mu=mu, cost=cost,
             success=status == K.CONVERGED,
@@ -385,7 +402,7 @@ class KernelSolver(StartSettings, BackendBase):
         args = (P, rows(solution.x, m.nx), rows(solution.lam, m.neq), rows(solution.mu, m.nin),
                 success, self._opts(), self._ubar, self._stagew, self.n, self.N, self._method,
                 self.structured_adjoint, grad, cond, back, code)
-        run_blocks(self._kernels.sensitivity_rows, args, days, self._threads(days), THREAD_BLOCK)
+        self._run("sensitivity_rows", args, days)
         ok = np.zeros(days, dtype=bool)
         reasons = []
         for d in range(days):

@@ -74,7 +74,10 @@ Each problem of a batch is solved (and its sensitivity formed) alone, with work 
 from problem to problem but never read before written: :func:`solve_rows` and
 :func:`sensitivity_rows` run a range of the problems without the GIL, so that
 :class:`~mpcrl_lite.mpc.backends.kernel.KernelSolver` can spread a large batch over threads,
-with the results of the one-thread call bit for bit.
+with the results of the one-thread call bit for bit: :func:`solve_rows_parallel` and
+:func:`sensitivity_rows_parallel` hand blocks of problems to numba's threads (``prange``)
+within one call; :func:`mpcrl_lite._util.threads.run_blocks` (Python threads, one compiled
+call per block) serves where numba's threads may not be used (a forked child process).
 
 Every function is compiled with numba's on-disk cache; see :mod:`mpcrl_lite.mpc.backends.kernel`
 for where the cache lives and how to fill it.
@@ -85,7 +88,9 @@ from __future__ import annotations
 import logging
 import math
 
+import numba
 import numpy as np
+from numba import prange
 
 from ..._util import jit
 from ..._util.jit import njit_cached
@@ -99,6 +104,8 @@ _jit = njit_cached(error_model="numpy")
 _inline = njit_cached(error_model="numpy", inline="always")  # helpers of hot loops
 # the entries that run blocks of problems, callable from several threads at once
 _nogil = njit_cached(error_model="numpy", nogil=True)
+# the entries that split a call over numba's own threads (``prange``)
+_parallel = njit_cached(error_model="numpy", nogil=True, parallel=True)
 
 # status codes of a solve (strings in kernel_solver)
 CONVERGED, MAX_ITER, NON_FINITE, BREAKDOWN = 0, 1, 2, 3
@@ -1354,6 +1361,40 @@ def sensitivity_rows(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, st
             G[:, :] = 0.0
 
 
+# ------------------------------------------------------------------ both cores ----
+@_parallel
+def solve_rows_parallel(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu_out,
+                        cost_out, iters_out, status_out, action_out, d_lo, d_hi, block):
+    """:func:`solve_rows` on the blocks of ``block`` problems of ``d_lo <= d < d_hi``, the
+    blocks spread over numba's threads (``numba.set_num_threads``). Each problem is solved
+    alone, so the results are those of one :func:`solve_rows` call, bit for bit."""
+    blocks = (d_hi - d_lo + block - 1) // block
+    for b in prange(blocks):
+        lo = d_lo + b * block
+        solve_rows(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu_out,
+                   cost_out, iters_out, status_out, action_out, lo, min(lo + block, d_hi))
+
+
+@_parallel
+def sensitivity_rows_parallel(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method,
+                              structured, grad, cond, back, code, d_lo, d_hi, block):
+    """:func:`sensitivity_rows` on blocks spread over numba's threads, as
+    :func:`solve_rows_parallel`."""
+    blocks = (d_hi - d_lo + block - 1) // block
+    for b in prange(blocks):
+        lo = d_lo + b * block
+        sensitivity_rows(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, structured,
+                         grad, cond, back, code, lo, min(lo + block, d_hi))
+
+
+def set_threads(threads: int) -> int:
+    """Let the ``*_parallel`` entries use ``threads`` threads (at most numba's pool);
+    returns the number set."""
+    threads = max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS))
+    numba.set_num_threads(threads)
+    return threads
+
+
 # ------------------------------------------------------------------ compilation, cache ----
 def warm_up() -> None:
     """Run every kernel (both factorisations, cold and warm start, the sensitivity) on a
@@ -1377,11 +1418,15 @@ def warm_up() -> None:
         for warm in (False, True):
             solve_rows(P, x.copy(), warm, opts, ubar, stagew, n, N, method, x, lam, mu, cost,
                        iters, status, action, 0, 1)
+        solve_rows_parallel(P, x.copy(), True, opts, ubar, stagew, n, N, method, x, lam, mu,
+                            cost, iters, status, action, 0, 1, 1)
         grad, cond, back = np.empty((1, 10 * n, n)), np.empty(1), np.empty(1)
         code = np.empty(1, np.int64)
         for structured in (False, True):
             sensitivity_rows(P, x, lam, mu, np.ones(1, np.bool_), opts, ubar, stagew, n, N,
                              method, structured, grad, cond, back, code, 0, 1)
+            sensitivity_rows_parallel(P, x, lam, mu, np.ones(1, np.bool_), opts, ubar, stagew,
+                                      n, N, method, structured, grad, cond, back, code, 0, 1, 1)
 
 
 def cache_dir() -> str:
@@ -1391,5 +1436,6 @@ def cache_dir() -> str:
 
 def ensure_compiled() -> None:
     """Load the kernels from the cache or compile them (logging one line if it compiles)."""
-    jit.ensure_compiled((solve_rows, sensitivity_rows), warm_up,
+    jit.ensure_compiled((solve_rows, sensitivity_rows, solve_rows_parallel,
+                         sensitivity_rows_parallel), warm_up,
                         "the MPC kernels (about a minute)")
