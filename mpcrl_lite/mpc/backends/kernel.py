@@ -32,15 +32,26 @@ Threads
 A call on many problems is spread over threads (:attr:`KernelSolver.threads`; by default the
 cores in the main process and one thread in a worker process, whose pool already uses the
 cores; at most one thread per :data:`THREAD_MIN_PROBLEMS` problems, so small calls stay on the
-calling thread, and the learning months' 30 problems go to two). The threads take blocks of
-:data:`THREAD_BLOCK` problems in turn, each solved alone by the same compiled code without
-the GIL: the results do not depend on the thread count, bit for bit.
+calling thread, and the learning months' 30 problems go to two). In the process that was
+started, one compiled call hands a block of problems to each of numba's threads
+(``kernel_core.solve_rows_parallel``); in a forked child, where numba's OpenMP threads cannot
+be used, Python threads take blocks of :data:`THREAD_BLOCK` problems in turn. Either way each
+problem is solved alone by the same compiled code without the GIL: the results do not depend
+on the thread count, bit for bit.
+
+Sizes fixed at compile time
+---------------------------
+For the paper's sizes (n = 3, N = 12) the solver runs a copy of the kernels compiled with
+``n`` and ``N`` as constants (:mod:`~mpcrl_lite.mpc.backends.kernel_sizes`,
+:attr:`KernelSolver.specialise`): the same operations in the same order, so the same results
+bit for bit, at about 1.3-1.6x less CPU.
 
 Cost (``benchmarks/bench_kernel.py``, closed-loop hours of a 30-day month, solve plus
 sensitivity per problem, measured beside the batch solver in the same run; benchmarks/README.md
-keeps the history): for the paper's size (n = 3, N = 12) about 34 us of wall time and 59 us
-of CPU on two cores (11x faster than the batch solver), about 3 ms for n = 100 and 0.2 ms
-for N = 48. Loading numba and the kernels adds about a second
+keeps the history): for the paper's size (n = 3, N = 12) about 40 us of CPU per problem on one
+thread (29 us for the solve, 11 for the sensitivity; 63 us with the generic kernels), a
+30-problem call on two threads in about half the wall time of one; about 3-5 ms for n = 100
+and 0.2-0.4 ms for N = 48. Loading numba and the kernels adds about a second
 to the first use in a process and about 100 MB of resident memory: importing this module
 and building a :class:`KernelSolver` load neither (numba comes with the first solver built,
 the kernels with its first solve or sensitivity).
@@ -111,12 +122,12 @@ _KKT_CHECK_TOL = 1e-9  # relative KKT residual of the formulation check at const
 # once, no refinement; ~10x faster at n = 100) instead of column by column with refinement
 _STRUCTURED_MIN_N = 16
 #: problems per thread below which a call stays on one thread. A problem of the paper's size
-#: costs about 40 us to solve and 13 us for its sensitivity, handing blocks to a second
-#: thread some ten: with 8 the learning months' calls (30 problems) use two threads, which
-#: took the 100-month `learn` command to 0.84x its wall time (6.9 s against 8.5 s, 1.10x the
-#: CPU; benchmarks/README.md), while single problems and small calls stay on one
+#: costs about 29 us to solve and 11 us for its sensitivity, starting numba's second thread
+#: some ten: with 8 the learning months' calls (30 problems) use two threads (about half the
+#: wall time of one at 1.05x its CPU; benchmarks/README.md), while single problems and small
+#: calls stay on one
 THREAD_MIN_PROBLEMS = 8
-#: problems per block that a thread takes at a time
+#: problems per block that a Python thread takes at a time in a forked child
 #: (:func:`mpcrl_lite._util.threads.run_blocks`)
 THREAD_BLOCK = 4
 
@@ -179,11 +190,11 @@ class KernelSolver(StartSettings, BackendBase):
     #: threads of one :meth:`solve_batch` or :meth:`sensitivity` call: ``None`` (default,
     #: :func:`~mpcrl_lite._util.threads.auto_threads`: the cores, one in a worker process)
     #: or a number; at most one per :data:`THREAD_MIN_PROBLEMS` problems, so that calls on
-    #: fewer than twice as many
-    #: stay on the calling thread. The calling thread and helper threads take blocks of
-    #: :data:`THREAD_BLOCK` problems in turn (the kernels run without the GIL). Each problem
-    #: is solved alone by the same compiled code: the results do not depend on the thread
-    #: count (bit for bit). Only calls from the main thread split.
+    #: fewer than twice as many stay on the calling thread. A block of problems per numba
+    #: thread in one compiled call (in a forked child: Python threads taking blocks of
+    #: :data:`THREAD_BLOCK` in turn). Each problem is solved alone by the same compiled code:
+    #: the results do not depend on the thread count (bit for bit). Only calls from the main
+    #: thread split.
     threads: int | None = None
     #: use the copy of the kernels compiled for this solver's sizes where there is one
     #: (:data:`~mpcrl_lite.mpc.backends.kernel_sizes.SPECIALISED_SIZES`, the paper's n = 3,
