@@ -103,6 +103,33 @@ def learning_step(months: int = 2, warmup: int = 1, warm_start: bool = True) -> 
     }
 
 
+def q_month(months: int = 3, warmup: int = 1) -> dict:
+    """A learning month of the LSTD Q-learner (``learner='q'``: the month without
+    sensitivities, then one fixed-first-action MPC per day-hour for Q and its gradient, the
+    TD update) beside a month of the default DPG learner, in this interpreter, the two
+    alternating; no evaluation months. Wall and CPU seconds per month (medians) and the ratio
+    Q / DPG (issue target: at most 2)."""
+    from mpcrl_lite.config import LearningConfig
+    from mpcrl_lite.learning.experiment import Experiment
+    from mpcrl_lite.learning.q_experiment import QLearningExperiment
+
+    runs = {"q": QLearningExperiment(learning=LearningConfig(learner="q", eval_every=0)),
+            "dpg": Experiment(learning=LearningConfig(eval_every=0))}
+    wall: dict[str, list[float]] = {"q": [], "dpg": []}
+    cpu_s: dict[str, list[float]] = {"q": [], "dpg": []}
+    for m in range(warmup + months):
+        for name in (("q", "dpg") if m % 2 == 0 else ("dpg", "q")):
+            t0, c0 = time.perf_counter(), time.process_time()
+            runs[name].run_one_month()
+            if m >= warmup:
+                wall[name].append(time.perf_counter() - t0)
+                cpu_s[name].append(time.process_time() - c0)
+    q, d = median(wall["q"]), median(wall["dpg"])
+    qc, dc = median(cpu_s["q"]), median(cpu_s["dpg"])
+    return {"q_month_s": q, "q_month_cpu_s": qc, "dpg_month_s": d, "dpg_month_cpu_s": dc,
+            "q_month_ratio": q / d, "q_month_ratio_cpu": qc / dc, "q_months_measured": months}
+
+
 # -- the paper experiment ------------------------------------------------------------------
 _PAPER_CODE = r"""
 import json, resource, time

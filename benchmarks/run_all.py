@@ -46,6 +46,7 @@ TARGETS = {
     "paper_command_1_draw_s": ("<=", 3.0),
     "paper_command_10_draws_s": ("<=", 5.0),
     "tune_s": ("<=", 120.0),
+    "q_month_ratio": ("<=", 2.0),
 }
 
 #: Where ``make bench`` writes its files (git-ignored; nothing tracked is rewritten).
@@ -131,6 +132,12 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
     _log("paper experiment, learning only (eval_every=0)")
     paper_learn = _try("paper experiment (eval_every=0)",
                        lambda: bench_learning.paper_experiment(months=months, eval_every=0))
+
+    _log("a Q-learning month beside a DPG month (alternating, one process)")
+    qmonth = _try("Q-learning month", lambda: _sub(f"q_month(months={1 if quick else 3})"))
+    if qmonth is not None:
+        _log(f"Q-learning month {qmonth['q_month_s']:.2f} s (cpu {qmonth['q_month_cpu_s']:.2f}), "
+             f"DPG month {qmonth['dpg_month_s']:.2f} s: ratio {qmonth['q_month_ratio']:.2f}")
 
     _log("compiled kernel vs batch interior point (same inputs)")
     kernel = _try("kernel benchmark", lambda: run_json(
@@ -244,6 +251,9 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
                 "study_cpu_ratio_vs_serial", "lockstep_cpu_ratio", "study_j_star_s",
                 "study_j_star_cpu_s", "study_eval_draws"):
         result[key] = study.get(key)
+    for key in ("q_month_s", "q_month_cpu_s", "dpg_month_s", "dpg_month_cpu_s", "q_month_ratio",
+                "q_month_ratio_cpu"):
+        result[key] = None if qmonth is None else qmonth[key]
     search = search or {}
     for key in ("tune_s", "tune_cpu_s", "tune_heldout_s", "one_at_a_time_s",
                 "one_at_a_time_cpu_s", "tune_speedup_vs_one_at_a_time"):
@@ -259,6 +269,7 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
         "cold_start_s": result["cold_start_s"],
         "kernel_us_per_problem": result["kernel_us_per_problem"],
         "decentralized_n20_s_per_month": result["decentralized_n20_s_per_month"],
+        "q_month_ratio": result["q_month_ratio"],
         **{key: result[key] for key in ("startup_import_s", "startup_experiment_s",
                                         "paper_command_1_draw_s", "paper_command_10_draws_s")},
     }
@@ -276,7 +287,7 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
         "mpcrl_cold_cached_numba": mpcrl_cold_cached, "paper": paper,
         "paper_default_eval": paper_draws,
         "paper_learning_only": paper_learn, "cold": cold, "kernel": kernel,
-        "decentralized": dec, "study": study, "commands": commands,
+        "decentralized": dec, "study": study, "commands": commands, "q_month": qmonth,
         "figure": None if figure is None else str(figure),
     }
     result["total_s"] = time.perf_counter() - t_start

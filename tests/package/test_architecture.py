@@ -48,7 +48,7 @@ SUBLAYERS: dict[str, list[set[str]]] = {
                             "month", "nordpool_elspot", "nordpool_portal", "pandas_series"},
                            {"load"}],
     "mpc": [{"formulation"}, {"solution"}, {"sensitivity"}, {"backends"}, {"q_kernel"}, {"value"}],
-    "mpc.backends": [{"batch_linalg", "kernel_core"}, {"batch_kkt"}, {"batch_adjoint"},
+    "mpc.backends": [{"batch_linalg", "kernel_core", "kernel_sizes"}, {"batch_kkt"}, {"batch_adjoint"},
                      {"batch", "ipopt", "kernel"}, {"registry"}],
     "sim": [{"record", "exploration_kernel"}, {"exploration"}, {"closed_loop"}, {"candidates", "env"}],
     "learning": [{"lstd", "update_rules", "durable", "rollout_gradient", "pathwise"}, {"outdir"}, {"rundir"}, {"dpg", "history"},

@@ -10,17 +10,19 @@ about 1.5x less CPU per problem at n = 3, N = 12 (``benchmarks/README.md``). The
 the same operations in the same order, so its results are those of the generic kernels bit
 for bit (``tests/mpc/test_kernel_sizes.py``).
 
-The copy is written beside the generic kernels' numba cache (``specialised/`` in
-:func:`~mpcrl_lite.mpc.backends.kernel.cache_dir`), only when its text changes (with the
-modification time of ``kernel_core.py``, so that processes writing it at once leave the
-same file and numba's cache of it stays valid), and compiled into numba's cache like the
-generic kernels (``python -m mpcrl_lite.cli.warm`` does it ahead; about half a minute).
+The copy is a file named by its sizes and a hash of its text, in a cache folder outside the
+package (``mpcrl_lite-kernels`` in ``NUMBA_CACHE_DIR``, else in ``~/.cache``, else in the
+temporary directory; :func:`_folder`). It is written only when missing (with the
+modification time of ``kernel_core.py``, so that processes writing it at once leave the same
+file and numba's cache of it stays valid), and compiled into numba's cache like the generic
+kernels (``python -m mpcrl_lite.cli.warm`` does it ahead; about a minute).
 Other sizes use the generic kernels; so does a :class:`~mpcrl_lite.mpc.backends.kernel.
 KernelSolver` with ``specialise = False``.
 """
 
 from __future__ import annotations
 
+import hashlib
 import importlib.util
 import os
 import sys
@@ -58,12 +60,17 @@ def source(n: int, N: int) -> str:
 
 
 def _folder() -> Path:
-    """Where the copies go: ``specialised/`` in the generic kernels' numba cache folder if it
-    can be written, else a folder in the system's temporary directory."""
-    for base in (_generic().cache_dir(),
-                 os.path.join(tempfile.gettempdir(), f"mpcrl_lite-kernels-{os.getuid()}"
-                              if hasattr(os, "getuid") else "mpcrl_lite-kernels")):
-        folder = Path(base) / "specialised"
+    """Where the copies go: ``mpcrl_lite-kernels`` in ``NUMBA_CACHE_DIR`` if that is set, else
+    in the user's cache folder (``XDG_CACHE_HOME`` or ``~/.cache``), else in the system's
+    temporary directory; the first that can be written. Never inside the package: its
+    folders hold its modules only."""
+    bases = [os.environ.get("NUMBA_CACHE_DIR"),
+             os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"),
+             tempfile.gettempdir()]
+    for base in bases:
+        if not base:
+            continue
+        folder = Path(base) / "mpcrl_lite-kernels"
         try:
             folder.mkdir(parents=True, exist_ok=True)
         except OSError:
@@ -88,7 +95,10 @@ def _write(path: Path, text: str, mtime: float) -> None:
 
 def _load(n: int, N: int) -> ModuleType:
     text = source(n, N)
-    path = _folder() / f"kernel_core_n{n}_N{N}.py"
+    # named by its text: copies of other versions of the package (another checkout, an
+    # upgrade) sit beside it instead of overwriting it, and each keeps its numba cache
+    digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:12]
+    path = _folder() / f"kernel_core_n{n}_N{N}_{digest}.py"
     _write(path, text, os.stat(_generic().__file__).st_mtime)
     name = f"{_GENERIC}_n{n}_N{N}"
     spec = importlib.util.spec_from_file_location(name, path)
