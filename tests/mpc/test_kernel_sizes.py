@@ -93,3 +93,20 @@ def test_the_copy_is_written_once_and_differs_only_in_the_sizes():
 def test_bad_sizes():
     with pytest.raises(ValueError, match="n=0, N=12"):
         kernel_sizes.source(0, 12)
+
+
+def test_the_copies_go_to_the_first_writable_cache_folder(tmp_path, monkeypatch):
+    numba_dir, home_cache = tmp_path / "numba", tmp_path / "xdg"
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(numba_dir))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(home_cache))
+    assert kernel_sizes._folder() == numba_dir / "mpcrl_lite-kernels"
+    monkeypatch.delenv("NUMBA_CACHE_DIR")
+    assert kernel_sizes._folder() == home_cache / "mpcrl_lite-kernels"
+    # a folder that cannot be written is passed over (here: the user's cache)
+    real_access = os.access
+    monkeypatch.setattr(kernel_sizes.os, "access", lambda p, mode: (
+        False if str(p).startswith(str(home_cache)) else real_access(p, mode)))
+    folder = kernel_sizes._folder()
+    assert folder.parent == Path(kernel_sizes.tempfile.gettempdir())
+    # the package's own folders never hold a copy
+    assert Path(kernel_sizes.kernels(3, 12).__file__).parent != Path(kernel_core.__file__).parent
