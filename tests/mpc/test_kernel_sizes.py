@@ -110,3 +110,24 @@ def test_the_copies_go_to_the_first_writable_cache_folder(tmp_path, monkeypatch)
     assert folder.parent == Path(kernel_sizes.tempfile.gettempdir())
     # the package's own folders never hold a copy
     assert Path(kernel_sizes.kernels(3, 12).__file__).parent != Path(kernel_core.__file__).parent
+
+
+def test_a_large_call_goes_to_numbas_threads_in_one_compiled_call(mpc, monkeypatch):
+    """With two threads, a call of 16 problems or more is one call of the ``*_parallel``
+    entry (a block per thread); smaller calls stay on the calling thread."""
+    solver = KernelSolver(mpc)
+    solver.threads = 2
+    P = _problems(mpc, 17, seed=2)
+    solver._solve_parameters(P[:1], None)  # loads the kernels
+    module = solver._kernels
+    calls = []
+    for name in ("solve_rows", "solve_rows_parallel", "sensitivity_rows",
+                 "sensitivity_rows_parallel"):
+        real = getattr(module, name)
+        monkeypatch.setattr(module, name, lambda *a, _real=real, _name=name: (
+            calls.append((_name, a[-3:] if _name.endswith("parallel") else a[-2:])), _real(*a))[1])
+    sol = solver._solve_parameters(P, None)
+    solver.sensitivity(sol)
+    solver._solve_parameters(P[:15], None)
+    assert calls == [("solve_rows_parallel", (0, 17, 9)), ("sensitivity_rows_parallel", (0, 17, 9)),
+                     ("solve_rows", (0, 15))]
