@@ -17,9 +17,12 @@ action (the soc would leave [0, 1]) the applied power is :math:`(bound - soc_k)/
 \Delta_k`, so :math:`d\,net = -X_k/\alpha` and :math:`X_{k+1} = 0`.
 
 :math:`\nabla_\theta\pi` is the MPC's KKT sensitivity (the back-end's ``sensitivity``);
-:math:`\partial\pi/\partial soc` is measured by central differences of the MPC's solution
-(the barrier problem's solution is smooth in its initial state; one extra solver call of
-``2 n`` rows per hour). The result is the gradient that
+:math:`\partial\pi/\partial soc` comes from the same adjoint where the back-end forms it
+(the compiled kernel: :attr:`~mpcrl_lite.mpc.solution.Sensitivity.grad_soc0`, the adjoint's
+multiplier of the first dynamics row, since the initial soc enters the problem there only),
+else it is measured by central differences of the MPC's solution (the barrier problem's
+solution is smooth in its initial state; one extra solver call of ``2 n`` rows per hour).
+The result is the gradient that
 :func:`~mpcrl_lite.learning.rollout_gradient.rollout_policy_gradient` measures by replaying
 the days, in the limit of a small nudge, at the cost of a month and its sensitivities
 instead of ``n H`` months (``tests/learning/test_pathwise.py`` checks both against finite
@@ -121,7 +124,10 @@ class PathwiseRecorder:
             self._X = np.zeros_like(G)
             self._total = np.zeros((D, G.shape[2]))
             self._ok = np.ones(D, bool)
-        dpi_dsoc, ok = self._state_sensitivity(d.solution, n)
+        if d.grad_soc0 is not None:  # from the sensitivity's own adjoint
+            dpi_dsoc, ok = np.swapaxes(d.grad_soc0, 1, 2), np.ones(D, bool)
+        else:
+            dpi_dsoc, ok = self._state_sensitivity(d.solution, n)
         self._ok &= ok & d.solver_ok & d.sens_ok
         X = self._X
         dpi = G + np.einsum("dij,djt->dit", dpi_dsoc, X)

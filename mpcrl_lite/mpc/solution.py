@@ -188,12 +188,16 @@ class Sensitivity:
     ok : (days,) -- False where the problem failed or its KKT system was unusable
     cond : (days,) -- the conditioning proxy ``||K||_max ||Z||_max``
     reason : tuple of str, '' where ok
+    grad_soc0 : (days, n, n) or None -- ``d pi_o / d soc0_i`` at ``[d, i, o]``, the policy's
+        sensitivity in its initial state, where the back-end forms it from the same adjoint
+        (the compiled kernel, column by column); zeros where ``ok`` is False
     """
 
     grad: np.ndarray
     ok: np.ndarray
     cond: np.ndarray
     reason: tuple[str, ...]
+    grad_soc0: np.ndarray | None = None
 
     @property
     def skipped(self) -> int:

@@ -84,6 +84,9 @@ class Decision:
         :class:`SensitivityRecorder`).
     solution : object, optional
         The solver's solution, for hooks that need more.
+    grad_soc0 : numpy.ndarray, shape ``(days, n, n)``, optional
+        :math:`\\partial\\pi_o/\\partial soc_i` at ``[d, i, o]`` where the back-end forms it
+        (:attr:`~mpcrl_lite.mpc.solution.Sensitivity.grad_soc0`).
     """
 
     action: np.ndarray
@@ -92,6 +95,7 @@ class Decision:
     sens_ok: np.ndarray | None = None
     grad: np.ndarray | None = None
     solution: Any = None
+    grad_soc0: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -323,6 +327,7 @@ def _decision(out: Any, hour: int, shape: tuple[int, int]) -> Decision:
         sens_ok=np.zeros(days, bool) if decision.sens_ok is None else decision.sens_ok,
         grad=decision.grad,
         solution=decision.solution,
+        grad_soc0=decision.grad_soc0,
     )
 
 
@@ -426,11 +431,11 @@ class MPCPolicy:
         self._hour = hour
         x = sol.x
         planned = np.maximum(x[:, self._ib].sum(axis=2), x[:, self._is].sum(axis=2)).max(axis=1)
-        grad = sens_ok = None
+        grad = sens_ok = grad_soc0 = None
         if self.sensitivities:
             sens = self.solver.sensitivity(sol)
-            grad, sens_ok = sens.grad, sens.ok
-        return Decision(sol.action, sol.success, planned, sens_ok, grad, sol)
+            grad, sens_ok, grad_soc0 = sens.grad, sens.ok, sens.grad_soc0
+        return Decision(sol.action, sol.success, planned, sens_ok, grad, sol, grad_soc0)
 
     def __call__(self, hour: int, soc: np.ndarray) -> np.ndarray:
         """The action :math:`\\pi` only (a plain policy)."""

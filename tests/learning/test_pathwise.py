@@ -5,6 +5,7 @@ LearningConfig.gradient = 'pathwise' and its refusals."""
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -90,6 +91,44 @@ def test_it_agrees_with_the_replayed_days(setup):
     assert replayed.ok.all()
     np.testing.assert_allclose(pathwise.grad, replayed.grad,
                                atol=1e-3 * np.abs(replayed.grad).max())
+
+
+def test_the_state_sensitivity_from_the_adjoint_is_the_central_difference(setup):
+    """The kernel forms d pi / d soc from its sensitivity's adjoint; a back-end that does not
+    (the numpy batch solver) gets it by central differences: the same gradient, and the
+    recorder's central differences on the kernel's solutions too."""
+    prices, solver, noise = setup
+    theta = load_class_best(ROOT / "data" / "class_best_paper")["theta_best"]
+    exact = pathwise_policy_gradient(theta, solver, prices, SYSTEM, noise)
+    batch = make_solver(MPC(SYSTEM), MPCConfig(backend="batch"), theta)
+    assert batch.sensitivity(batch.solve_batch(np.full((1, 3), 0.5), prices.buy[:1, :12],
+                                               prices.sell[:1, :12], theta)).grad_soc0 is None
+    measured = pathwise_policy_gradient(theta, batch, prices, SYSTEM, noise)
+    assert exact.ok.all() and measured.ok.all()
+    scale = np.abs(exact.grad).max()
+    np.testing.assert_allclose(measured.grad, exact.grad, atol=1e-6 * scale)
+
+    class Counted:  # the kernel, counting the problems solved; optionally without grad_soc0
+        def __init__(self, inner, state_sensitivity):
+            self.inner, self.mpc, self.name = inner, inner.mpc, inner.name
+            self.state_sensitivity, self.rows = state_sensitivity, 0
+
+        def solve_batch(self, soc0, *args, **kwargs):
+            self.rows += len(soc0)
+            return self.inner.solve_batch(soc0, *args, **kwargs)
+
+        def sensitivity(self, sol):
+            sens = self.inner.sensitivity(sol)
+            return sens if self.state_sensitivity else dataclasses.replace(sens, grad_soc0=None)
+
+    adjoint, differences = Counted(solver, True), Counted(solver, False)
+    again = pathwise_policy_gradient(theta, adjoint, prices, SYSTEM, noise)
+    differenced = pathwise_policy_gradient(theta, differences, prices, SYSTEM, noise)
+    np.testing.assert_array_equal(again.grad, exact.grad)
+    assert adjoint.rows == H * DAYS  # the policy's own problems only
+    assert differences.rows == H * DAYS * (1 + 2 * SYSTEM.n)  # and 2 n shifted copies
+    assert not np.array_equal(differenced.grad, exact.grad)  # two computations...
+    np.testing.assert_allclose(differenced.grad, exact.grad, atol=1e-6 * scale)  # ...that agree
 
 
 def test_stacked_draws_are_the_draws_alone(setup):

@@ -491,3 +491,39 @@ def test_learning_run_is_the_batch_back_ends():
     np.testing.assert_allclose(fast.theta_final, ref.theta_final, rtol=1e-8, atol=1e-12)
     assert fast.solver_failures == ref.solver_failures == [0, 0]
     assert fast.skipped_steps == ref.skipped_steps
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("P_bar", [1.5, 0.5])
+def test_sensitivity_in_the_initial_soc_is_the_central_difference(prices, method, P_bar):
+    """``Sensitivity.grad_soc0`` (the adjoint's multiplier of the first dynamics rows) equals
+    central differences of the action in the initial soc, states outside [0.1, 0.9] and a
+    binding grid limit included; failed rows give zeros; the structured adjoint gives none."""
+    mpc = cached_mpc(P_bar=P_bar)
+    rng = np.random.default_rng(8)
+    days = 24
+    soc0 = rng.uniform(-0.05, 1.05, (days, mpc.n))
+    buy, sell = windows(prices, 16, mpc.N, days)
+    solver = KernelSolver(mpc, method=method)
+    theta = convex_theta(rng, mpc.n)
+    sol = solver.solve_batch(soc0, buy, sell, theta)
+    sens = solver.sensitivity(sol)
+    assert sens.ok.all() and sens.grad_soc0.shape == (days, mpc.n, mpc.n)
+    h = 1e-5
+    fd = np.empty((days, mpc.n, mpc.n))
+    for i in range(mpc.n):
+        step = np.zeros(mpc.n)
+        step[i] = h
+        up = solver.solve_batch(soc0 + step, buy, sell, theta, x0=sol.x).action
+        down = solver.solve_batch(soc0 - step, buy, sell, theta, x0=sol.x).action
+        fd[:, i, :] = (up - down) / (2 * h)
+    assert np.abs(fd).max() > 0.1
+    np.testing.assert_allclose(sens.grad_soc0, fd, atol=1e-6 * np.abs(fd).max())
+    short = KernelSolver(mpc, MPCConfig(max_iter=2), method=method)
+    failed = short.solve_batch(soc0, buy, sell, theta)
+    bad = short.sensitivity(failed)
+    assert not bad.ok.all()
+    assert np.all(bad.grad_soc0[~bad.ok] == 0.0)
+    many = KernelSolver(mpc, method="agent")
+    many.structured_adjoint = True
+    assert many.sensitivity(sol).grad_soc0 is None

@@ -404,6 +404,7 @@ class KernelSolver(StartSettings, BackendBase):
         P = np.ascontiguousarray(np.atleast_2d(solution.p), dtype=float)
         success = np.ascontiguousarray(solution.success, dtype=np.bool_)
         grad = np.empty((days, m.n_theta, self.n))
+        dsoc = np.empty((days, self.n, self.n))
         cond, back = np.empty(days), np.empty(days)
         code = np.empty(days, np.int64)
 
@@ -412,7 +413,7 @@ class KernelSolver(StartSettings, BackendBase):
 
         args = (P, rows(solution.x, m.nx), rows(solution.lam, m.neq), rows(solution.mu, m.nin),
                 success, self._opts(), self._ubar, self._stagew, self.n, self.N, self._method,
-                self.structured_adjoint, grad, cond, back, code)
+                self.structured_adjoint, grad, dsoc, cond, back, code)
         self._run("sensitivity_rows", args, days)
         ok = np.zeros(days, dtype=bool)
         reasons = []
@@ -427,7 +428,9 @@ class KernelSolver(StartSettings, BackendBase):
             elif back[d] > _BACKWARD_ERROR_MAX or cond[d] > self.config.kkt_cond_max:
                 reasons.append(f"ill-conditioned KKT matrix (cond ~ {cond[d]:.2e})")
                 grad[d] = 0.0
+                dsoc[d] = 0.0
             else:
                 reasons.append("")
                 ok[d] = True
-        return Sensitivity(grad, ok, cond, tuple(reasons))
+        return Sensitivity(grad, ok, cond, tuple(reasons),
+                           None if self.structured_adjoint else dsoc)

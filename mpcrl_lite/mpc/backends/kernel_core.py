@@ -1265,11 +1265,14 @@ def _adjoint_structured(X, L, Mu, IS, D, alpha, stagew, F, MC, MS, MM, G, Y, Q, 
 
 @_nogil
 def sensitivity_rows(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, structured,
-                      grad, cond, back, code, d_lo, d_hi):
+                      grad, dsoc, cond, back, code, d_lo, d_hi):
     """``d pi / d theta`` at the solutions ``(x, lam, mu)`` (mpc orderings) of the problems
     ``d_lo <= d < d_hi``.
 
-    Writes ``grad`` (days, 10 n, n), ``cond`` (``||K||_max ||Z||_max``), ``back`` (largest
+    Writes ``grad`` (days, 10 n, n), ``dsoc`` (days, n, n): ``d pi_o / d soc0_i`` at
+    ``[d, i, o]``, the adjoint's multiplier of the first dynamics row of battery ``i`` (the
+    initial soc enters the problem there only; NaN with ``structured``, which forms no
+    adjoint per column), ``cond`` (``||K||_max ||Z||_max``), ``back`` (largest
     normwise backward error of the adjoint columns) and ``code`` (``SENS_*``). Rows with
     ``solved[d]`` False are skipped. Where the result is not usable ``grad`` is 0.
     ``structured`` (with the ``AGENT`` factorisation only): all columns at once by
@@ -1290,6 +1293,7 @@ def sensitivity_rows(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, st
     for d in range(d_lo, d_hi):
         G = grad[d]
         G[:, :] = 0.0
+        dsoc[d, :, :] = np.nan if structured else 0.0
         cond[d] = np.inf
         back[d] = np.inf
         if not solved[d]:
@@ -1347,6 +1351,8 @@ def sensitivity_rows(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, st
                     zlf[k] += clf[k]
             bmax = max(bmax, bcol)
             _grad_column(X, L, zx, zl, stagew, G, o)
+            for i in range(n):
+                dsoc[d, i, o] = zl[i, 0]
             zmax = _zmax(zx, zl, IS, zmax)
         c = kmax * zmax
         cond[d] = c if math.isfinite(c) else np.inf
@@ -1359,6 +1365,7 @@ def sensitivity_rows(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, st
         else:
             code[d] = SENS_SINGULAR
             G[:, :] = 0.0
+            dsoc[d, :, :] = 0.0
 
 
 # ------------------------------------------------------------------ both cores ----
@@ -1377,14 +1384,14 @@ def solve_rows_parallel(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, la
 
 @_parallel
 def sensitivity_rows_parallel(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method,
-                              structured, grad, cond, back, code, d_lo, d_hi, block):
+                              structured, grad, dsoc, cond, back, code, d_lo, d_hi, block):
     """:func:`sensitivity_rows` on blocks spread over numba's threads, as
     :func:`solve_rows_parallel`."""
     blocks = (d_hi - d_lo + block - 1) // block
     for b in prange(blocks):
         lo = d_lo + b * block
         sensitivity_rows(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, structured,
-                         grad, cond, back, code, lo, min(lo + block, d_hi))
+                         grad, dsoc, cond, back, code, lo, min(lo + block, d_hi))
 
 
 def set_threads(threads: int) -> int:
@@ -1421,12 +1428,14 @@ def warm_up() -> None:
         solve_rows_parallel(P, x.copy(), True, opts, ubar, stagew, n, N, method, x, lam, mu,
                             cost, iters, status, action, 0, 1, 1)
         grad, cond, back = np.empty((1, 10 * n, n)), np.empty(1), np.empty(1)
+        dsoc = np.empty((1, n, n))
         code = np.empty(1, np.int64)
         for structured in (False, True):
             sensitivity_rows(P, x, lam, mu, np.ones(1, np.bool_), opts, ubar, stagew, n, N,
-                             method, structured, grad, cond, back, code, 0, 1)
+                             method, structured, grad, dsoc, cond, back, code, 0, 1)
             sensitivity_rows_parallel(P, x, lam, mu, np.ones(1, np.bool_), opts, ubar, stagew,
-                                      n, N, method, structured, grad, cond, back, code, 0, 1, 1)
+                                      n, N, method, structured, grad, dsoc, cond, back, code,
+                                      0, 1, 1)
 
 
 def cache_dir() -> str:
