@@ -395,7 +395,9 @@ class KernelSolver(StartSettings, BackendBase):
             As :class:`~mpcrl_lite.mpc.solution.Sensitivity` documents; a row is not ``ok``
             (zero ``grad``, a ``reason``) where the solver failed, the point is not strictly
             interior, or the KKT matrix is singular or ill-conditioned (``cond`` above
-            ``config.kkt_cond_max`` or an adjoint backward error above 1e-6).
+            ``config.kkt_cond_max`` or an adjoint backward error above 1e-6). ``grad_soc0``
+            holds ``d pi / d soc0`` from the same adjoint columns (None with the structured
+            adjoint, which forms no column alone).
         """
         self._ready()
         solution = BatchSolution.of(solution)
