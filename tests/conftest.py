@@ -8,6 +8,7 @@ tests build their cases from them at import time.
 from __future__ import annotations
 
 import ast
+import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -18,6 +19,13 @@ from mpcrl_lite.config import MPCConfig, SystemConfig
 from mpcrl_lite.mpc.backends.ipopt import IpoptSolver
 from mpcrl_lite.mpc.formulation import MPC
 from mpcrl_lite.theta import Theta
+
+# The test workers run two at a time on two cores: numba's OpenMP threads (the kernel's calls
+# of 16 problems or more) then sleep soon after a call instead of spinning against the other
+# worker. Results do not depend on it (each problem is solved alone); the suite's wall time
+# does (tests/learning + tests/sim on 2 workers: 85 s against 98 s). A single process, as a
+# user runs one, keeps the default spin, which starts its next call sooner (benchmarks/README).
+os.environ.setdefault("GOMP_SPINCOUNT", "10000")
 
 # -- helpers ----------------------------------------------------------------------------------
 PACKAGE = Path(__file__).resolve().parents[1] / "mpcrl_lite"
