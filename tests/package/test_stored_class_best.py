@@ -16,6 +16,7 @@ ROOT = Path(__file__).resolve().parents[2]
 DATA_README = (ROOT / "data" / "README.md").read_text()
 README = (ROOT / "README.md").read_text()
 STORED = {"paper": ROOT / "data" / "class_best_paper",
+          "day_end": ROOT / "data" / "class_best_day_end",
           "rest_of_day": ROOT / "data" / "class_best_rest_of_day"}
 
 

@@ -18,6 +18,7 @@ NOTEBOOK_09 = " ".join(
 STUDIES = ROOT / "benchmarks" / "studies"
 #: stored study -> the words that pick its row of README's results table
 ROWS = {"paper_pathwise_5000": "the paper's MPC, pathwise gradient",
+        "day_end_pathwise_5000": "the day-end forecast, pathwise gradient",
         "rest_of_day_pathwise_5000": "the rest of the day, pathwise gradient"}
 
 
