@@ -81,12 +81,11 @@ def _folder() -> Path:
 
 
 def _write(path: Path, text: str, mtime: float) -> None:
-    """Write ``text`` to ``path`` unless it holds it already (atomically, with ``mtime``)."""
-    try:
-        if path.read_text(encoding="utf-8") == text:
-            return
-    except OSError:
-        pass
+    """Write ``text`` to ``path`` unless the file is there (atomically, with ``mtime``): its
+    name carries the hash of its text, and a file appears only whole (``os.replace``), so one
+    that exists holds ``text``."""
+    if path.exists():
+        return
     tmp = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
     tmp.write_text(text, encoding="utf-8")
     os.utime(tmp, (mtime, mtime))
