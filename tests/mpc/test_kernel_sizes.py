@@ -87,7 +87,19 @@ def test_the_copy_is_written_once_and_differs_only_in_the_sizes():
     # loading again (another process would) leaves the file, and numba's cache of it, alone
     kernel_sizes._load(3, 12)
     assert os.stat(path).st_mtime_ns == stamp
-    assert os.stat(path).st_mtime == os.stat(kernel_core.__file__).st_mtime
+
+
+def test_a_copy_is_written_whole_with_the_given_time_and_never_rewritten(tmp_path):
+    """A missing copy appears with the modification time of ``kernel_core.py`` (processes
+    writing it at once leave the same file); one already there, written by an earlier
+    checkout or run at another time, is left as it is, so numba's cache of it stays valid."""
+    path = tmp_path / "kernel_core_n3_N12_0123456789ab.py"
+    kernel_sizes._write(path, "first\n", 1_000_000_000.0)
+    assert path.read_text(encoding="utf-8") == "first\n"
+    assert os.stat(path).st_mtime == 1_000_000_000.0
+    kernel_sizes._write(path, "first\n", 2_000_000_000.0)
+    assert os.stat(path).st_mtime == 1_000_000_000.0
+    assert [p.name for p in tmp_path.iterdir()] == [path.name]  # no temporary file left
 
 
 def test_bad_sizes():
