@@ -39,6 +39,7 @@ them.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Callable, Sequence
@@ -60,7 +61,7 @@ from .dpg import DPGUpdater
 from .history import History
 from .learner import Learner, resolve_setup
 from .outdir import RunDirError
-from .pathwise import pathwise_policy_gradient
+from .pathwise import PathwiseGradient, PathwiseRecorder, pathwise_policy_gradient
 from .step import lstd_policy_gradient
 
 # run_month (mpcrl_lite.sim.closed_loop), value_baseline_features (mpcrl_lite.learning.lstd), run_months
@@ -119,6 +120,8 @@ class Experiment(Learner):
         self.solver = make_solver(self.mpc, self.mpc_config, self.theta)
         self.updater = self.UPDATER.from_configs(self.learning, self.system)
         self.rng = np.random.default_rng(self.learning.seed)
+        # the pathwise gradient recorded while the month ran: (its record, the gradient)
+        self._pathwise: tuple[MonthRecord, PathwiseGradient] | None = None
         self.history = History(self.system, self.mpc_config, self.learning, backend=self.solver.name)
         self.history.prices_origin = dict(getattr(self.prices, "origin", {}) or {})
 
@@ -133,8 +136,13 @@ class Experiment(Learner):
         the one the month was simulated with); a day with a failed solve is left out
         (``skipped`` counts its hours)."""
         if self.learning.gradient == "pathwise":
-            result = pathwise_policy_gradient(self.theta, self.solver, self.prices, self.system,
-                                              record.noise, soc0=record.soc[0])
+            pending, self._pathwise = self._pathwise, None
+            if pending is not None and pending[0] is record:  # recorded as the month ran
+                result = pending[1]
+            else:  # a month simulated without the recorder: the month once more
+                result = pathwise_policy_gradient(self.theta, self.solver, self.prices,
+                                                  self.system, record.noise,
+                                                  soc0=record.soc[0])
             days_left_out = int(np.count_nonzero(~result.ok))
             return result.grad, days_left_out * record.hours, {
                 "gradient": "pathwise", "days_used": int(result.ok.sum())}
@@ -188,13 +196,14 @@ class Experiment(Learner):
         self.solver = make_solver(self.mpc, self.mpc_config.replace(backend="ipopt"))
         self.history.backend = self.solver.name
 
-    def month_options(self) -> dict[str, Any]:
+    def month_options(self, recording: bool = False) -> dict[str, Any]:
         """The keyword arguments of :func:`~mpcrl_lite.sim.closed_loop.run_month` besides theta,
         solver, prices, system and rng (runs with equal options can share a loop,
-        :mod:`mpcrl_lite.studies.lockstep`)."""
+        :mod:`mpcrl_lite.studies.lockstep`); with ``recording``, those of a month that runs
+        with :meth:`month_recorder`'s hook."""
         if self.learning.gradient == "pathwise":  # the deterministic policy's month; the
-            # gradient carries its own sensitivities (learning_step)
-            return {"exploration_std": 0.0, "sensitivities": False}
+            # gradient carries its own sensitivities (learning_step, or the recorder)
+            return {"exploration_std": 0.0, "sensitivities": recording}
         return {"exploration_std": self.learning.exploration_std, "sensitivities": True,
                 "exploration_bounds": self.learning.exploration_bounds,
                 "exploration_margin": self.learning.exploration_margin}
@@ -209,9 +218,39 @@ class Experiment(Learner):
         month's theta when :meth:`evaluation_due`)."""
         t0 = time.perf_counter()
         theta_used = self.begin_month()
-        record = run_month(theta_used, self.solver, self.prices, self.system, self.rng,
-                           **self.month_options())
+        if self.learning.gradient == "pathwise":
+            record = self._pathwise_month(theta_used)
+        else:
+            record = run_month(theta_used, self.solver, self.prices, self.system, self.rng,
+                               **self.month_options())
         return self.end_month(record, theta_used, time.perf_counter() - t0)
+
+    def _pathwise_month(self, theta: Theta) -> MonthRecord:
+        """The deterministic policy's month with its pathwise gradient recorded as it runs
+        (:meth:`month_recorder`): the policy's solves serve both, where simulating the month
+        and then its gradient would solve every problem twice."""
+        recorder = self.month_recorder()
+        record = run_month(theta, self.solver, self.prices, self.system, self.rng,
+                           on_hour=[recorder], **self.month_options(recording=True))
+        return self.keep_month_gradient(record, recorder.result())
+
+    def month_recorder(self) -> PathwiseRecorder | None:
+        """The hour hook that records this learner's gradient while its month runs (with
+        ``month_options(recording=True)``), or None: the pathwise gradient's
+        :class:`~mpcrl_lite.learning.pathwise.PathwiseRecorder`; the critic learns from the
+        month's record alone."""
+        if self.learning.gradient != "pathwise":
+            return None
+        return PathwiseRecorder(self.solver, self.system)
+
+    def keep_month_gradient(self, record: MonthRecord, gradient: PathwiseGradient) -> MonthRecord:
+        """Keep the ``gradient`` recorded with ``record`` for :meth:`learning_step` of that
+        record; returns the record as :meth:`month_options` gives it (no sensitivities
+        kept), bit for bit."""
+        record = dataclasses.replace(record, grad_pi=None,
+                                     sens_ok=np.zeros_like(record.sens_ok))
+        self._pathwise = (record, gradient)
+        return record
 
     def end_month(self, record: MonthRecord, theta_used: Theta, sim_time: float,
                   evaluation: MonthRecord | None = None) -> MonthRecord:

@@ -162,14 +162,18 @@ class PathwiseRecorder:
         ok = res.success.reshape(2 * n, D).all(axis=0)
         return np.transpose(deriv, (1, 2, 0)), ok
 
-    def result(self) -> PathwiseGradient:
-        """The derivative of the days recorded so far."""
+    def result(self, rows: slice | None = None) -> PathwiseGradient:
+        """The derivative of the days recorded so far, or of the days ``rows`` of them (one
+        run's days of a loop of runs in lockstep: the same figures, bit for bit, as that
+        run's loop alone)."""
         if self._total is None:
             raise ValueError("no hour recorded yet")
-        per_day = np.where(self._ok[:, None], self._total, 0.0)
-        used = int(self._ok.sum())
+        rows = slice(None) if rows is None else rows
+        ok = self._ok[rows].copy()
+        per_day = np.where(ok[:, None], self._total[rows], 0.0)
+        used = int(ok.sum())
         grad = per_day.sum(axis=0) / used if used else np.zeros(per_day.shape[1])
-        return PathwiseGradient(grad=grad, per_day=per_day, ok=self._ok.copy())
+        return PathwiseGradient(grad=grad, per_day=per_day, ok=ok)
 
 
 def pathwise_policy_gradient(

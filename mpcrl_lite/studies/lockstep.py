@@ -189,10 +189,18 @@ def run_lockstep(
         states = [run.rng.bit_generator.state for run in runs]
         first = runs[0]
         t0 = time.perf_counter()
+        # a learner whose gradient is recorded as its month runs (the pathwise one): one
+        # recorder for the group's days, each run's share of it after
+        recorder = getattr(first, "month_recorder", lambda: None)()
         try:
-            record = run_month(thetas, first.solver, first.prices, first.system,
-                               RunBlocks([r.rng for r in runs], [r.system for r in runs]),
-                               **first.month_options())
+            if recorder is None:
+                record = run_month(thetas, first.solver, first.prices, first.system,
+                                   RunBlocks([r.rng for r in runs], [r.system for r in runs]),
+                                   **first.month_options())
+            else:
+                record = run_month(thetas, first.solver, first.prices, first.system,
+                                   RunBlocks([r.rng for r in runs], [r.system for r in runs]),
+                                   on_hour=[recorder], **first.month_options(recording=True))
         except Exception as err:  # noqa: BLE001 (find the faulty run: each alone)
             log.info("a group of %d runs failed together (%s); running them alone",
                      len(group), err)
@@ -203,6 +211,10 @@ def run_lockstep(
             return
         share = (time.perf_counter() - t0) / len(group)
         parts = split_record(record, [r.system for r in runs])
+        if recorder is not None:
+            D = record.days // len(runs)
+            parts = [run.keep_month_gradient(part, recorder.result(slice(r * D, (r + 1) * D)))
+                     for r, (run, part) in enumerate(zip(runs, parts, strict=True))]
         for i, run, part, theta in zip(group, runs, parts, thetas, strict=True):
             try:
                 run.end_month(part, theta, share)

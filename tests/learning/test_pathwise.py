@@ -223,6 +223,31 @@ def test_the_learner_follows_the_pathwise_gradient_of_its_month():
     assert not np.array_equal(exp.theta.to_vector(), before)
 
 
+def test_a_month_run_by_the_learner_solves_each_problem_once_and_learns_the_same():
+    """``run_one_month`` records the pathwise gradient while the month runs: one solver call
+    an hour instead of two, and the same record, gradient and theta, bit for bit, as the
+    month simulated first and differentiated after (the route of runs in lockstep)."""
+    learning = LearningConfig(gradient="pathwise", days_per_month=DAYS, months=2, eval_every=0)
+    one, two = Experiment(SYSTEM, MPCConfig(), learning), Experiment(SYSTEM, MPCConfig(), learning)
+    calls = []
+    solve = one.solver.solve_batch
+    one.solver.solve_batch = lambda *a, **k: calls.append(1) or solve(*a, **k)
+    for month in range(2):
+        del calls[:]
+        rec_one = one.run_one_month()
+        assert len(calls) == H, month  # the month's hours, no second pass
+        theta = two.begin_month()
+        rec_two = run_month(theta, two.solver, two.prices, SYSTEM, two.rng,
+                            **two.month_options())
+        two.end_month(rec_two, theta, 0.0)
+        for field in ("soc", "a", "policy", "stage_cost", "noise", "solver_ok", "sens_ok"):
+            np.testing.assert_array_equal(getattr(rec_one, field), getattr(rec_two, field))
+        assert rec_one.grad_pi is None and not rec_one.sens_ok.any()
+        np.testing.assert_array_equal(one.theta.to_vector(), two.theta.to_vector())
+        np.testing.assert_array_equal(one.history.grad_norm, two.history.grad_norm)
+    assert one._pathwise is None  # used once, not kept
+
+
 def test_the_gradient_option_is_validated_and_stored_as_before():
     assert LearningConfig().gradient == "critic"
     assert "gradient" not in LearningConfig().to_dict()  # files of critic runs unchanged

@@ -148,6 +148,28 @@ def test_lockstep_runs_are_the_runs_alone_and_resume_both_ways(tmp_path, monkeyp
         assert_same(comparable(got), want)
 
 
+def test_pathwise_runs_in_lockstep_record_their_gradients_in_the_shared_loop(monkeypatch):
+    """Pathwise runs in lockstep record their gradients in the group's one loop (a solver
+    call an hour for the group, no second pass per run) and learn what they learn alone,
+    bit for bit."""
+    def runs() -> list[Experiment]:
+        system = SystemConfig(N=6)
+        return [Experiment(system=system, learning=LearningConfig(
+            gradient="pathwise", days_per_month=3, months=2, seed=seed, eval_every=0))
+            for seed in (1, 2)]
+
+    alone = [run.run(progress=False) and comparable(run) for run in runs()]
+    together = runs()
+    calls: list[int] = []
+    solve = together[0].solver.solve_batch
+    together[0].solver.solve_batch = lambda *a, **k: calls.append(1) or solve(*a, **k)
+    results = run_lockstep(together)
+    assert [h.months for h in results] == [2, 2]
+    assert len(calls) == 2 * together[0].system.hours_per_day  # two months, one call an hour
+    for got, want in zip(together, alone, strict=True):
+        assert_same(comparable(got), want)
+
+
 class BrokenGenerator(np.random.Generator):
     """A generator that fails when asked for the exploration (a fault inside a group's loop)."""
 
