@@ -218,21 +218,16 @@ class Experiment(Learner):
         month's theta when :meth:`evaluation_due`)."""
         t0 = time.perf_counter()
         theta_used = self.begin_month()
-        if self.learning.gradient == "pathwise":
-            record = self._pathwise_month(theta_used)
-        else:
-            record = run_month(theta_used, self.solver, self.prices, self.system, self.rng,
-                               **self.month_options())
-        return self.end_month(record, theta_used, time.perf_counter() - t0)
-
-    def _pathwise_month(self, theta: Theta) -> MonthRecord:
-        """The deterministic policy's month with its pathwise gradient recorded as it runs
-        (:meth:`month_recorder`): the policy's solves serve both, where simulating the month
-        and then its gradient would solve every problem twice."""
+        # the pathwise gradient is recorded as the month runs: the policy's solves serve
+        # both, where simulating the month and then its gradient would solve every problem
+        # twice
         recorder = self.month_recorder()
-        record = run_month(theta, self.solver, self.prices, self.system, self.rng,
-                           on_hour=[recorder], **self.month_options(recording=True))
-        return self.keep_month_gradient(record, recorder.result())
+        record = run_month(theta_used, self.solver, self.prices, self.system, self.rng,
+                           on_hour=() if recorder is None else [recorder],
+                           **self.month_options(recording=recorder is not None))
+        if recorder is not None:
+            record = self.keep_month_gradient(record, recorder.result())
+        return self.end_month(record, theta_used, time.perf_counter() - t0)
 
     def month_recorder(self) -> PathwiseRecorder | None:
         """The hour hook that records this learner's gradient while its month runs (with

@@ -64,9 +64,9 @@ class QLearningExperiment(Experiment):
         self._recorder: ValueRecorder | None = None
         self._theta_month: Theta | None = None
 
-    def month_options(self) -> dict[str, Any]:
+    def month_options(self, recording: bool = False) -> dict[str, Any]:
         """As for DPG, without the policy sensitivities (Q-learning does not use them)."""
-        return {**super().month_options(), "sensitivities": False}
+        return {**super().month_options(recording), "sensitivities": False}
 
     def run_one_month(self) -> MonthRecord:
         t0 = time.perf_counter()

@@ -191,16 +191,12 @@ def run_lockstep(
         t0 = time.perf_counter()
         # a learner whose gradient is recorded as its month runs (the pathwise one): one
         # recorder for the group's days, each run's share of it after
-        recorder = getattr(first, "month_recorder", lambda: None)()
+        recorder = first.month_recorder()
         try:
-            if recorder is None:
-                record = run_month(thetas, first.solver, first.prices, first.system,
-                                   RunBlocks([r.rng for r in runs], [r.system for r in runs]),
-                                   **first.month_options())
-            else:
-                record = run_month(thetas, first.solver, first.prices, first.system,
-                                   RunBlocks([r.rng for r in runs], [r.system for r in runs]),
-                                   on_hour=[recorder], **first.month_options(recording=True))
+            record = run_month(thetas, first.solver, first.prices, first.system,
+                               RunBlocks([r.rng for r in runs], [r.system for r in runs]),
+                               on_hour=() if recorder is None else [recorder],
+                               **first.month_options(recording=recorder is not None))
         except Exception as err:  # noqa: BLE001 (find the faulty run: each alone)
             log.info("a group of %d runs failed together (%s); running them alone",
                      len(group), err)
