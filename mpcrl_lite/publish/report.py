@@ -82,12 +82,29 @@ def notebook_paths(names: list[str] | None = None) -> list[Path]:
 
 
 def notebook_parameters(path: str | Path) -> dict[str, dict[str, Any]]:
-    """The parameters cell of a notebook: ``{name: {'default': ..., 'type': ..., 'help': ...}}``."""
-    import papermill
+    """The parameters cell of a notebook: ``{name: {'default': ..., 'type': ..., 'help': ...}}``.
 
+    The same answer as ``papermill.inspect_notebook``: ``default`` the value's source text,
+    ``type`` the annotation (``'None'`` without one), ``help`` the line's comment. A cell of
+    plain one-line assignments (every notebook here) is read with :mod:`ast` and
+    :mod:`tokenize`, because :func:`check_parameters` runs in every notebook's kernel, where
+    importing papermill (with nbformat and jsonschema) would cost about 2 s; any other cell is
+    left to papermill.
+    """
     path = Path(path)
     if not path.is_absolute() and not path.exists():
         path = NOTEBOOK_DIR / path
+    with open(path, encoding="utf-8") as f:
+        cells = json.load(f).get("cells", [])
+    tagged = [c for c in cells if "parameters" in c.get("metadata", {}).get("tags", [])]
+    if not tagged:
+        return {}
+    source = tagged[0].get("source", "")
+    fast = _plain_parameters("".join(source) if isinstance(source, list) else source)
+    if fast is not None:
+        return fast
+    import papermill
+
     info = papermill.inspect_notebook(str(path))
     return {
         name: {
@@ -97,6 +114,40 @@ def notebook_parameters(path: str | Path) -> dict[str, dict[str, Any]]:
         }
         for name, spec in info.items()
     }
+
+
+def _plain_parameters(source: str) -> dict[str, dict[str, Any]] | None:
+    """:func:`notebook_parameters` of a cell whose statements are all one-line assignments to
+    a name (``NAME: type = value  # help`` or ``NAME = value  # help``); ``None`` for any
+    other cell (a syntax error, a statement over several lines, a ``# type:`` comment)."""
+    import io
+    import tokenize
+
+    try:
+        tree = ast.parse(source)
+        tokens = list(tokenize.generate_tokens(io.StringIO(source).readline))
+    except (SyntaxError, tokenize.TokenError):
+        return None
+    comments = {t.start[0]: t.string for t in tokens if t.type == tokenize.COMMENT}
+    lines = source.splitlines()
+    out: dict[str, dict[str, Any]] = {}
+    for node in tree.body:
+        if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) \
+                and node.value is not None:
+            name, kind = node.target.id, ast.unparse(node.annotation)
+        elif isinstance(node, ast.Assign) and len(node.targets) == 1 \
+                and isinstance(node.targets[0], ast.Name):
+            name, kind = node.targets[0].id, "None"
+        else:
+            return None
+        if node.end_lineno != node.lineno or lines[node.lineno - 1].count("=") != 1:
+            return None
+        comment = comments.get(node.lineno, "#")[1:].strip()
+        if comment.startswith("type:"):
+            return None
+        out[name] = {"default": ast.get_source_segment(source, node.value), "type": kind,
+                     "help": comment}
+    return out
 
 
 _TYPES = {"int": (int,), "float": (int, float), "bool": (bool,), "str": (str,)}

@@ -9,6 +9,9 @@ exactly a parameter (``-p months 5``, ``-p P_Bar 1.0``) is an error naming the c
 from __future__ import annotations
 
 import ast
+import json
+import subprocess
+import sys
 
 import nbref
 import papermill
@@ -165,3 +168,66 @@ def test_papermill_with_a_lower_case_name_fails_in_the_check_cell(tmp_path, monk
                                    parameters={"months": 1, "DAYS": 1}, kernel_name="python3",
                                    cwd=str(tmp_path), progress_bar=False)
     assert "did you mean 'MONTHS' for 'months'" in str(info.value)
+
+
+# -- reading the parameters cell without papermill ----------------------------------------
+def _papermill_view(path) -> dict:
+    return {name: {"default": spec["default"], "type": spec["inferred_type_name"],
+                   "help": spec["help"]}
+            for name, spec in papermill.inspect_notebook(str(path)).items()}
+
+
+@pytest.mark.parametrize("stem", STEMS)
+def test_the_parameters_read_in_the_kernel_are_papermills(stem):
+    """``notebook_parameters`` reads plain cells itself (no papermill import in the kernel);
+    the answer is papermill's, names in the same order."""
+    ours = notebook_parameters(nbref.notebook_path(stem))
+    theirs = _papermill_view(nbref.notebook_path(stem))
+    assert ours == theirs
+    assert list(ours) == list(theirs)
+
+
+def _notebook_with(tmp_path, source: str):
+    cell = {"cell_type": "code", "execution_count": None, "id": "p", "outputs": [],
+            "metadata": {"tags": ["parameters"]}, "source": source}
+    nb = {"cells": [cell], "metadata": {"kernelspec": {"name": "python3",
+                                                      "language": "python"}},
+          "nbformat": 4, "nbformat_minor": 5}
+    path = tmp_path / "nb.ipynb"
+    path.write_text(json.dumps(nb))
+    return path
+
+
+@pytest.mark.parametrize("source", [
+    'A: int = 3  # three\nB = "x=y"  # a string with an equals sign\nC: float = 1e-4\n',
+    'A = 1\nD = {\n    "k": 2,  # inner\n}  # a dict over lines\n',
+    'A = 1  # type: int\n',
+    'A = 1\nprint(A)\n',
+    'A = (\n',
+    '',
+])
+def test_cells_it_cannot_read_plainly_go_to_papermill_with_the_same_answer(tmp_path, source):
+    path = _notebook_with(tmp_path, source)
+    assert notebook_parameters(path) == _papermill_view(path)
+
+
+def test_a_plain_cell_is_read_without_papermill(tmp_path):
+    from mpcrl_lite.publish import report
+
+    assert report._plain_parameters('A: int = 3  # three\nB = 1.5\n') == {
+        "A": {"default": "3", "type": "int", "help": "three"},
+        "B": {"default": "1.5", "type": "None", "help": ""},
+    }
+    for odd in ('D = {\n  "k": 2,\n}\n', 'A = 1  # type: int\n', 'print(1)\n', 'A = (\n',
+                'B = "x=y"\n'):
+        assert report._plain_parameters(odd) is None, odd
+
+
+def test_the_check_cell_does_not_import_papermill():
+    code = ("import sys\n"
+            "from mpcrl_lite.publish.report import check_parameters\n"
+            f"check_parameters({{'MONTHS': 2}}, '{STEM}.ipynb')\n"
+            "print(sorted(m for m in ('papermill', 'nbformat', 'jsonschema') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr
