@@ -11,7 +11,9 @@
   share, with checkpoints and resume;
 - :mod:`~mpcrl_lite.learning.rundir`: the durable run directory;
 - :mod:`~mpcrl_lite.learning.history`: a run's results as data;
-- :mod:`~mpcrl_lite.learning.experiment`: the centralized learning experiment.
+- :mod:`~mpcrl_lite.learning.experiment`: the centralized learning experiment;
+- :mod:`~mpcrl_lite.learning.eval_worker`: its evaluations in a second process, beside the
+  months.
 
 May import: :mod:`mpcrl_lite.sim` and below.
 """

@@ -39,10 +39,12 @@ them.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Future
 from typing import Any
 
 import numpy as np
@@ -58,6 +60,7 @@ from ..system.prices import Prices
 from ..theta import Theta
 from .checkpoint import parse_theta
 from .dpg import DPGUpdater
+from .eval_worker import EvaluationWorker, worth_a_worker
 from .history import History
 from .learner import Learner, resolve_setup
 from .outdir import RunDirError
@@ -124,6 +127,9 @@ class Experiment(Learner):
         self._pathwise: tuple[MonthRecord, PathwiseGradient] | None = None
         self.history = History(self.system, self.mpc_config, self.learning, backend=self.solver.name)
         self.history.prices_origin = dict(getattr(self.prices, "origin", {}) or {})
+        # evaluations out in the worker process: (month, theta, future), oldest first
+        self._worker: EvaluationWorker | None = None
+        self._pending: list[tuple[int, Theta, Future]] = []
 
     # -- one learning step ----------------------------------------------------------------
     def learning_step(self, record: MonthRecord) -> tuple[np.ndarray, int, dict[str, Any]]:
@@ -209,9 +215,90 @@ class Experiment(Learner):
                 "exploration_margin": self.learning.exploration_margin}
 
     def begin_month(self) -> Theta:
-        """The theta of the coming month, with the back-end it needs."""
+        """The theta of the coming month, with the back-end it needs (its evaluation, when
+        due, starts now in the worker process of :meth:`evaluations_alongside`)."""
         self._check_solver(self.theta)
+        month = self.history.months
+        if self._worker is not None and self.evaluation_due(month) \
+                and self.solver.name == "kernel" and self.theta.is_convex():
+            try:
+                future = self._worker.submit(self.theta)
+            except Exception as err:  # noqa: BLE001 (e.g. no process could be started)
+                log.warning("no evaluation in a worker process (%s): evaluating here", err)
+                self._stop_worker()
+            else:
+                self._pending.append((month, self.theta, future))
         return self.theta
+
+    # -- evaluations beside the months (mpcrl_lite.learning.eval_worker) ----------------------
+    #: Evaluate in a worker process while the months run (:meth:`evaluations_alongside`):
+    #: ``None`` where it pays (:func:`~mpcrl_lite.learning.eval_worker.worth_a_worker`),
+    #: ``False`` never, ``True`` whenever the compiled back-end runs. The results are the same.
+    eval_worker: bool | None = None
+
+    @contextlib.contextmanager
+    def evaluations_alongside(self, months: int) -> Iterator[None]:
+        """The month loop's context (:func:`~mpcrl_lite.learning.learner.run_months`, up to
+        ``months`` months): evaluations a stopped run still lacks are made first
+        (:meth:`catch_up_evaluations`); then, where it pays, a worker process evaluates each
+        due month's theta while this process runs the months on one thread."""
+        self.catch_up_evaluations()
+        ahead = sum(self.evaluation_due(m) for m in range(self.history.months, months))
+        use = self.eval_worker
+        if use is None:
+            use = not self.callbacks and worth_a_worker(self.learning, ahead,
+                                                        self.solver.name)
+        same_evaluation = type(self).evaluate is Experiment.evaluate  # what the worker runs
+        if not (use and ahead and same_evaluation and self.solver.name == "kernel"):
+            yield
+            return
+        self._worker = EvaluationWorker(self.system, self.mpc_config, self.prices,
+                                        self.learning)
+        solver, threads = self.solver, self.solver.threads
+        solver.threads = 1  # the worker's evaluations take the other core
+        self._restore_threads = lambda: setattr(solver, "threads", threads)
+        try:
+            yield
+        except BaseException:
+            self._pending.clear()  # a run stopped here evaluates them when resumed
+            self._stop_worker(wait=False)
+            raise
+        self._stop_worker()  # idle: every evaluation was collected
+
+    def collect_evaluations(self, wait: bool = False) -> None:
+        """Record the evaluations that came back from the worker, in the order of the months
+        (all of them, waiting, with ``wait``). One that failed there is made here."""
+        while self._pending and (wait or self._pending[0][2].done()):
+            month, theta, future = self._pending.pop(0)
+            try:
+                evaluation = future.result()
+            except Exception as err:  # noqa: BLE001 (the same evaluation here raises its own)
+                if self._worker is not None:  # (the later ones were cancelled with it)
+                    log.warning("the evaluation of month %d failed in the worker process "
+                                "(%s); evaluating here from now on", month, err)
+                    self._stop_worker(wait=False)
+                evaluation = self.evaluate(theta)
+            self.history.append_evaluation(month, evaluation, draws=self.learning.eval_draws)
+
+    def _stop_worker(self, wait: bool = True) -> None:
+        """Stop the worker (the months to come evaluate here; ``wait`` for its process to
+        end) and give the months their threads back."""
+        if self._worker is not None:
+            self._worker.close(wait)
+            self._worker = None
+            self._restore_threads()
+
+    def catch_up_evaluations(self) -> None:
+        """Evaluate the due months the history lacks (a run committed while their
+        evaluations were out, then stopped), in order, with the theta they ran with."""
+        done = set(self.history.eval_month)
+        last = max(done, default=-1)
+        for month in range(last + 1, self.history.months):
+            if self.evaluation_due(month) and month not in done:
+                theta = Theta.from_vector(np.asarray(self.history.theta[month], dtype=float),
+                                          self.system.n)
+                self.history.append_evaluation(month, self.evaluate(theta),
+                                               draws=self.learning.eval_draws)
 
     def run_one_month(self) -> MonthRecord:
         """Simulate one month with the current theta and update it (and evaluate the
@@ -260,8 +347,10 @@ class Experiment(Learner):
         info = plain(info)  # as it reads back from history.json (no NaN: null)
         record.grad_pi = None  # large; not kept in the history
         wall_time = time.perf_counter() - t0
-        if self.evaluation_due(month):
+        out_in_worker = any(m == month for m, _, _ in self._pending)
+        if self.evaluation_due(month) and not out_in_worker:
             t1 = time.perf_counter()
+            self.collect_evaluations(wait=True)  # the months before first
             if evaluation is None:
                 evaluation = self.evaluate(theta_used)
             self.history.append_evaluation(month, evaluation, draws=self.learning.eval_draws)

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from contextlib import ExitStack
+from contextlib import AbstractContextManager, ExitStack, nullcontext
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -134,9 +134,12 @@ def _run_months(learner, months, out, resume, progress, desc, force, adopt) -> H
     bar = tqdm(total=months, initial=min(history.months, months), desc=desc, unit="month",
                disable=not progress)
     try:
-        with bar, threadpool_limits(limits=BLAS_THREADS):
+        with bar, threadpool_limits(limits=BLAS_THREADS), learner.evaluations_alongside(months):
             while learner.history.months < months:
                 learner.run_one_month()
+                # evaluations made beside the months are recorded as they come; the last
+                # month waits for all of them
+                learner.collect_evaluations(wait=learner.history.months >= months)
                 history = learner.history
                 postfix = {"J": f"{history.J[-1]:.1f}"}
                 if history.J_eval:
@@ -223,6 +226,15 @@ class Learner(Checkpointing):
         ``where``) and return a function that applies it; nothing changes before that
         function is called."""
         raise NotImplementedError
+
+    def evaluations_alongside(self, months: int) -> AbstractContextManager[None]:
+        """The context of :func:`run_months`' loop up to ``months`` months (the centralized
+        experiment evaluates in a worker process there, where it pays); nothing here."""
+        return nullcontext()
+
+    def collect_evaluations(self, wait: bool = False) -> None:
+        """Record the evaluations made beside the months (see :meth:`evaluations_alongside`);
+        nothing here."""
 
     # -- the run --------------------------------------------------------------------------
     def run(

@@ -25,7 +25,7 @@ import datetime as _dt
 import itertools
 import warnings
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from functools import lru_cache
 from pathlib import Path
 from types import MappingProxyType
@@ -220,6 +220,13 @@ class Prices:
         for name in ("unit", "source"):
             check_instance(name, getattr(self, name), str)
         object.__setattr__(self, "origin", MappingProxyType(dict(self.origin)))
+
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        """Pickled through the constructor (``origin`` as a plain dict: a read-only mapping
+        does not pickle), so prices reach a worker process started with ``spawn`` too."""
+        values = tuple(dict(self.origin) if f.name == "origin" else getattr(self, f.name)
+                       for f in fields(self))
+        return (type(self), values)
 
     def __repr__(self) -> str:
         return (

@@ -123,3 +123,22 @@ def test_learn_refuses_a_directory_holding_a_checkpoint(tmp_path, capsys):
     (tmp_path / CHECKPOINT).write_text("{}")
     assert main(["learn", "--months", "1", "--out", str(tmp_path), "--quiet"]) == 2
     assert "already holds a run (checkpoint.json); pass --resume" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("flag, expected", [([], None), (["--eval-here"], False)])
+def test_learn_eval_here_keeps_the_evaluations_in_the_process(flag, expected, tmp_path,
+                                                               monkeypatch):
+    from mpcrl_lite.learning.experiment import Experiment
+
+    seen = []
+    real_run = Experiment.run
+
+    def spy(self, *args, **kwargs):
+        seen.append(self.eval_worker)
+        return real_run(self, *args, **kwargs)
+
+    monkeypatch.setattr(Experiment, "run", spy)
+    argv = ["learn", "--months", "1", "--days", "1", "--out", str(tmp_path / "run"), "--quiet",
+            "--no-figures", *flag]
+    assert main(argv) == 0
+    assert seen == [expected]

@@ -679,3 +679,20 @@ def test_real_export_matches_the_shipped_profile(real_trheim):
     assert corr > 0.97
     prices = Prices.from_series(real_trheim, "2020-11-01", 30)
     assert prices.buy.min() == pytest.approx(2.89)
+
+
+def test_prices_pickle_with_their_origin():
+    """Worker processes started with ``spawn`` (the evaluation worker; ``tune --workers`` where
+    spawn is the default) receive prices pickled."""
+    import pickle
+
+    prices = Prices(np.full((2, 24), 30.0), origin={"file": "x.csv", "days": 2})
+    assert prices.origin  # a read-only mapping, which pickle refuses as such
+    back = pickle.loads(pickle.dumps(prices))
+    assert type(back) is Prices
+    np.testing.assert_array_equal(back.buy, prices.buy)
+    assert (back.sell_ratio, back.unit, back.source) == (prices.sell_ratio, prices.unit,
+                                                         prices.source)
+    assert dict(back.origin) == dict(prices.origin)
+    with pytest.raises(TypeError):
+        back.origin["days"] = 1  # read-only again

@@ -84,6 +84,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--eval-draws", type=_a.positive_int, default=None,
                    help=f"noise draws of each evaluation (default {_a.LEARNING.eval_draws}; "
                         "runs from before the option were evaluated on 1)")
+    p.add_argument("--eval-here", action="store_true",
+                   help="evaluate in this process, never in a second one (by default, with "
+                        "two cores and long evaluations, a worker process evaluates each "
+                        "month's theta while the months run: the same results, sooner)")
     p.add_argument("--decentralized", action="store_true",
                    help="one MPC and one learner per battery; the MPCs are coordinated on the "
                         "grid limit by per-stage grid prices found with a decomposed Newton "
@@ -256,6 +260,8 @@ def _learn(args, out, system, mpc_config, learning, prices) -> int:
         exp = QLearningExperiment(system, mpc_config, learning, prices=prices)
     else:
         exp = Experiment(system, mpc_config, learning, prices=prices)
+    if args.eval_here:
+        exp.eval_worker = False
     try:
         # a run found in --out is verified before any month runs
         history = exp.run(months=args.months, out=out, resume=args.resume,
