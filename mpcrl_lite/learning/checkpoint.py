@@ -81,6 +81,7 @@ def open_run(learner: Checkpointing, months: int | None, out: str | Path | None,
                 log.warning("adopting %s: a run without %s, resumed unverified (its files "
                             "are only checked against each other)", out, rundir.MANIFEST)
             learner.load_checkpoint(out)
+            learner.after_resume()
             if not found.manifest:  # a run of the previous format: committed in this one
                 learner.save_checkpoint(out)
         elif resume:
@@ -208,6 +209,10 @@ class Checkpointing:
         commit, history, lengths = pending
         manifest = commit.result()
         self._last_commit = (commit.directory, history, manifest, lengths)
+
+    def after_resume(self) -> None:
+        """What a resumed run makes before its next month (nothing here; the centralized
+        experiment evaluates the months whose evaluations were still out when it stopped)."""
 
     def load_checkpoint(self, directory: str | Path) -> None:
         """Continue from the run in ``directory``; everything is verified before anything

@@ -242,7 +242,7 @@ class Experiment(Learner):
         ``months`` months): evaluations a stopped run still lacks are made first
         (:meth:`catch_up_evaluations`); then, where it pays, a worker process evaluates each
         due month's theta while this process runs the months on one thread."""
-        self.catch_up_evaluations()
+        self.catch_up_evaluations()  # (done by a resume already: a no-op then)
         ahead = sum(self.evaluation_due(m) for m in range(self.history.months, months))
         use = self.eval_worker
         if use is None:
@@ -287,6 +287,10 @@ class Experiment(Learner):
             self._worker.close(wait)
             self._worker = None
             self._restore_threads()
+
+    def after_resume(self) -> None:
+        """Make the evaluations the resumed run lacks (:meth:`catch_up_evaluations`)."""
+        self.catch_up_evaluations()
 
     def catch_up_evaluations(self) -> None:
         """Evaluate the due months the history lacks (a run committed while their

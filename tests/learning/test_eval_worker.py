@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 from concurrent.futures import Future
 
 import pytest
@@ -16,6 +17,7 @@ from mpcrl_lite._util import jsonio
 from mpcrl_lite.learning import eval_worker
 from mpcrl_lite.learning.experiment import Experiment
 from mpcrl_lite.learning.history import History
+from mpcrl_lite.studies.lockstep import run_lockstep
 
 SMALL = SystemConfig(N=6)
 LEARNING = LearningConfig(days_per_month=4, months=5, eval_every=2, eval_draws=3, seed=11)
@@ -76,10 +78,16 @@ def test_a_run_stopped_with_evaluations_out_resumes_to_the_same_results(in_proce
         del getattr(experiment.history, name)[:]
     experiment.save_checkpoint(out)
     assert History.load(out).months == 4 and History.load(out).eval_month == []
+    lockstep_copy = tmp_path / "lockstep"
+    shutil.copytree(out, lockstep_copy)
     resumed = run(True, out=out, resume=True)
     assert resumed.history.eval_month == [0, 2, 4]
     assert results(resumed.history) == results(in_process.history)
     assert results(History.load(out)) == results(in_process.history)
+    # a study resumes the same directory in lockstep to the same results
+    [history] = run_lockstep([Experiment(SMALL, learning=LEARNING)], outs=[lockstep_copy],
+                             resume=True)
+    assert results(history) == results(in_process.history)
 
 
 def test_an_evaluation_that_fails_in_the_worker_is_made_here(in_process, monkeypatch, caplog):
