@@ -8,6 +8,11 @@ stored values through :func:`mpcrl_lite.bounds.causal.table.stored_bound` instea
 DP on every run. ``tests/bounds/test_causal_table.py`` solves some days again and compares.
 
     PYTHONPATH=$PWD python tools/make_causal_table.py            # the notebooks' systems
+    PYTHONPATH=$PWD python tools/make_causal_table.py --sites    # their sites (notebook 06)
+
+``--sites`` writes ``data/causal_j_star_sites.csv`` instead: J* of every day for the sites of
+:data:`SITES` (systems with batteries of their own), keyed by
+:func:`mpcrl_lite.bounds.causal.table.site_key`.
 """
 
 from __future__ import annotations
@@ -24,41 +29,22 @@ import numpy as np
 
 from mpcrl_lite import __version__
 from mpcrl_lite.bounds.causal.dp import causal_optimum
-from mpcrl_lite.bounds.causal.table import TABLE_CSV
+from mpcrl_lite.bounds.causal.table import SITES_CSV, TABLE_CSV, site_key
 from mpcrl_lite.config import SystemConfig
 from mpcrl_lite.system.prices import DATA_DIR, Prices
 
 #: (P_bar, noise variance) of notebook 07's default grid; (1.5, 0.5) is the paper's system.
 SYSTEMS = [(p, v) for p in (1.0, 1.5, 2.0) for v in (0.2, 0.5)]
+#: The sites of the notebooks (name: system): notebook 06's mixed site (section 4, its
+#: default ``P_BAR``).
+SITES = {"notebook 06, mixed site": SystemConfig(alpha=(1 / 24, 1 / 12, 1 / 12),
+                                                 noise_var=(1.0, 0.5, 0.5), P_bar=1.5)}
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=DATA_DIR)
-    parser.add_argument("--grid", type=int, default=41)
-    parser.add_argument("--action-step", type=float, default=0.1)
-    args = parser.parse_args()
-    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
-                            check=False).stdout.strip() or "unknown"
-    rows, runs = [], []
-    for P_bar, noise_var in SYSTEMS:
-        system = SystemConfig(P_bar=P_bar, noise_var=noise_var)
-        prices = Prices.default(system)
-        t0, c0 = time.perf_counter(), time.process_time()
-        bound = causal_optimum(system, prices, grid=args.grid, action_step=args.action_step,
-                               keep_values=False)
-        runs.append({"P_bar": P_bar, "noise_var": noise_var, "J_star": bound.J_star,
-                     "wall_s": round(time.perf_counter() - t0, 1),
-                     "cpu_s": round(time.process_time() - c0, 1), **bound.info})
-        print(runs[-1], flush=True)
-        rows += [f"{P_bar!r},{noise_var!r},{args.grid},{args.action_step!r},{d},{j!r}"
-                 for d, j in enumerate(np.asarray(bound.J_star_per_day).tolist())]
+def _provenance_header(what: str, function: str, commit: str, runs: list) -> str:
     provenance = {
-        "what": "J* of every day (V_0(soc0) of the coupled causal DP, NOK/day) for the systems "
-                "SystemConfig(P_bar=..., noise_var=...) with all other fields at their defaults, "
-                "on the days of Prices.default(system)",
-        "function": "mpcrl_lite.bounds.causal.dp.causal_optimum(system, Prices.default(system), "
-                    f"grid={args.grid}, action_step={args.action_step}, keep_values=False)",
+        "what": what,
+        "function": function,
         "tool": "tools/make_causal_table.py",
         "commit": commit,
         "mpcrl_lite": __version__,
@@ -68,10 +54,66 @@ def main() -> None:
         "system_defaults": SystemConfig().to_dict(),
         "runs": runs,
     }
-    header = "".join(f"# {key}: {json.dumps(value)}\n" for key, value in provenance.items())
-    (args.out / TABLE_CSV).write_text(header + "P_bar,noise_var,grid,action_step,day,J_star\n"
+    return "".join(f"# {key}: {json.dumps(value)}\n" for key, value in provenance.items())
+
+
+def _solve(system: SystemConfig, args: argparse.Namespace) -> tuple[dict, list[float]]:
+    t0, c0 = time.perf_counter(), time.process_time()
+    bound = causal_optimum(system, Prices.default(system), grid=args.grid,
+                           action_step=args.action_step, keep_values=False)
+    run = {"J_star": bound.J_star, "wall_s": round(time.perf_counter() - t0, 1),
+           "cpu_s": round(time.process_time() - c0, 1), **bound.info}
+    return run, np.asarray(bound.J_star_per_day).tolist()
+
+
+def sites(args: argparse.Namespace, commit: str) -> None:
+    """``data/causal_j_star_sites.csv`` for :data:`SITES`."""
+    rows, runs = [], []
+    for name, system in SITES.items():
+        run, per_day = _solve(system, args)
+        runs.append({"site": name, "key": site_key(system), **run})
+        print(runs[-1], flush=True)
+        key = '"' + site_key(system).replace('"', '""') + '"'  # a CSV field with commas
+        rows += [f"{key},{args.grid},{args.action_step!r},{d},{j!r}"
+                 for d, j in enumerate(per_day)]
+    header = _provenance_header(
+        "J* of every day (V_0(soc0) of the coupled causal DP, NOK/day) for the notebooks' "
+        "sites, the systems of the key (the fields that differ from SystemConfig()), on the "
+        "days of Prices.default(system)",
+        "mpcrl_lite.bounds.causal.dp.causal_optimum(system, Prices.default(system), "
+        f"grid={args.grid}, action_step={args.action_step}, keep_values=False)", commit, runs)
+    (args.out / SITES_CSV).write_text(header + "site,grid,action_step,day,J_star\n"
                                       + "\n".join(rows) + "\n")
 
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=DATA_DIR)
+    parser.add_argument("--grid", type=int, default=41)
+    parser.add_argument("--action-step", type=float, default=0.1)
+    parser.add_argument("--sites", action="store_true",
+                        help=f"the sites of SITES into {SITES_CSV} instead")
+    args = parser.parse_args()
+    commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
+                            check=False).stdout.strip() or "unknown"
+    if args.sites:
+        sites(args, commit)
+        return
+    rows, runs = [], []
+    for P_bar, noise_var in SYSTEMS:
+        run, per_day = _solve(SystemConfig(P_bar=P_bar, noise_var=noise_var), args)
+        runs.append({"P_bar": P_bar, "noise_var": noise_var, **run})
+        print(runs[-1], flush=True)
+        rows += [f"{P_bar!r},{noise_var!r},{args.grid},{args.action_step!r},{d},{j!r}"
+                 for d, j in enumerate(per_day)]
+    header = _provenance_header(
+        "J* of every day (V_0(soc0) of the coupled causal DP, NOK/day) for the systems "
+        "SystemConfig(P_bar=..., noise_var=...) with all other fields at their defaults, "
+        "on the days of Prices.default(system)",
+        "mpcrl_lite.bounds.causal.dp.causal_optimum(system, Prices.default(system), "
+        f"grid={args.grid}, action_step={args.action_step}, keep_values=False)", commit, runs)
+    (args.out / TABLE_CSV).write_text(header + "P_bar,noise_var,grid,action_step,day,J_star\n"
+                                      + "\n".join(rows) + "\n")
 
 if __name__ == "__main__":
     main()

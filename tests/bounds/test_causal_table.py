@@ -3,6 +3,7 @@ where it applies, and a bound read from it measures policies like a solved one."
 
 from __future__ import annotations
 
+import json
 import warnings
 
 import numpy as np
@@ -10,7 +11,13 @@ import pytest
 
 from mpcrl_lite.bounds.baselines import evaluate_baselines
 from mpcrl_lite.bounds.causal.dp import causal_optimum
-from mpcrl_lite.bounds.causal.table import causal_bound, provenance, stored_bound
+from mpcrl_lite.bounds.causal.table import (
+    SITES_CSV,
+    causal_bound,
+    provenance,
+    site_key,
+    stored_bound,
+)
 from mpcrl_lite.config import ConfigWarning, MPCConfig, SystemConfig
 from mpcrl_lite.system.prices import Prices
 
@@ -76,3 +83,37 @@ def test_a_stored_bound_measures_policies_without_a_dp_policy_row():
     assert causal["regret"]["nominal"] > 0 and causal["gap_closed"]["nominal"] == 0.0
     with pytest.raises(ValueError, match="value tables"):
         bound.policy(days)
+
+
+# -- the notebooks' sites (data/causal_j_star_sites.csv) -----------------------------------
+#: Notebook 06's mixed site (section 4, default P_BAR).
+MIXED = SystemConfig(alpha=(1 / 24, 1 / 12, 1 / 12), noise_var=(1.0, 0.5, 0.5), P_bar=1.5)
+
+
+def test_the_sites_table_covers_notebook_06s_mixed_site():
+    bound = stored_bound(MIXED)
+    assert bound is not None and bound.info["source"] == f"data/{SITES_CSV}"
+    assert bound.J_star_per_day.shape == (30,) and np.all(np.isfinite(bound.J_star_per_day))
+    [run] = [r for r in provenance(SITES_CSV)["runs"] if r["key"] == site_key(MIXED)]
+    assert np.isclose(run["J_star"], bound.J_star, rtol=1e-12)
+    # the notebook's call: the first DAYS days, read rather than solved
+    days = Prices.month(MIXED, 30)
+    assert causal_bound(MIXED, days).info["source"] == f"data/{SITES_CSV}"
+    # the same site with another horizon N of the MPC is the same true system
+    assert stored_bound(MIXED.replace(N=6)) is not None
+    # one field different: not stored
+    assert stored_bound(MIXED.replace(P_bar=1.0)) is None
+
+
+def test_a_stored_site_day_is_what_the_dp_gives():
+    day = 11
+    solved = causal_optimum(MIXED, _one_day(MIXED, day), keep_values=False)
+    stored = stored_bound(MIXED).J_star_per_day[day]
+    assert solved.J_star_per_day[0] == pytest.approx(stored, rel=1e-10, abs=1e-9)
+
+
+def test_site_keys_name_the_fields_that_differ():
+    assert site_key(SystemConfig()) == "{}"
+    assert site_key(SystemConfig(N=6)) == "{}"  # the MPC's horizon is not the site's
+    key = json.loads(site_key(MIXED))
+    assert key == {"alpha": [1 / 24, 1 / 12, 1 / 12], "noise_var": [1.0, 0.5, 0.5]}

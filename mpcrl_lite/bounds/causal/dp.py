@@ -128,6 +128,7 @@ __all__ = [
     "CausalPolicy",
     "causal_optimum",
     "compare_with_optimum",
+    "dp_grid",
 ]
 
 #: Largest post-decision tensor the coupled DP builds (entries of 8 bytes).
@@ -485,13 +486,18 @@ def causal_optimum(
     buy, sell = day_prices(system, prices)
     if not isinstance(keep_values, bool):
         raise ValueError(f"keep_values={keep_values!r}: expected True or False")  # noqa: TRY004
+    system, soc_grid = dp_grid(system, grid, action_step)
+    return _solve(system, soc_grid, buy, sell, keep_values)
+
+
+def dp_grid(system: SystemConfig, grid: int = 41,
+            action_step: float = 0.1) -> tuple[SystemConfig, SocGrid | BatteryGrids]:
+    """The system the DP solves and its soc grid: identical batteries on the symmetric grid
+    (``system`` with scalar fields), batteries that differ one grid each."""
     same = _identical(system)
     if same is None:
-        soc_grid: SocGrid | BatteryGrids = BatteryGrids(system, grid, action_step)
-    else:
-        system = same
-        soc_grid = SocGrid(system, grid, action_step)
-    return _solve(system, soc_grid, buy, sell, keep_values)
+        return system, BatteryGrids(system, grid, action_step)
+    return same, SocGrid(same, grid, action_step)
 
 
 def _solve(system: SystemConfig, soc_grid: SocGrid | BatteryGrids, buy: np.ndarray,

@@ -9,6 +9,10 @@ field at its default) of notebook 07's grid. Its header lines (``# key: JSON val
 how, when and from which commit it was computed (``tools/make_causal_table.py``);
 ``tests/bounds/test_causal_table.py`` solves days again and compares.
 
+``data/causal_j_star_sites.csv`` does the same for other sites the notebooks use, whole
+systems with batteries of their own (notebook 06's mixed site: its coupled DP on a grid with
+fewer symmetries costs about 200 s of CPU), each row keyed by :func:`site_key`.
+
 :func:`causal_bound` returns the stored values when they cover the system, the prices and the
 grid asked for, and solves the DP otherwise, so a caller gets the same :class:`CausalBound`
 (without value tables) either way.
@@ -23,24 +27,37 @@ import pandas as pd
 
 from ...config import SystemConfig
 from ...system.prices import DATA_DIR, Prices
-from .dp import CausalBound, causal_optimum
-from .grid import SocGrid, day_prices, distinct_days
+from .dp import CausalBound, causal_optimum, dp_grid
+from .grid import day_prices, distinct_days
 
-__all__ = ["TABLE_CSV", "causal_bound", "provenance", "stored_bound"]
+__all__ = ["SITES_CSV", "TABLE_CSV", "causal_bound", "provenance", "site_key", "stored_bound"]
 
 #: File name in :data:`mpcrl_lite.system.prices.DATA_DIR`: header lines ``# key: JSON value`` (the
 #: provenance), then ``P_bar,noise_var,grid,action_step,day,J_star``.
 TABLE_CSV = "causal_j_star.csv"
+#: File name in :data:`~mpcrl_lite.system.prices.DATA_DIR` of the sites' table: header lines as
+#: above, then ``site,grid,action_step,day,J_star`` (``site`` from :func:`site_key`).
+SITES_CSV = "causal_j_star_sites.csv"
 
 
-def _table() -> pd.DataFrame | None:
-    path = DATA_DIR / TABLE_CSV
+def _table(name: str = TABLE_CSV) -> pd.DataFrame | None:
+    path = DATA_DIR / name
     return pd.read_csv(path, comment="#") if path.exists() else None
 
 
-def provenance() -> dict[str, Any]:
-    """How the stored table was computed (its header lines), ``{}`` without a table."""
-    path = DATA_DIR / TABLE_CSV
+def site_key(system: SystemConfig) -> str:
+    """The key of ``system`` in the sites' table: the fields in which it differs from
+    ``SystemConfig()``, as sorted JSON (the MPC's horizon ``N`` left out: J* does not depend
+    on it)."""
+    default = SystemConfig().to_dict()
+    return json.dumps({k: v for k, v in system.to_dict().items()
+                       if k != "N" and v != default[k]}, sort_keys=True)
+
+
+def provenance(name: str = TABLE_CSV) -> dict[str, Any]:
+    """How a stored table (``name``: :data:`TABLE_CSV` or :data:`SITES_CSV`) was computed (its
+    header lines), ``{}`` without a table."""
+    path = DATA_DIR / name
     if not path.exists():
         return {}
     info = {}
@@ -58,8 +75,10 @@ def stored_bound(
     """The stored J* as a :class:`CausalBound` without value tables, or None if not stored.
 
     Stored means: ``system`` differs from ``SystemConfig()`` in ``P_bar`` and ``noise_var``
-    at most (and in the MPC's horizon ``N``, which the true system and J* do not have), the table has that pair for ``grid`` and ``action_step``, and every day of
-    ``prices`` (default :meth:`Prices.default`) has the prices of one of the stored days.
+    at most (and in the MPC's horizon ``N``, which the true system and J* do not have) and
+    the table has that pair, or the sites' table has the system (:func:`site_key`), for
+    ``grid`` and ``action_step``; and every day of ``prices`` (default
+    :meth:`Prices.default`) has the prices of one of the stored days.
 
     Returns
     -------
@@ -70,28 +89,44 @@ def stored_bound(
     """
     if not isinstance(system, SystemConfig):
         raise ValueError(f"system={system!r}: expected a SystemConfig")  # noqa: TRY004
-    table = _table()
-    if isinstance(system.noise_var, tuple):  # the table has one noise variance per row
+    rows, source = _stored_rows(system, grid, action_step)
+    if rows is None:
         return None
-    # the MPC's horizon N is no part of the true system: J* does not depend on it
-    if table is None or system != SystemConfig(P_bar=system.P_bar, noise_var=system.noise_var,
-                                               N=system.N):
-        return None
-    rows = table[(table["P_bar"] == system.P_bar) & (table["noise_var"] == system.noise_var)
-                 & (table["grid"] == grid) & (table["action_step"] == action_step)]
     buy, sell = day_prices(system, Prices.default(system))
     if len(rows) != buy.shape[0] or list(rows["day"]) != list(range(buy.shape[0])):
         return None
     _, day_of = distinct_days(buy, sell)
-    bound = CausalBound(system, SocGrid(system, grid, action_step), buy, sell,
+    system, soc_grid = dp_grid(system, grid, action_step)
+    bound = CausalBound(system, soc_grid, buy, sell,
                         rows["J_star"].to_numpy(dtype=float), None, day_of, 0.0,
-                        {"distinct_days": int(day_of.max()) + 1, "source": f"data/{TABLE_CSV}"})
+                        {"distinct_days": int(day_of.max()) + 1, "source": f"data/{source}"})
     if prices is not None:
         try:
             bound.rows_for(prices)
         except ValueError:
             return None
     return bound
+
+
+def _stored_rows(system: SystemConfig, grid: int,
+                 action_step: float) -> tuple[pd.DataFrame | None, str]:
+    """The stored rows of ``system`` (either table) and the table's name."""
+    # the MPC's horizon N is no part of the true system: J* does not depend on it
+    table = _table()
+    if table is not None and not isinstance(system.noise_var, tuple) \
+            and system == SystemConfig(P_bar=system.P_bar, noise_var=system.noise_var,
+                                       N=system.N):
+        rows = table[(table["P_bar"] == system.P_bar) & (table["noise_var"] == system.noise_var)
+                     & (table["grid"] == grid) & (table["action_step"] == action_step)]
+        if len(rows):
+            return rows, TABLE_CSV
+    sites = _table(SITES_CSV)
+    if sites is not None:
+        rows = sites[(sites["site"] == site_key(system)) & (sites["grid"] == grid)
+                     & (sites["action_step"] == action_step)]
+        if len(rows):
+            return rows, SITES_CSV
+    return None, ""
 
 
 def causal_bound(
