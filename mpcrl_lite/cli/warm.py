@@ -15,7 +15,7 @@ import logging
 import time
 
 from ..decentralized import coordination_kernel
-from ..mpc.backends import kernel
+from ..mpc.backends import kernel, kernel_sizes
 from ..sim import exploration_kernel
 
 __all__ = ["main", "warm_up"]
@@ -27,9 +27,12 @@ def warm_up(verbose: bool = False) -> float:
     kernel.warm_up()
     exploration_kernel.ensure_compiled()
     coordination_kernel.ensure_compiled()
+    removed = kernel_sizes.prune()  # the copies of other versions, now that these are ready
     took = time.perf_counter() - t0
     if verbose:
         print(f"mpcrl_lite kernels ready in {took:.1f} s (cache: {kernel.cache_dir()})")
+        if removed:
+            print(f"removed {len(removed)} files of other versions' kernels")
     return took
 
 

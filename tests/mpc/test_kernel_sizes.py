@@ -143,3 +143,23 @@ def test_a_large_call_goes_to_numbas_threads_in_one_compiled_call(mpc, monkeypat
     solver._solve_parameters(P[:15], None)
     assert calls == [("solve_rows_parallel", (0, 17, 9)), ("sensitivity_rows_parallel", (0, 17, 9)),
                      ("solve_rows", (0, 15))]
+
+
+def test_prune_removes_other_versions_copies_and_their_compiled_code(tmp_path, monkeypatch):
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    folder = kernel_sizes._folder()
+    current = kernel_sizes._stem(3, 12)
+    cache = folder / "__pycache__"
+    cache.mkdir()
+    keep = [folder / f"{current}.py", cache / f"{current}.solve_rows-878.py311.nbi",
+            cache / f"{current}.solve_rows-878.py311.1.nbc", folder / "unrelated.txt"]
+    old = [folder / "kernel_core_n3_N12_000000000000.py",
+           cache / "kernel_core_n3_N12_000000000000.solve_rows-870.py311.nbi",
+           cache / "kernel_core_n3_N12_000000000000.solve_rows-870.py311.1.nbc",
+           folder / "kernel_core_n4_N6_111111111111.py"]  # sizes no longer specialised
+    for path in keep + old:
+        path.write_text("x")
+    removed = kernel_sizes.prune()
+    assert sorted(removed) == sorted(old)
+    assert all(p.exists() for p in keep) and not any(p.exists() for p in old)
+    assert kernel_sizes.prune() == []  # nothing left to remove

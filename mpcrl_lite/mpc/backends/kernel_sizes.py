@@ -18,6 +18,10 @@ file and numba's cache of it stays valid), and compiled into numba's cache like 
 kernels (``python -m mpcrl_lite.cli.warm`` does it ahead; about a minute).
 Other sizes use the generic kernels; so does a :class:`~mpcrl_lite.mpc.backends.kernel.
 KernelSolver` with ``specialise = False``.
+
+Copies of other versions of ``kernel_core.py`` (an earlier checkout, an upgrade) would stay in
+the folder with their compiled code, about 5 MB each; :func:`prune` removes them, and
+``python -m mpcrl_lite.cli.warm`` (``make setup``) calls it after compiling the current ones.
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ import threading
 from pathlib import Path
 from types import ModuleType
 
-__all__ = ["SPECIALISED_SIZES", "kernels", "source"]
+__all__ = ["SPECIALISED_SIZES", "kernels", "prune", "source"]
 
 #: the sizes ``(n, N)`` served by a specialised copy: the paper's three batteries and
 #: 12-hour horizon (the package's defaults)
@@ -92,12 +96,37 @@ def _write(path: Path, text: str, mtime: float) -> None:
     os.replace(tmp, path)
 
 
+def _stem(n: int, N: int) -> str:
+    """The file name (without ``.py``) of the copy for ``(n, N)`` of this version: named by
+    its text, copies of other versions of the package (another checkout, an upgrade) sit
+    beside it instead of overwriting it, and each keeps its numba cache."""
+    digest = hashlib.sha256(source(n, N).encode("utf-8")).hexdigest()[:12]
+    return f"kernel_core_n{int(n)}_N{int(N)}_{digest}"
+
+
+def prune() -> list[Path]:
+    """Remove the copies of other versions of the kernels from the cache folder, with their
+    compiled code in numba's cache (``__pycache__``); returns the files removed.
+
+    The copies of this version (:data:`SPECIALISED_SIZES`) stay. A process of another version
+    still running keeps the code it has loaded."""
+    folder = _folder()
+    keep = {_stem(n, N) for n, N in SPECIALISED_SIZES}
+    removed = []
+    for path in [*folder.glob("kernel_core_n*_N*_*.py"),
+                 *folder.glob("__pycache__/kernel_core_n*_N*_*.*")]:
+        if path.name.split(".")[0] not in keep:
+            try:
+                path.unlink()
+            except FileNotFoundError:  # another process pruned it first
+                continue
+            removed.append(path)
+    return removed
+
+
 def _load(n: int, N: int) -> ModuleType:
     text = source(n, N)
-    # named by its text: copies of other versions of the package (another checkout, an
-    # upgrade) sit beside it instead of overwriting it, and each keeps its numba cache
-    digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:12]
-    path = _folder() / f"kernel_core_n{n}_N{N}_{digest}.py"
+    path = _folder() / f"{_stem(n, N)}.py"
     _write(path, text, os.stat(_generic().__file__).st_mtime)
     name = f"{_GENERIC}_n{n}_N{N}"
     spec = importlib.util.spec_from_file_location(name, path)
