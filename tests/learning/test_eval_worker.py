@@ -123,9 +123,14 @@ def test_by_default_the_worker_serves_long_evaluations_of_runs_without_callbacks
     monkeypatch.setattr(eval_worker, "usable_cores", lambda: 2)
     run(None)  # 3 draws of 4 days: below MIN_EVAL_DAYS
     assert submitted == []
-    long = LEARNING.replace(eval_draws=25, eval_every=1, months=3)  # 100 days, 3 evaluations
+    # 100 days per evaluation, as many evaluations as it takes
+    long = LEARNING.replace(eval_draws=25, eval_every=1, months=eval_worker.MIN_EVALUATIONS)
     Experiment(SMALL, learning=long, callbacks=[lambda *a: None]).run(progress=False)
     assert submitted == []
     alone = Experiment(SMALL, learning=long)
     alone.run(progress=False)
-    assert len(submitted) == 3 and alone.history.eval_month == [0, 1, 2]
+    months = list(range(eval_worker.MIN_EVALUATIONS))
+    assert len(submitted) == len(months) and alone.history.eval_month == months
+    short = Experiment(SMALL, learning=long.replace(months=eval_worker.MIN_EVALUATIONS - 1))
+    short.run(progress=False)
+    assert len(submitted) == len(months)  # too few evaluations to pay for the worker
