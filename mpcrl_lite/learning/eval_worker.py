@@ -22,7 +22,13 @@ stopped at any point resumes to the results of an uninterrupted run. An evaluati
 in the worker (the worker process died, say) is run again in this process, which gives the
 same result or raises the same error, and the rest of the run evaluates here.
 
-When it pays (:func:`worth_a_worker`): two cores or more, the compiled back-end, at least
+A spawned process imports the program's main module again before it serves (as
+``__mp_main__``). A package's ``__main__`` (``python -m mpcrl_lite``), an interactive session, a
+notebook's kernel and a script that keeps its work under ``if __name__ == "__main__":`` are
+safe; a script without that guard would run again in the worker, so its runs evaluate in
+their own process (:func:`spawn_safe`).
+
+When it pays (:func:`worth_a_worker`): a spawn-safe program, two cores or more, the compiled back-end, at least
 :data:`MIN_EVAL_DAYS` days per evaluation (ten draws of 30 days: yes; one draw: no, the worker's
 start, about 1.5 s of CPU, would cost more than it saves) and at least
 :data:`MIN_EVALUATIONS` evaluations to come. Measured on two cores (``learn --months 100``,
@@ -33,8 +39,10 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import sys
 import threading
 from concurrent.futures import Future, ProcessPoolExecutor
+from pathlib import Path
 from typing import Any
 
 from ..config import LearningConfig, MPCConfig, SystemConfig
@@ -43,7 +51,8 @@ from ..sim.record import MonthRecord
 from ..system.prices import Prices
 from ..theta import Theta
 
-__all__ = ["MIN_EVALUATIONS", "MIN_EVAL_DAYS", "EvaluationWorker", "worth_a_worker"]
+__all__ = ["MIN_EVALUATIONS", "MIN_EVAL_DAYS", "EvaluationWorker", "spawn_safe",
+           "worth_a_worker"]
 
 #: Days of closed loop per evaluation (``eval_draws * days_per_month``) from which a run
 #: evaluates in a worker process.
@@ -82,6 +91,24 @@ def usable_cores() -> int:
         return os.cpu_count() or 1
 
 
+def spawn_safe() -> bool:
+    """Whether a spawned worker can start without running this program again: the main
+    module is a package's ``__main__`` (which spawn does not import again), absent (an
+    interactive session), or a file that names ``"__main__"`` (the usual guard of a script's
+    work)."""
+    main = sys.modules.get("__main__")
+    spec = getattr(main, "__spec__", None)
+    if spec is not None and (spec.name == "__main__" or spec.name.endswith(".__main__")):
+        return True
+    path = getattr(main, "__file__", None)
+    if path is None:
+        return True
+    try:
+        return "__main__" in Path(path).read_text(encoding="utf-8", errors="replace")
+    except OSError:
+        return False
+
+
 def worth_a_worker(learning: LearningConfig, evaluations_ahead: int, backend: str) -> bool:
     """Whether evaluating in a worker process pays (see the module docstring): ``backend``
     the name of the experiment's solver, ``evaluations_ahead`` the evaluations the run has
@@ -90,7 +117,7 @@ def worth_a_worker(learning: LearningConfig, evaluations_ahead: int, backend: st
             and multiprocessing.parent_process() is None
             and threading.current_thread() is threading.main_thread()
             and learning.eval_draws * learning.days_per_month >= MIN_EVAL_DAYS
-            and evaluations_ahead >= MIN_EVALUATIONS)
+            and evaluations_ahead >= MIN_EVALUATIONS and spawn_safe())
 
 
 class EvaluationWorker:

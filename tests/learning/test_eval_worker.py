@@ -8,6 +8,8 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+import sys
+import types
 from concurrent.futures import Future
 
 import pytest
@@ -134,3 +136,29 @@ def test_by_default_the_worker_serves_long_evaluations_of_runs_without_callbacks
     short = Experiment(SMALL, learning=long.replace(months=eval_worker.MIN_EVALUATIONS - 1))
     short.run(progress=False)
     assert len(submitted) == len(months)  # too few evaluations to pay for the worker
+
+
+def _main_module(monkeypatch, tmp_path, text: str | None, spec_name: str | None = None):
+    main = types.ModuleType("__main__")
+    if text is not None:
+        script = tmp_path / "script.py"
+        script.write_text(text)
+        main.__file__ = str(script)
+    main.__spec__ = None if spec_name is None else types.SimpleNamespace(name=spec_name)
+    monkeypatch.setitem(sys.modules, "__main__", main)
+
+
+def test_a_script_without_a_main_guard_evaluates_in_its_own_process(tmp_path, monkeypatch):
+    """A spawned worker imports the main module again: an unguarded script would run again."""
+    monkeypatch.setattr(eval_worker, "usable_cores", lambda: 2)
+    paper = LearningConfig()
+    _main_module(monkeypatch, tmp_path, "from mpcrl_lite import Experiment\nExperiment().run()\n")
+    assert not eval_worker.spawn_safe()
+    assert not eval_worker.worth_a_worker(paper, 21, "kernel")
+    _main_module(monkeypatch, tmp_path, "def main():\n    pass\n\n"
+                                        "if __name__ == \"__main__\":\n    main()\n")
+    assert eval_worker.spawn_safe() and eval_worker.worth_a_worker(paper, 21, "kernel")
+    _main_module(monkeypatch, tmp_path, None)  # an interactive session
+    assert eval_worker.spawn_safe()
+    _main_module(monkeypatch, tmp_path, "import sys\nsys.exit(1)\n", "mpcrl_lite.__main__")
+    assert eval_worker.spawn_safe()  # a package's __main__ is not imported again
