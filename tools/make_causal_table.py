@@ -66,24 +66,24 @@ def _solve(system: SystemConfig, args: argparse.Namespace) -> tuple[dict, list[f
     return run, np.asarray(bound.J_star_per_day).tolist()
 
 
-def sites(args: argparse.Namespace, commit: str) -> None:
-    """``data/causal_j_star_sites.csv`` for :data:`SITES`."""
+def write_table(name: str, columns: str, what: str, entries: list, args: argparse.Namespace,
+                commit: str) -> None:
+    """Solve every entry ``(fields, prefix, system)`` and write ``name`` in ``args.out``:
+    the provenance header, then ``columns`` and the rows ``prefix,grid,action_step,day,J_star``
+    (``fields`` describe the entry in the header's ``runs``)."""
     rows, runs = [], []
-    for name, system in SITES.items():
+    for fields, prefix, system in entries:
         run, per_day = _solve(system, args)
-        runs.append({"site": name, "key": site_key(system), **run})
+        runs.append({**fields, **run})
         print(runs[-1], flush=True)
-        key = '"' + site_key(system).replace('"', '""') + '"'  # a CSV field with commas
-        rows += [f"{key},{args.grid},{args.action_step!r},{d},{j!r}"
+        rows += [f"{prefix},{args.grid},{args.action_step!r},{d},{j!r}"
                  for d, j in enumerate(per_day)]
     header = _provenance_header(
-        "J* of every day (V_0(soc0) of the coupled causal DP, NOK/day) for the notebooks' "
-        "sites, the systems of the key (the fields that differ from SystemConfig()), on the "
-        "days of Prices.default(system)",
+        "J* of every day (V_0(soc0) of the coupled causal DP, NOK/day) for " + what
+        + ", on the days of Prices.default(system)",
         "mpcrl_lite.bounds.causal.dp.causal_optimum(system, Prices.default(system), "
         f"grid={args.grid}, action_step={args.action_step}, keep_values=False)", commit, runs)
-    (args.out / SITES_CSV).write_text(header + "site,grid,action_step,day,J_star\n"
-                                      + "\n".join(rows) + "\n")
+    (args.out / name).write_text(header + columns + "\n" + "\n".join(rows) + "\n")
 
 
 def main() -> None:
@@ -97,23 +97,20 @@ def main() -> None:
     commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
                             check=False).stdout.strip() or "unknown"
     if args.sites:
-        sites(args, commit)
+        # the key is JSON with commas: a quoted CSV field
+        entries = [({"site": name, "key": site_key(system)},
+                    '"' + site_key(system).replace('"', '""') + '"', system)
+                   for name, system in SITES.items()]
+        write_table(SITES_CSV, "site,grid,action_step,day,J_star",
+                    "the notebooks' sites, the systems of the key (the fields that differ "
+                    "from SystemConfig())", entries, args, commit)
         return
-    rows, runs = [], []
-    for P_bar, noise_var in SYSTEMS:
-        run, per_day = _solve(SystemConfig(P_bar=P_bar, noise_var=noise_var), args)
-        runs.append({"P_bar": P_bar, "noise_var": noise_var, **run})
-        print(runs[-1], flush=True)
-        rows += [f"{P_bar!r},{noise_var!r},{args.grid},{args.action_step!r},{d},{j!r}"
-                 for d, j in enumerate(per_day)]
-    header = _provenance_header(
-        "J* of every day (V_0(soc0) of the coupled causal DP, NOK/day) for the systems "
-        "SystemConfig(P_bar=..., noise_var=...) with all other fields at their defaults, "
-        "on the days of Prices.default(system)",
-        "mpcrl_lite.bounds.causal.dp.causal_optimum(system, Prices.default(system), "
-        f"grid={args.grid}, action_step={args.action_step}, keep_values=False)", commit, runs)
-    (args.out / TABLE_CSV).write_text(header + "P_bar,noise_var,grid,action_step,day,J_star\n"
-                                      + "\n".join(rows) + "\n")
+    entries = [({"P_bar": P_bar, "noise_var": noise_var}, f"{P_bar!r},{noise_var!r}",
+                SystemConfig(P_bar=P_bar, noise_var=noise_var)) for P_bar, noise_var in SYSTEMS]
+    write_table(TABLE_CSV, "P_bar,noise_var,grid,action_step,day,J_star",
+                "the systems SystemConfig(P_bar=..., noise_var=...) with all other fields at "
+                "their defaults", entries, args, commit)
+
 
 if __name__ == "__main__":
     main()
