@@ -8,7 +8,10 @@ from __future__ import annotations
 import json
 import logging
 import shutil
+import signal
+import subprocess
 import sys
+import time
 import types
 from concurrent.futures import Future
 
@@ -162,3 +165,31 @@ def test_a_script_without_a_main_guard_evaluates_in_its_own_process(tmp_path, mo
     assert eval_worker.spawn_safe()
     _main_module(monkeypatch, tmp_path, "import sys\nsys.exit(1)\n", "mpcrl_lite.__main__")
     assert eval_worker.spawn_safe()  # a package's __main__ is not imported again
+
+
+def test_the_worker_ends_when_its_run_is_killed():
+    """A run killed outright (SIGKILL) leaves no worker process behind."""
+    psutil = pytest.importorskip("psutil")  # (installed with dask's distributed)
+    code = ("from mpcrl_lite import Experiment, LearningConfig, SystemConfig\n"
+            "e = Experiment(SystemConfig(N=6), learning=LearningConfig(days_per_month=4, "
+            "months=500, eval_every=1, eval_draws=3))\n"
+            "e.eval_worker = True\n"
+            "e.run(progress=False)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    try:
+        parent = psutil.Process(proc.pid)
+        deadline = time.monotonic() + 120
+        workers = []
+        while not workers and time.monotonic() < deadline and proc.poll() is None:
+            workers = [p for p in parent.children()
+                       if "spawn_main" in " ".join(p.cmdline())]
+            time.sleep(0.1)
+        assert workers, "no worker process was started"
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        _, alive = psutil.wait_procs(workers, timeout=20)
+        assert alive == [], f"worker processes outlived their run: {alive}"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
