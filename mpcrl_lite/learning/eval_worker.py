@@ -46,6 +46,7 @@ from concurrent.futures import Future, ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from .._util.workers import end_with_parent
 from ..config import LearningConfig, MPCConfig, SystemConfig
 from ..sim.closed_loop import evaluate_mpc
 from ..sim.record import MonthRecord
@@ -72,19 +73,11 @@ def _start(system: SystemConfig, mpc_config: MPCConfig, prices: Prices, seed: in
     from ..mpc.backends.registry import make_solver
     from ..mpc.formulation import MPC
 
-    parent = multiprocessing.parent_process()
-    if parent is not None:  # a parent killed outright would leave the worker waiting forever
-        threading.Thread(target=_end_with, args=(parent,), daemon=True).start()
+    end_with_parent()  # a run killed outright must not leave its worker waiting for ever
     # one thread (the kernel solver's default in a worker process): the other core is the
     # months'
     _STATE.update(system=system, prices=prices, seed=seed, draws=draws,
                   solver=make_solver(MPC(system), mpc_config))
-
-
-def _end_with(parent: Any) -> None:
-    """End this worker once its parent process has ended."""
-    parent.join()
-    os._exit(0)
 
 
 def _evaluate(theta: Theta) -> MonthRecord:

@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import multiprocessing
 import os
 import pickle
 import time
@@ -60,6 +61,7 @@ import numpy as np
 
 from .._util.stats import mean_ci
 from .._util.validate import check_instance, check_int, check_real
+from .._util.workers import end_with_parent
 from ..config import LearningConfig, MPCConfig, SystemConfig, policy_class_of
 from ..learning import durable, outdir
 from ..mpc.backends.registry import make_solver
@@ -171,6 +173,8 @@ _WORKER: dict[str, Any] = {}
 
 
 def _worker_init(system: SystemConfig, mpc_config: MPCConfig, prices: Prices) -> None:
+    if multiprocessing.parent_process() is not None:  # a pool's worker, not this process
+        end_with_parent()  # a search killed outright must not leave its workers behind
     _WORKER.update(system=system, mpc_config=mpc_config, prices=prices,
                    solver=make_solver(MPC(system), mpc_config))
 

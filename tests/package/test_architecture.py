@@ -41,7 +41,7 @@ LAYERS: list[set[str]] = [
 #: its own subpackage (never from its own entry: modules side by side are independent).
 SUBLAYERS: dict[str, list[set[str]]] = {
     "_util": [{"budget", "gym_registration", "jit", "jsonio", "lazy", "resources", "references",
-               "stats", "threads", "validate", "version"}],
+               "stats", "threads", "validate", "version", "workers"}],
     "system": [{"price_files", "battery"}, {"prices"}, {"forecast"}],
     "system.price_files": [{"areas", "series"},
                            {"currency", "detect", "energidataservice", "entsoe", "entsoe_legacy",
