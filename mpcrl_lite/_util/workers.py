@@ -10,6 +10,7 @@ in a pool's initializer (the evaluation worker of :mod:`mpcrl_lite.learning.eval
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 import threading
 import time
@@ -20,8 +21,11 @@ __all__ = ["end_with_parent"]
 def end_with_parent(poll_s: float = 0.5) -> None:
     """In a worker process: end it (``os._exit``) once its parent process has ended, checked
     every ``poll_s`` seconds by a daemon thread (the parent is gone when this process has been
-    handed to another one: its parent id changes)."""
-    parent = os.getppid()
+    handed to another one: its parent id changes). The parent is the one multiprocessing
+    started the worker from, so a parent that died while the worker was still starting counts
+    too."""
+    started_by = multiprocessing.parent_process()
+    parent = started_by.pid if started_by is not None else os.getppid()
 
     def watch() -> None:
         while os.getppid() == parent:
