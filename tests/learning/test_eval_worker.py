@@ -15,6 +15,7 @@ import time
 import types
 from concurrent.futures import Future
 
+import psutil
 import pytest
 
 from mpcrl_lite import LearningConfig, SystemConfig
@@ -169,7 +170,6 @@ def test_a_script_without_a_main_guard_evaluates_in_its_own_process(tmp_path, mo
 
 def test_the_worker_ends_when_its_run_is_killed():
     """A run killed outright (SIGKILL) leaves no worker process behind."""
-    psutil = pytest.importorskip("psutil")  # (installed with dask's distributed)
     code = ("from mpcrl_lite import Experiment, LearningConfig, SystemConfig\n"
             "e = Experiment(SystemConfig(N=6), learning=LearningConfig(days_per_month=4, "
             "months=500, eval_every=1, eval_draws=3))\n"

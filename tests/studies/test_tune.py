@@ -177,7 +177,7 @@ def test_a_search_killed_outright_leaves_no_worker_behind(tmp_path):
     import sys
     import time
 
-    psutil = pytest.importorskip("psutil")  # (installed with dask's distributed)
+    import psutil
     proc = subprocess.Popen([sys.executable, "-m", "mpcrl_lite", "tune", "--out",
                              str(tmp_path / "best"), "--evals", "400", "--draws", "2",
                              "--heldout-draws", "2", "--days", "2", "--workers", "2", "--quiet"],
