@@ -231,6 +231,33 @@ def ipopt_at(mpc: MPC) -> Callable[..., IpoptSolver]:
 
 
 # -- a command in a forked child (kill tests) ----------------------------------------------------
+def assert_workers_die_with(argv: list[str], workers: int = 1, match: str = "") -> None:
+    """Start ``argv``, wait until it has ``workers`` child processes (whose command lines
+    contain ``match``), kill it with SIGKILL and check that those children end too."""
+    import signal
+    import subprocess
+    import time
+
+    import psutil
+
+    proc = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        parent = psutil.Process(proc.pid)
+        deadline = time.monotonic() + 120
+        found: list = []
+        while len(found) < workers and time.monotonic() < deadline and proc.poll() is None:
+            found = [p for p in parent.children() if match in " ".join(p.cmdline())]
+            time.sleep(0.1)
+        assert len(found) == workers, f"{len(found)} worker processes started, not {workers}"
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        _, alive = psutil.wait_procs(found, timeout=20)
+        assert alive == [], f"worker processes outlived the process that made them: {alive}"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+
 def learn_in_child(argv: list[str], env: dict[str, str]) -> int:
     """Run ``python -m mpcrl_lite`` with ``argv`` (e.g. ``learn ...``) in a forked child with
     ``env`` set and its output silenced; returns the wait status (the kill tests read the

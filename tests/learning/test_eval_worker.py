@@ -8,15 +8,12 @@ from __future__ import annotations
 import json
 import logging
 import shutil
-import signal
-import subprocess
 import sys
-import time
 import types
 from concurrent.futures import Future
 
-import psutil
 import pytest
+from conftest import assert_workers_die_with
 
 from mpcrl_lite import LearningConfig, SystemConfig
 from mpcrl_lite._util import jsonio
@@ -175,21 +172,4 @@ def test_the_worker_ends_when_its_run_is_killed():
             "months=500, eval_every=1, eval_draws=3))\n"
             "e.eval_worker = True\n"
             "e.run(progress=False)\n")
-    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
-    try:
-        parent = psutil.Process(proc.pid)
-        deadline = time.monotonic() + 120
-        workers = []
-        while not workers and time.monotonic() < deadline and proc.poll() is None:
-            workers = [p for p in parent.children()
-                       if "spawn_main" in " ".join(p.cmdline())]
-            time.sleep(0.1)
-        assert workers, "no worker process was started"
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
-        _, alive = psutil.wait_procs(workers, timeout=20)
-        assert alive == [], f"worker processes outlived their run: {alive}"
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    assert_workers_die_with([sys.executable, "-c", code], match="spawn_main")

@@ -172,28 +172,11 @@ def test_cli_tune(tmp_path, capsys):
 
 def test_a_search_killed_outright_leaves_no_worker_behind(tmp_path):
     """``tune --workers 2`` killed with SIGKILL: its forked workers end with it."""
-    import signal
-    import subprocess
     import sys
-    import time
 
-    import psutil
-    proc = subprocess.Popen([sys.executable, "-m", "mpcrl_lite", "tune", "--out",
+    from conftest import assert_workers_die_with
+
+    assert_workers_die_with([sys.executable, "-m", "mpcrl_lite", "tune", "--out",
                              str(tmp_path / "best"), "--evals", "400", "--draws", "2",
-                             "--heldout-draws", "2", "--days", "2", "--workers", "2", "--quiet"],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        parent = psutil.Process(proc.pid)
-        deadline = time.monotonic() + 120
-        workers = []
-        while len(workers) < 2 and time.monotonic() < deadline and proc.poll() is None:
-            workers = parent.children()
-            time.sleep(0.1)
-        assert len(workers) == 2, "the search did not start its two workers"
-        proc.send_signal(signal.SIGKILL)
-        proc.wait()
-        _, alive = psutil.wait_procs(workers, timeout=20)
-        assert alive == [], f"worker processes outlived the search: {alive}"
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+                             "--heldout-draws", "2", "--days", "2", "--workers", "2",
+                             "--quiet"], workers=2)
