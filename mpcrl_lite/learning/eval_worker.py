@@ -39,13 +39,12 @@ ten draws): see ``benchmarks/README.md``, "Evaluations beside the months".
 from __future__ import annotations
 
 import multiprocessing
-import os
 import sys
-import threading
 from concurrent.futures import Future, ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from .._util.threads import auto_threads
 from .._util.workers import end_with_parent
 from ..config import LearningConfig, MPCConfig, SystemConfig
 from ..sim.closed_loop import evaluate_mpc
@@ -86,14 +85,6 @@ def _evaluate(theta: Theta) -> MonthRecord:
                         draws=s["draws"])
 
 
-def usable_cores() -> int:
-    """The cores this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
-
 def spawn_safe() -> bool:
     """Whether a spawned worker can start without running this program again: the main
     module is a package's ``__main__`` (which spawn does not import again), absent (an
@@ -116,9 +107,8 @@ def worth_a_worker(learning: LearningConfig, evaluations_ahead: int, backend: st
     """Whether evaluating in a worker process pays (see the module docstring): ``backend``
     the name of the experiment's solver, ``evaluations_ahead`` the evaluations the run has
     still to make."""
-    return (backend == "kernel" and usable_cores() >= 2
-            and multiprocessing.parent_process() is None
-            and threading.current_thread() is threading.main_thread()
+    # two threads for this process's calls (two cores, the main thread of the main process)
+    return (backend == "kernel" and auto_threads() >= 2
             and learning.eval_draws * learning.days_per_month >= MIN_EVAL_DAYS
             and evaluations_ahead >= MIN_EVALUATIONS and spawn_safe())
 

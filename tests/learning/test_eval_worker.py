@@ -108,13 +108,13 @@ def test_an_evaluation_that_fails_in_the_worker_is_made_here(in_process, monkeyp
 
 
 def test_the_worker_runs_only_where_it_pays(monkeypatch):
-    monkeypatch.setattr(eval_worker, "usable_cores", lambda: 2)
+    monkeypatch.setattr(eval_worker, "auto_threads", lambda: 2)
     paper = LearningConfig()  # 10 draws of 30 days
     assert eval_worker.worth_a_worker(paper, 21, "kernel")
     assert not eval_worker.worth_a_worker(paper, 21, "batch")
     assert not eval_worker.worth_a_worker(paper, eval_worker.MIN_EVALUATIONS - 1, "kernel")
     assert not eval_worker.worth_a_worker(paper.replace(eval_draws=1), 21, "kernel")
-    monkeypatch.setattr(eval_worker, "usable_cores", lambda: 1)
+    monkeypatch.setattr(eval_worker, "auto_threads", lambda: 1)
     assert not eval_worker.worth_a_worker(paper, 21, "kernel")
 
 
@@ -123,7 +123,7 @@ def test_by_default_the_worker_serves_long_evaluations_of_runs_without_callbacks
     real = eval_worker.EvaluationWorker.submit
     monkeypatch.setattr(eval_worker.EvaluationWorker, "submit",
                         lambda self, theta: submitted.append(theta) or real(self, theta))
-    monkeypatch.setattr(eval_worker, "usable_cores", lambda: 2)
+    monkeypatch.setattr(eval_worker, "auto_threads", lambda: 2)
     run(None)  # 3 draws of 4 days: below MIN_EVAL_DAYS
     assert submitted == []
     # 100 days per evaluation, as many evaluations as it takes
@@ -151,7 +151,7 @@ def _main_module(monkeypatch, tmp_path, text: str | None, spec_name: str | None 
 
 def test_a_script_without_a_main_guard_evaluates_in_its_own_process(tmp_path, monkeypatch):
     """A spawned worker imports the main module again: an unguarded script would run again."""
-    monkeypatch.setattr(eval_worker, "usable_cores", lambda: 2)
+    monkeypatch.setattr(eval_worker, "auto_threads", lambda: 2)
     paper = LearningConfig()
     _main_module(monkeypatch, tmp_path, "from mpcrl_lite import Experiment\nExperiment().run()\n")
     assert not eval_worker.spawn_safe()
