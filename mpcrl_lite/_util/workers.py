@@ -23,9 +23,11 @@ def end_with_parent(poll_s: float = 0.5) -> None:
     every ``poll_s`` seconds by a daemon thread (the parent is gone when this process has been
     handed to another one: its parent id changes). The parent is the one multiprocessing
     started the worker from, so a parent that died while the worker was still starting counts
-    too."""
+    too. Outside a worker process (an initializer also run in the main process) nothing."""
     started_by = multiprocessing.parent_process()
-    parent = started_by.pid if started_by is not None else os.getppid()
+    if started_by is None:
+        return
+    parent = started_by.pid
 
     def watch() -> None:
         while os.getppid() == parent:

@@ -47,7 +47,6 @@ from __future__ import annotations
 
 import hashlib
 import math
-import multiprocessing
 import os
 import pickle
 import time
@@ -173,8 +172,7 @@ _WORKER: dict[str, Any] = {}
 
 
 def _worker_init(system: SystemConfig, mpc_config: MPCConfig, prices: Prices) -> None:
-    if multiprocessing.parent_process() is not None:  # a pool's worker, not this process
-        end_with_parent()  # a search killed outright must not leave its workers behind
+    end_with_parent()  # in a pool's worker: a search killed outright leaves none behind
     _WORKER.update(system=system, mpc_config=mpc_config, prices=prices,
                    solver=make_solver(MPC(system), mpc_config))
 

@@ -96,11 +96,13 @@ def _write(path: Path, text: str, mtime: float) -> None:
     os.replace(tmp, path)
 
 
-def _stem(n: int, N: int) -> str:
-    """The file name (without ``.py``) of the copy for ``(n, N)`` of this version: named by
-    its text, copies of other versions of the package (another checkout, an upgrade) sit
-    beside it instead of overwriting it, and each keeps its numba cache."""
-    digest = hashlib.sha256(source(n, N).encode("utf-8")).hexdigest()[:12]
+def _stem(n: int, N: int, text: str | None = None) -> str:
+    """The file name (without ``.py``) of the copy for ``(n, N)`` of this version (``text``:
+    its :func:`source`, if at hand): named by its text, copies of other versions of the
+    package (another checkout, an upgrade) sit beside it instead of overwriting it, and each
+    keeps its numba cache."""
+    text = source(n, N) if text is None else text
+    digest = hashlib.sha256(text.encode("utf-8")).hexdigest()[:12]
     return f"kernel_core_n{int(n)}_N{int(N)}_{digest}"
 
 
@@ -126,7 +128,7 @@ def prune() -> list[Path]:
 
 def _load(n: int, N: int) -> ModuleType:
     text = source(n, N)
-    path = _folder() / f"{_stem(n, N)}.py"
+    path = _folder() / f"{_stem(n, N, text)}.py"
     _write(path, text, os.stat(_generic().__file__).st_mtime)
     name = f"{_GENERIC}_n{n}_N{N}"
     spec = importlib.util.spec_from_file_location(name, path)
