@@ -242,7 +242,9 @@ class Experiment(Learner):
         ``months`` months): evaluations a stopped run still lacks are made first
         (:meth:`catch_up_evaluations`); then, where it pays, a worker process evaluates each
         due month's theta while this process runs the months on one thread."""
-        self.catch_up_evaluations()  # (done by a resume already: a no-op then)
+        # a run resumed from its directory caught up already (after_resume); this is for a
+        # run interrupted in this process with evaluations out and then run on
+        self.catch_up_evaluations()
         ahead = sum(self.evaluation_due(m) for m in range(self.history.months, months))
         use = self.eval_worker
         if use is None:
