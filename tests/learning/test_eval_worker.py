@@ -173,3 +173,14 @@ def test_the_worker_ends_when_its_run_is_killed():
             "e.eval_worker = True\n"
             "e.run(progress=False)\n")
     assert_workers_die_with([sys.executable, "-c", code], match="spawn_main")
+
+
+def test_a_run_interrupted_in_its_process_with_evaluations_out_catches_up(in_process):
+    """The same object run on after a stop that left evaluations out (no run directory)."""
+    experiment = run(False, months=4)
+    assert experiment.history.eval_month == [0, 2]
+    for name in History.EVAL_SERIES + History.EVAL_CI_SERIES:
+        del getattr(experiment.history, name)[:]  # as the stop left them: still out
+    experiment.run(progress=False)
+    assert experiment.history.eval_month == [0, 2, 4]
+    assert results(experiment.history) == results(in_process.history)
