@@ -290,3 +290,19 @@ def run_cli(argv: list[str], capsys) -> tuple[int, str, str]:
     capsys.readouterr()
     status = main(argv)
     return status, *capsys.readouterr()
+
+
+def assert_drawn_inside(fig, slack: float = 0.01) -> None:
+    """Everything ``fig`` draws lies on its canvas (``slack`` inches of rounding allowed).
+
+    The notebooks show figures as drawn, without cropping them to their content
+    (``InlineBackend.print_figure_kwargs``): a label or legend outside the canvas would be cut
+    off there, where cropping would have kept it."""
+    fig.draw_without_rendering()
+    box = fig.get_tightbbox(fig.canvas.get_renderer())
+    width, height = fig.get_size_inches()
+    assert (box.x0 >= -slack and box.y0 >= -slack and box.x1 <= width + slack
+            and box.y1 <= height + slack), (
+        f"{fig.get_suptitle() or fig.axes[0].get_title()!r}: drawn over "
+        f"[{box.x0:.3f}, {box.x1:.3f}] x [{box.y0:.3f}, {box.y1:.3f}] inches, "
+        f"expected within its canvas {width:g} x {height:g}")

@@ -162,3 +162,21 @@ def test_seed_bands_draw_the_mean_its_band_and_the_reference_lines():
     fig = plot_seed_bands({"DPG": two})  # no reference lines unless given
     assert not find_lines(fig.axes[0], "J_star")
     plt.close(fig)
+
+
+def test_comparison_figures_are_drawn_inside_their_canvas(baselines):
+    """The notebooks show figures uncropped; nothing may then fall off their edge."""
+    from conftest import assert_drawn_inside
+
+    from mpcrl_lite.figures.comparison import plot_parameter_study, plot_seed_bands
+
+    band = {"month": np.array([0, 5, 9]), "mean": np.array([1500.0, 100.0, -150.0]),
+            "ci_low": np.array([1500.0, 50.0, -180.0]),
+            "ci_high": np.array([1500.0, 150.0, -120.0]), "seeds": 2}
+    five = {k: {"J": list(np.linspace(-150, -200, 5))} for k in ("centralized", "decentralized")}
+    figures = [plot_policy_comparison(baselines), plot_learning_curves(five),
+               plot_parameter_study(*_study([1.0, 1.5, 2.0], noise_vars=(0.5, 1.0))),
+               plot_seed_bands({"DPG": band}, J_star=-399.3, J_class=-230.0, J_nominal=1500.0)]
+    for fig in figures:
+        assert_drawn_inside(fig)
+        plt.close(fig)

@@ -584,3 +584,30 @@ def test_fig2_draws_three_evaluations_as_a_line_with_a_band(history):
     (band,) = [c for c in fig.axes[0].collections if c.get_gid() == "J_eval_ci"]
     y = band.get_paths()[0].vertices[:, 1]
     np.testing.assert_allclose([y.min(), y.max()], [min(J_eval) - 5.0, max(J_eval) + 5.0])
+
+
+def test_every_figure_is_drawn_inside_its_canvas(history):
+    """The notebooks show figures uncropped; nothing may then fall off their edge."""
+    from conftest import assert_drawn_inside
+
+    prices = Prices.default()
+    system = SystemConfig()
+    rng = np.random.default_rng(1)
+    plan = Plan(b=rng.uniform(0, 0.5, (12, 3)), s=rng.uniform(0, 0.5, (12, 3)),
+                soc=rng.uniform(0, 1, (13, 3)), sigma_hi=np.zeros((12, 3)),
+                sigma_lo=np.zeros((12, 3)))
+    x = np.linspace(-1.0, 1.0, 9)
+    curve = {"x": x, "policy": np.tanh(np.c_[x, x, x]), "tau": 0.1, "label": "x"}
+    G = rng.normal(size=(24, 3))
+    fit = {"V": G + 0.1, "G": G, "r2": 0.9, "features": "hour", "days": 3, "gamma": 0.99}
+    figures = [
+        fig1_trajectories(history), fig2_performance(history), fig3_gradient_norm(history),
+        fig4_grid_power(history), fig5_policy_and_agent_costs(history), fig6_prices(prices),
+        fig7_theta(history, part="delta"), fig7_theta(_untied(history), part="T1"),
+        plot_day(history.last_month, day=1),
+        plots.plot_price_window(prices, day=29, hour=20, N=12),
+        plots.plot_plan(plan, system, buy=prices.buy[0, :12], title="plan"),
+        plots.plot_policy_curve(curve, {**curve, "tau": 1e-5}), plots.plot_value_fit(fit),
+    ]
+    for fig in figures:
+        assert_drawn_inside(fig)

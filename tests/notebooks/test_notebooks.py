@@ -87,6 +87,16 @@ def test_notebook_layout(stem):
         f"{stem}: the cell after the parameters must call check_parameters with the file name")
     assert check.index("check_parameters(globals()") < check.index("%matplotlib inline"), (
         "check_parameters must run before anything else is imported")
+    # figures are shown as drawn, not cropped to their content (which draws them twice), so
+    # every figure must lay itself out inside its canvas (tests/figures check the package's)
+    assert check.index("%matplotlib inline") < check.index(
+        '%config InlineBackend.print_figure_kwargs = {"bbox_inches": None}'), (
+        f"{stem}: the check cell must show figures uncropped after %matplotlib inline")
+    for cell in code:
+        if "plt.subplots(" in cell.source:
+            assert 'layout="constrained"' in cell.source or "tight_layout()" in cell.source, (
+                f"{stem}: cell {cell.id} draws a figure without a layout; shown uncropped, "
+                "its labels could fall off the canvas")
     summary = [c for c in nb.cells if "summary" in _tags(c)]
     assert len(summary) == 1 and "show_summary(" in summary[0].source
     assert code[-1] is summary[0], f"{stem}: the summary cell comes last"
