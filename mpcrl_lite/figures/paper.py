@@ -623,8 +623,10 @@ def save_paper_figures(
         fig = make()
         try:
             path = directory / name
-            with atomic_output(path) as tmp:  # a kill never leaves half a figure
-                fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
+            # a kill never leaves half a figure; saved as laid out (constrained layout keeps
+            # every label on the canvas), since cropping to the content costs a second layout
+            with atomic_output(path) as tmp:
+                fig.savefig(tmp, dpi=dpi)
             paths.append(path)
         finally:
             plt.close(fig)
