@@ -137,9 +137,15 @@ def test_no_class_definitions_and_upper_case_only_for_parameters(stem):
                     f"{stem}: cell {cell.id} assigns the upper-case name {node.id}")
 
 
+def _python(source: str) -> str:
+    """A cell's source without its IPython line magics (``%matplotlib inline``, ``%config``)."""
+    return "\n".join("" if line.lstrip().startswith("%") else line
+                     for line in source.splitlines())
+
+
 def _assigned(source: str) -> set[str]:
     names = set()
-    for node in ast.walk(ast.parse(source)):
+    for node in ast.walk(ast.parse(_python(source))):
         if isinstance(node, ast.Name) and isinstance(node.ctx, ast.Store):
             names.add(node.id)
         elif isinstance(node, (ast.FunctionDef, ast.Import, ast.ImportFrom)):
@@ -151,7 +157,7 @@ def _assigned(source: str) -> set[str]:
 
 
 def _used(source: str) -> set[str]:
-    return {n.id for n in ast.walk(ast.parse(source))
+    return {n.id for n in ast.walk(ast.parse(_python(source)))
             if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Load)}
 
 
@@ -169,13 +175,13 @@ def test_exercises_have_solutions_that_a_student_version_can_drop(stem):
     for cell in _code(nb):
         if "solution" in _tags(cell):
             continue
-        defined_outside |= _assigned(cell.source.replace("%matplotlib inline", ""))
+        defined_outside |= _assigned(cell.source)
     only_in_solutions = set()
     for cell in _code(nb):
         if "solution" in _tags(cell):
             only_in_solutions |= _assigned(cell.source) - defined_outside
         else:
-            leaked = _used(cell.source.replace("%matplotlib inline", "")) & only_in_solutions
+            leaked = _used(cell.source) & only_in_solutions
             assert not leaked, f"{stem}: cell {cell.id} uses {leaked} from a solution cell"
 
 
