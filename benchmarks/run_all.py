@@ -134,7 +134,7 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
                        lambda: bench_learning.paper_experiment(months=months, eval_every=0))
 
     _log("a Q-learning month beside a DPG month (alternating, one process)")
-    qmonth = _try("Q-learning month", lambda: _sub(f"q_month(months={1 if quick else 3})"))
+    qmonth = _try("Q-learning month", lambda: _sub(f"q_month(months={1 if quick else 6})"))
     if qmonth is not None:
         _log(f"Q-learning month {qmonth['q_month_s']:.2f} s (cpu {qmonth['q_month_cpu_s']:.2f}), "
              f"DPG month {qmonth['dpg_month_s']:.2f} s: ratio {qmonth['q_month_ratio']:.2f}")
