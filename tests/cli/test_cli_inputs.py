@@ -306,8 +306,10 @@ def test_baselines_json_is_strict(tmp_path, capsys):
 
 
 # -- size of the work -------------------------------------------------------------------------
-def test_too_much_memory_is_refused_before_allocating(tmp_path, capsys):
-    code, err = run_cli(["simulate", "--days", "1000000000", "--out", tmp_path / "s"], capsys)
+@pytest.mark.parametrize("command", ["simulate", "tune"])
+def test_too_much_memory_is_refused_before_allocating(command, tmp_path, capsys):
+    # tune used to repeat the shipped month to that many days before checking (179 GiB)
+    code, err = run_cli([command, "--days", "1000000000", "--out", tmp_path / "s"], capsys)
     assert code == 2 and len(err) == 1
     assert "--days 1000000000" in err[0] and "GiB available" in err[0]
     assert not (tmp_path / "s").exists()

@@ -60,11 +60,13 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as err:
         raise UsageError(str(err)) from None
     prices = _a.month_prices(args, system, args.days)
-    if prices is None:
-        prices = Prices.month(system, learning.days_per_month)
-    # one generation's closed loop: (popsize, about 16 at most by default) x draws months
-    _a.budget(f"--days {prices.days} --n {system.n}", system.n, prices.days,
+    days = learning.days_per_month if prices is None else prices.days
+    # one generation's closed loop: (popsize, about 16 at most by default) x draws months;
+    # checked before the shipped month is repeated to that many days
+    _a.budget(f"--days {days} --n {system.n}", system.n, days,
               runs=settings.draws * (settings.popsize or 16), horizon=system.N)
+    if prices is None:
+        prices = Prices.month(system, days)
     if args.resume:
         out = _a.prepare_out(argparse.Namespace(out=args.out, force=True), OUTPUTS)
     else:
