@@ -2,8 +2,8 @@
 run time from the problem size, refused beyond what the machine has (:func:`check_budget`).
 
 Every command checks its work with it before allocating anything (``simulate``, ``learn``,
-``baselines``, ``evaluate`` through :mod:`mpcrl_lite.cli.inputs`; ``sweep`` and ``study`` for
-all their runs, :mod:`mpcrl_lite.studies.sweep.api`), and refuses
+``baselines``, ``evaluate``, ``tune`` through :mod:`mpcrl_lite.cli.inputs`; ``sweep`` and
+``study`` for all their runs, :mod:`mpcrl_lite.studies.sweep.api`), and refuses
 
 * memory above what the machine has available (``psutil.virtual_memory().available`` when
   psutil is installed, else ``os.sysconf`` of the available physical pages), and
@@ -12,7 +12,9 @@ all their runs, :mod:`mpcrl_lite.studies.sweep.api`), and refuses
 
 The estimates are deliberately low (measured on a laptop core and rounded down for time, up
 only where memory grows with the data), so a refusal means the work surely does not fit;
-work near the limits is left to run.
+work near the limits is left to run. The learners built from the library
+(:func:`mpcrl_lite.learning.learner.resolve_setup`) check the memory of a month alone
+(:func:`check_memory`): how long a library user lets a run go is theirs to say.
 """
 
 from __future__ import annotations
@@ -26,7 +28,7 @@ except ImportError:  # pragma: no cover (psutil is present in the project's envi
     psutil = None
 
 __all__ = ["TIME_LIMIT_ENV", "TIME_LIMIT_S", "Budget", "available_memory", "check_budget",
-           "check_estimate", "estimate", "learning_estimate"]
+           "check_estimate", "check_memory", "estimate", "learning_estimate"]
 
 #: Default limit of the estimated run time of one command, in seconds.
 TIME_LIMIT_S = 4 * 3600.0
@@ -105,14 +107,23 @@ def check_budget(what: str, n: int, days: int, runs: int = 1, sensitivities: boo
     return check_estimate(what, estimate(n, days, runs, sensitivities, horizon))
 
 
-def check_estimate(what: str, budget: Budget) -> Budget:
-    """``budget`` (e.g. a sum of :func:`estimate` over the runs of a sweep), refused
-    (``ValueError``, one line naming ``what``) above the available memory or the time limit."""
+def check_memory(what: str, budget: Budget) -> Budget:
+    """The memory half of :func:`check_estimate` alone: ``budget`` refused (``ValueError``,
+    one line naming ``what``) above the available memory. For the library's entry points
+    (:func:`mpcrl_lite.learning.learner.resolve_setup`), whose run time is their caller's
+    choice."""
     memory = available_memory()
     if memory is not None and budget.memory > memory:
         raise ValueError(
             f"{what}: needs about {budget.memory / 2**30:.3g} GiB of memory; expected at most "
             f"the {memory / 2**30:.3g} GiB available (use fewer days or batteries)")
+    return budget
+
+
+def check_estimate(what: str, budget: Budget) -> Budget:
+    """``budget`` (e.g. a sum of :func:`estimate` over the runs of a sweep), refused
+    (``ValueError``, one line naming ``what``) above the available memory or the time limit."""
+    check_memory(what, budget)
     limit = _time_limit()
     if budget.seconds > limit:
         raise ValueError(

@@ -35,6 +35,7 @@ from typing import Any, ClassVar
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from .._util.budget import check_memory, learning_estimate
 from ..config import LearningConfig, MPCConfig, SystemConfig, check_grid_bound
 from ..sim.record import MonthRecord
 from ..system.forecast import forecast_of, forecast_prices
@@ -83,6 +84,12 @@ def resolve_setup(
     system = check_grid_bound(system or SystemConfig())
     mpc_config = mpc_config or MPCConfig()
     learning = learning or LearningConfig()
+    # a month (and an evaluation batch) must fit in memory: refused before anything is built
+    check_memory(
+        f"days_per_month={learning.days_per_month}, n={system.n}, "
+        f"eval_draws={learning.eval_draws}",
+        learning_estimate(system.n, learning.days_per_month, 1, learning.eval_draws,
+                          learning.eval_every, system.N))
     if prices is None:
         prices = Prices.month(system, learning.days_per_month)
     if prices.days != learning.days_per_month:

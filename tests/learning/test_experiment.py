@@ -178,6 +178,25 @@ def test_experiment_rejects_bad_input():
                    learning=LearningConfig(days_per_month=3))
 
 
+def test_a_month_larger_than_the_memory_is_refused_before_anything_is_built(monkeypatch):
+    from mpcrl_lite._util import budget
+    from mpcrl_lite.learning.q_experiment import QLearningExperiment
+    from mpcrl_lite.system.prices import Prices
+
+    built = []
+    monkeypatch.setattr(Prices, "month", classmethod(lambda cls, *a: built.append(a)))
+    huge = LearningConfig(days_per_month=10**9)
+    for make in (Experiment, QLearningExperiment):
+        with pytest.raises(ValueError, match=r"days_per_month=1000000000, n=3, eval_draws=10: "
+                                             r"needs about .* GiB of memory"):
+            make(learning=huge)
+    assert not built  # the shipped month was never repeated to that many days
+    # the paper's month fits easily, and nothing is refused where the memory is unknown
+    assert budget.check_memory("x", budget.learning_estimate(3, 30, 1, 10, 5)).memory < 2**30
+    monkeypatch.setattr(budget, "available_memory", lambda: None)
+    assert budget.check_memory("x", budget.Budget(1e30, 0.0)).memory == 1e30
+
+
 # -- critic features --------------------------------------------------------------------------
 def test_value_baseline_features():
     from mpcrl_lite.learning.lstd import value_baseline_features, value_features
