@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from .._util.budget import check_memory, estimate
 from ..config import SystemConfig
 from ..sim.closed_loop import Policy, simulate
 from ..sim.exploration import Projection
@@ -129,6 +130,8 @@ def make_scenario(
         raise ValueError(f"days={days!r}: expected an integer >= 1")
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise ValueError(f"seed={seed!r}: expected an integer >= 0")
+    # the days' closed loop must fit in memory: refused before prices and noise are drawn
+    check_memory(f"days={days}, n={system.n}", estimate(system.n, int(days), horizon=system.N))
     if prices is None:
         prices = Prices.month(system, int(days))
     elif prices.days != days:

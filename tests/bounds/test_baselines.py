@@ -90,6 +90,9 @@ def test_scenario_is_reproducible_and_validated():
         Scenario(SYSTEM, Prices.month(SYSTEM, 2), np.zeros((24, 2, 2)), 0.6)
     with pytest.raises(ValueError, match="prices have 3 days; expected days=2"):
         make_scenario(SYSTEM, 2, 0, prices=Prices.month(SYSTEM, 3))
+    # more days than the memory holds: refused before the month is repeated or noise drawn
+    with pytest.raises(ValueError, match=r"days=1000000000, n=3: needs about .* GiB"):
+        make_scenario(SYSTEM, 10**9, 0)
 
 
 def test_nominal_evaluation_matches_run_month(solver):
