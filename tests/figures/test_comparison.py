@@ -15,6 +15,13 @@ from mpcrl_lite._util.stats import mean_ci
 from mpcrl_lite.figures.comparison import plot_learning_curves, plot_policy_comparison
 from mpcrl_lite.figures.style import find_lines
 
+#: learning curves of five months for both learners (notebook 06's comparison)
+_FIVE_MONTHS = {k: {"J": list(np.linspace(-150, -200, 5))} for k in ("centralized", "decentralized")}
+#: a seed band of two seeds over three evaluated months (notebook 08's figure)
+_TWO_SEEDS = {"month": np.array([0, 5, 9]), "mean": np.array([1500.0, 100.0, -150.0]),
+              "ci_low": np.array([1500.0, 50.0, -180.0]),
+              "ci_high": np.array([1500.0, 150.0, -120.0]), "seeds": 2}
+
 
 @pytest.fixture
 def baselines():
@@ -68,8 +75,7 @@ def test_learning_curves_on_one_axes_points_only_when_few_months():
     assert all(line.get_linestyle() == "None" for line in lines)  # two points: no trend drawn
     assert list(lines[0].get_xdata()) == [1, 2]
     plt.close(fig)
-    five = {k: {"J": list(np.linspace(-150, -200, 5))} for k in ("centralized", "decentralized")}
-    fig = plot_learning_curves(five)
+    fig = plot_learning_curves(_FIVE_MONTHS)
     assert all(line.get_linestyle() != "None" for line in fig.axes[0].get_lines())
     plt.close(fig)
 
@@ -140,9 +146,7 @@ def test_parameter_study_joins_three_grid_limits_and_refuses_bad_tables():
 def test_seed_bands_draw_the_mean_its_band_and_the_reference_lines():
     from mpcrl_lite.figures.comparison import plot_seed_bands
 
-    two = {"month": np.array([0, 5, 9]), "mean": np.array([1500.0, 100.0, -150.0]),
-           "ci_low": np.array([1500.0, 50.0, -180.0]), "ci_high": np.array([1500.0, 150.0, -120.0]),
-           "seeds": 2}
+    two = _TWO_SEEDS
     one = {"month": np.array([0, 5, 9]), "mean": np.array([1500.0, -50.0, -100.0]),
            "ci_low": np.full(3, np.nan), "ci_high": np.full(3, np.nan), "seeds": 1}
     fig = plot_seed_bands({"DPG": two, "Q-learning": one}, J_star=-399.3, J_class=-230.0,
@@ -170,13 +174,10 @@ def test_comparison_figures_are_drawn_inside_their_canvas(baselines):
 
     from mpcrl_lite.figures.comparison import plot_parameter_study, plot_seed_bands
 
-    band = {"month": np.array([0, 5, 9]), "mean": np.array([1500.0, 100.0, -150.0]),
-            "ci_low": np.array([1500.0, 50.0, -180.0]),
-            "ci_high": np.array([1500.0, 150.0, -120.0]), "seeds": 2}
-    five = {k: {"J": list(np.linspace(-150, -200, 5))} for k in ("centralized", "decentralized")}
-    figures = [plot_policy_comparison(baselines), plot_learning_curves(five),
+    figures = [plot_policy_comparison(baselines), plot_learning_curves(_FIVE_MONTHS),
                plot_parameter_study(*_study([1.0, 1.5, 2.0], noise_vars=(0.5, 1.0))),
-               plot_seed_bands({"DPG": band}, J_star=-399.3, J_class=-230.0, J_nominal=1500.0)]
+               plot_seed_bands({"DPG": _TWO_SEEDS}, J_star=-399.3, J_class=-230.0,
+                               J_nominal=1500.0)]
     for fig in figures:
         assert_drawn_inside(fig)
         plt.close(fig)

@@ -195,6 +195,19 @@ def test_draw_day_is_plot_day_of_the_record(history):
         plots.draw_day(Figure(), rec, 2.0 * rec.buy[:, 1], day=1)
 
 
+def _plan_curve_fit() -> tuple[Plan, dict, dict]:
+    """A random plan, a policy curve (tanh) and a value fit, for the plot functions."""
+    rng = np.random.default_rng(0)
+    b, s = rng.uniform(0, 0.5, (12, 3)), rng.uniform(0, 0.5, (12, 3))
+    plan = Plan(b=b, s=s, soc=rng.uniform(0, 1, (13, 3)), sigma_hi=np.zeros((12, 3)),
+                sigma_lo=np.zeros((12, 3)))
+    x = np.linspace(-1.0, 1.0, 9)
+    curve = {"x": x, "policy": np.tanh(np.c_[x, x, x]), "tau": 0.1, "label": "x"}
+    G = rng.normal(size=(24, 3))
+    fit = {"V": G + 0.1, "G": G, "r2": 0.9, "features": "hour", "days": 3, "gamma": 0.99}
+    return plan, curve, fit
+
+
 def test_price_window_plan_policy_curve_and_value_fit():
     prices = Prices.default()
     fig = plots.plot_price_window(prices, day=29, hour=20, N=12)
@@ -207,10 +220,8 @@ def test_price_window_plan_policy_curve_and_value_fit():
         plots.plot_price_window(prices, 0, 24, 12)
 
     system = SystemConfig()
-    rng = np.random.default_rng(0)
-    b, s = rng.uniform(0, 0.5, (12, 3)), rng.uniform(0, 0.5, (12, 3))
-    plan = Plan(b=b, s=s, soc=rng.uniform(0, 1, (13, 3)), sigma_hi=np.zeros((12, 3)),
-                sigma_lo=np.zeros((12, 3)))
+    plan, curve, fit = _plan_curve_fit()
+    b, s = plan.b, plan.s
     fig = plots.plot_plan(plan, system, buy=prices.buy[0, :12], title="plan")
     assert len(fig.axes) == 4
     np.testing.assert_allclose(one_line(fig, "sum_b").get_ydata()[:-1], b.sum(axis=1))
@@ -218,16 +229,14 @@ def test_price_window_plan_policy_curve_and_value_fit():
     assert fig.axes[2].get_ylim()[1] > max(system.P_bar, b.sum(1).max(), s.sum(1).max())
     assert len(plots.draw_plan(Figure(), plan, system).axes) == 3
 
-    x = np.linspace(-1.0, 1.0, 9)
-    curve = {"x": x, "policy": np.tanh(np.c_[x, x, x]), "tau": 0.1, "label": "x"}
+    x = curve["x"]
     fig = plots.plot_policy_curve(curve, {**curve, "tau": 1e-5})
     np.testing.assert_allclose(one_line(fig, "slope").get_ydata(), np.gradient(np.tanh(x), x))
     assert one_line(fig, "policy reference").get_linestyle() == "--"
 
-    G = rng.normal(size=(24, 3))
-    fit = {"V": G + 0.1, "G": G, "r2": 0.9, "features": "hour", "days": 3, "gamma": 0.99}
     fig = plots.plot_value_fit(fit)
-    np.testing.assert_allclose(one_line(fig, "mean V").get_ydata(), (G + 0.1).mean(axis=1))
+    np.testing.assert_allclose(one_line(fig, "mean V").get_ydata(),
+                               (fit["G"] + 0.1).mean(axis=1))
     assert len(plots.draw_value_fit(Figure(), fit).axes) == 3        # two panels, a colorbar
 
 
@@ -592,14 +601,7 @@ def test_every_figure_is_drawn_inside_its_canvas(history):
 
     prices = Prices.default()
     system = SystemConfig()
-    rng = np.random.default_rng(1)
-    plan = Plan(b=rng.uniform(0, 0.5, (12, 3)), s=rng.uniform(0, 0.5, (12, 3)),
-                soc=rng.uniform(0, 1, (13, 3)), sigma_hi=np.zeros((12, 3)),
-                sigma_lo=np.zeros((12, 3)))
-    x = np.linspace(-1.0, 1.0, 9)
-    curve = {"x": x, "policy": np.tanh(np.c_[x, x, x]), "tau": 0.1, "label": "x"}
-    G = rng.normal(size=(24, 3))
-    fit = {"V": G + 0.1, "G": G, "r2": 0.9, "features": "hour", "days": 3, "gamma": 0.99}
+    plan, curve, fit = _plan_curve_fit()
     figures = [
         fig1_trajectories(history), fig2_performance(history), fig3_gradient_norm(history),
         fig4_grid_power(history), fig5_policy_and_agent_costs(history), fig6_prices(prices),
