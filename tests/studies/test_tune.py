@@ -31,9 +31,11 @@ class Quadratic:
 
     def __init__(self) -> None:
         self.calls: list[tuple[int, tuple[int, ...]]] = []
+        self.configs: list[MPCConfig] = []
 
     def __call__(self, thetas, system, mpc_config, prices, seed, draws, solver=None):
         self.calls.append((seed, tuple(draws)))
+        self.configs.append(mpc_config)
         vectors = np.atleast_2d(thetas)
         out = []
         for v in vectors:
@@ -88,10 +90,12 @@ def test_heldout_uses_no_train_draw(quadratic, tmp_path):
     s = TuneSettings(evals=30, draws=3, heldout_draws=4, seed=5)
     result = tune(tmp_path, s, system=SMALL, prices=small_prices(), progress=False,
                   figure=False)
-    *search, final = quadratic.calls
+    # the search, then the judgement on held-out draws, then theta_best's train mean solved
+    # as the judgement is
+    *search, final, best = quadratic.calls
     assert {call for call in search} == {(5, (0, 1, 2))}
     eval_seed = LearningConfig().eval_seed
-    assert final == (eval_seed, (0, 1, 2, 3))
+    assert final == (eval_seed, (0, 1, 2, 3)) and best == (5, (0, 1, 2))
     assert result["train"] == {"seed": 5, "draws": [0, 1, 2]}
     assert result["heldout"] == {"seed": eval_seed, "draws": [0, 1, 2, 3]}
     # the noise of the held-out draws is none of the train draws' noise
@@ -141,12 +145,36 @@ def test_real_closed_loop_and_workers(tmp_path):
     assert one["J_nominal_heldout"]["mean"] == pytest.approx(J[1].mean(), rel=1e-12)
     train = evaluate_candidates([best], SMALL, None, small_prices(), 0, 1)
     assert one["J_best"] == pytest.approx(train[0].mean(), rel=1e-12)
-    assert one["J_best"] == min(r["J_min"] for r in one["log"])
+    # the search's own figure: its solves stop at search_tol (1e-6), at most about 3e-4
+    # NOK/day off
+    assert one["J_best_search"] == min(r["J_min"] for r in one["log"])
+    assert one["J_best_search"] == pytest.approx(one["J_best"], rel=0, abs=1e-2)
+    assert one["search_mpc"]["polish"] is False and one["search_mpc"]["tol"] == 1e-6
+    assert one["mpc"]["polish"] is True and one["mpc"]["tol"] == MPCConfig().tol
     assert (tmp_path / "one" / "tune.png").stat().st_size > 0
     saved = json.loads((tmp_path / "one" / "tune.json").read_text())
     for key in ("J_best", "J_heldout", "theta_best", "evals"):
         assert key in saved
     assert set(saved["J_heldout"]) >= {"mean", "ci_low", "ci_high", "draws"}
+
+
+def test_the_search_solves_loosely_and_the_judgement_exactly(quadratic, tmp_path):
+    given = MPCConfig(tau=0.05)
+    tune(tmp_path / "fast", TuneSettings(evals=20, draws=2, heldout_draws=2), system=SMALL,
+         mpc_config=given, prices=small_prices(), progress=False, figure=False)
+    *search, held, best = quadratic.configs
+    assert held == given and best == given
+    assert {c for c in search} == {given.replace(polish=False, tol=1e-6)}
+    quadratic.configs.clear()
+    exact = tune(tmp_path / "exact", TuneSettings(evals=20, draws=2, heldout_draws=2,
+                                                  search_tol=None),
+                 system=SMALL, mpc_config=given, prices=small_prices(), progress=False,
+                 figure=False)
+    assert set(quadratic.configs) == {given} and len(quadratic.calls) > 0
+    assert exact["J_best"] == exact["J_best_search"]
+    for bad in (0.0, 1e-3, float("nan")):
+        with pytest.raises(ValueError, match="search_tol"):
+            TuneSettings(search_tol=bad)
 
 
 def test_cli_tune(tmp_path, capsys):
@@ -158,6 +186,14 @@ def test_cli_tune(tmp_path, capsys):
     assert printed["evals"] == 4
     saved = json.loads((out / "tune.json").read_text())
     assert saved["settings"]["tied"] is True and saved["forecast"] == "paper"
+    assert saved["settings"]["search_tol"] == 1e-6
+    exact = tmp_path / "exact"
+    assert main(["tune", "--out", str(exact), "--draws", "1", "--heldout-draws", "2", "--days",
+                 "1", "--quiet", "--popsize", "4", "--evals", "4", "--exact-search"]) == 0
+    capsys.readouterr()
+    assert json.loads((exact / "tune.json").read_text())["settings"]["search_tol"] is None
+    assert main([*common, "--evals", "4", "--search-tol", "0.5"]) == 2
+    assert "search_tol=0.5" in capsys.readouterr().err
     assert main([*common, "--evals", "8"]) == 2
     assert "already holds results" in capsys.readouterr().err
     assert main([*common, "--evals", "8", "--resume"]) == 0

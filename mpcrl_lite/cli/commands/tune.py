@@ -34,6 +34,12 @@ def add_parser(sub) -> argparse.ArgumentParser:
                       help="one value per theta part and battery")
     p.add_argument("--popsize", type=_a.int_at_least(2), default=None,
                    help="candidates per generation (default CMA-ES's, 4 + 3 ln dim)")
+    exact = p.add_mutually_exclusive_group()
+    exact.add_argument("--search-tol", type=float, default=d.search_tol,
+                       help="KKT tolerance of the search's MPC solves, without polishing "
+                            f"(default {d.search_tol:g}; the result is judged with exact solves)")
+    exact.add_argument("--exact-search", dest="search_tol", action="store_const", const=None,
+                       help="solve the search's MPCs as exactly as the judgement's")
     p.add_argument("--days", type=_a.positive_int, default=None,
                    help=f"days (default {_a.LEARNING.days_per_month}, or all of --month)")
     p.add_argument("--workers", type=_a.positive_int, default=1,
@@ -56,7 +62,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         settings = TuneSettings(evals=args.evals, draws=args.draws,
                                 heldout_draws=args.heldout_draws, seed=args.seed,
-                                tied=args.tied, popsize=args.popsize)
+                                tied=args.tied, popsize=args.popsize,
+                                search_tol=args.search_tol)
     except ValueError as err:
         raise UsageError(str(err)) from None
     prices = _a.month_prices(args, system, args.days)

@@ -34,7 +34,9 @@ for ``t <= tau`` the problem switches for good to pure Newton steps at ``t = tau
 corrector); they converge quadratically to the exact barrier solution. A problem is finished
 when its scaled residual (:meth:`BatchSolver.residual`) is at most ``config.tol`` and either
 one more Newton step has been taken since (which, by quadratic convergence, reaches the
-rounding level), or the residual is at the floor ``tol * 1e-5``, or it stopped improving. The
+rounding level), or the residual is at the floor ``tol * 1e-5``, or it stopped improving
+(without ``config.polish``: as soon as the residual is at most ``tol``, for evaluations that
+need the action only). The
 returned points satisfy the KKT conditions to about machine precision; the sensitivities are
 exact only there. Steps keep ``S, mu > 0`` (fraction 0.995 to the boundary, separate primal
 and dual step lengths). Finished problems leave the working set, so stragglers run alone.
@@ -261,8 +263,9 @@ class BatchSolver(StartSettings, BackendBase):
             rp -= d.e
             err = self.kkt.errors(rd, rp, Mua, S, d, tau)
             # at the rounding floor, or one Newton step after reaching tol (quadratic
-            # convergence), or no more progress
-            done = (err <= floor) | ((err <= tol) & ((err_prev <= tol) | (err > 0.1 * err_prev)))
+            # convergence; without ``polish``: at tol), or no more progress
+            done = (err <= floor) | ((err <= tol) & ((not cfg.polish) | (err_prev <= tol)
+                                                     | (err > 0.1 * err_prev)))
             bad = ~np.isfinite(err)
             stop = done | bad | failed | (iters[idx] >= cfg.max_iter)
             if np.any(stop):

@@ -136,6 +136,11 @@ class IpoptSolver(BackendBase):
     def __init__(self, mpc: MPC, config: MPCConfig | None = None) -> None:
         self.mpc = mpc
         self.config = config or MPCConfig()
+        # the interior points' stop without polishing: refused where IPOPT was asked for by
+        # name, ignored where 'auto' fell back to it (a non-convex theta)
+        if not self.config.polish and self.config.backend == "ipopt":
+            raise ValueError("MPCConfig.polish=False: the IPOPT back-end has its own stopping "
+                             "rule; expected polish=True, or backend 'kernel' or 'batch'")
         x, p, f, g, h = mpc.symbols
         sysc = mpc.system
         m = mpc

@@ -281,6 +281,7 @@ class KernelSolver(StartSettings, BackendBase):
             self.u0_fraction, self.t0_cold, self.t0_warm)
         opts[K.O_WARM_MARGIN], opts[K.O_WARM_WEIGHT] = self.warm_margin, self.warm_weight
         opts[K.O_SLACK_MARGIN], opts[K.O_SWITCH] = self.slack_margin, self.switch_factor
+        opts[K.O_POLISH] = 1.0 if cfg.polish else 0.0
         return opts
 
     def _check_formulation(self) -> None:
@@ -290,8 +291,11 @@ class KernelSolver(StartSettings, BackendBase):
         orderings must be the CasADi formulation's."""
         m = self.mpc
         p = check_parameters(m, np.random.default_rng(12345))
-        # with its own iteration limit: the check must not depend on config.max_iter
-        sol = self._solve_parameters(p[None], None, self._opts(max_iter=500))[0]
+        # with its own iteration limit and stopping rule: the check must not depend on
+        # config.max_iter, config.tol or config.polish
+        opts = self._opts(max_iter=500)
+        opts[K.O_TOL], opts[K.O_POLISH] = min(opts[K.O_TOL], 1e-10), 1.0
+        sol = self._solve_parameters(p[None], None, opts)[0]
         H, q, c, A, e, C, d = m.qp_function(sol.p)
         x, lam, mu = ca.DM(sol.x), ca.DM(sol.lam), ca.DM(sol.mu)
         tau = self.config.tau

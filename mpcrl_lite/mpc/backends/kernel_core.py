@@ -1,7 +1,8 @@
 r"""Compiled (numba) kernels of :class:`~mpcrl_lite.mpc.backends.kernel.KernelSolver`.
 
 The same barrier interior point as :class:`~mpcrl_lite.mpc.backends.batch.BatchSolver` (same start,
-Mehrotra predictor-corrector then pure Newton steps at ``t = tau``, same stopping rule), run
+Mehrotra predictor-corrector then pure Newton steps at ``t = tau``, same stopping rule, with
+or without its polishing step), run
 problem by problem in compiled loops: nothing here allocates inside the Newton iteration.
 
 Why one module of ~1,300 lines: it is one algorithm (the start, the Newton iteration and its
@@ -117,8 +118,8 @@ STAGE, AGENT = 0, 1
 # rows of the option vector ``opts`` (the input bounds ``U_bar^i``, one per battery, are the
 # separate array ``ubar`` (n,))
 (O_TAU, O_TOL, O_MAX_ITER, O_P, O_HI, O_LO, O_OM_HI, O_OM_LO, O_U0, O_T0_COLD,
- O_T0_WARM, O_WARM_MARGIN, O_WARM_WEIGHT, O_SLACK_MARGIN, O_SWITCH) = range(15)
-N_OPTS = 15
+ O_T0_WARM, O_WARM_MARGIN, O_WARM_WEIGHT, O_SLACK_MARGIN, O_SWITCH, O_POLISH) = range(16)
+N_OPTS = 16
 # rows of the per-stage weights ``stagew`` (5, N)
 W_DISC, W_WSOC, W_TERM, W_QSHI, W_QSLO = range(5)
 # rows of the per-agent-stage factor array ``F`` (11, n, N); F_IPIV, F_RAT: agent method
@@ -894,6 +895,7 @@ def solve_rows(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu
     floor = tol * 1e-5
     max_iter = int(opts[O_MAX_ITER])
     switch = opts[O_SWITCH]
+    polish = opts[O_POLISH] != 0.0
     m = S.size
     Xf, dXf, Lf, dLf = X.reshape(X.size), dX.reshape(dX.size), L.reshape(L.size), \
         dL.reshape(dL.size)
@@ -911,8 +913,9 @@ def solve_rows(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu
             err, comp = _residual(X, L, Mu, S, alpha, qb, qs, hsoc, qsoc, stagew, e, opts,
                                   ubar, scale, base, rp)
             # at the rounding floor, or one Newton step after reaching tol (quadratic
-            # convergence), or no more progress
-            done = err <= floor or (err <= tol and (err_prev <= tol or err > 0.1 * err_prev))
+            # convergence; without ``polish``: at tol), or no more progress
+            done = err <= floor or (err <= tol and (not polish or err_prev <= tol
+                                                    or err > 0.1 * err_prev))
             bad = not math.isfinite(err)
             if done or bad or failed or iters >= max_iter:
                 if done:
@@ -1412,7 +1415,7 @@ def warm_up() -> None:
     opts[[O_TAU, O_TOL, O_MAX_ITER, O_P, O_HI, O_LO]] = (0.1, 1e-10, 50, 1.0, 0.9, 0.1)
     ubar = np.ones(n)
     opts[[O_U0, O_T0_COLD, O_T0_WARM, O_WARM_MARGIN, O_WARM_WEIGHT, O_SLACK_MARGIN,
-          O_SWITCH]] = (0.5, 0.1, 0.1, 1e-2, 0.3, 0.3, 1.0)
+          O_SWITCH, O_POLISH]] = (0.5, 0.1, 0.1, 1e-2, 0.3, 0.3, 1.0, 1.0)
     stagew = np.ones((5, N))
     theta = np.repeat(np.array([0.1, 0.0, 0.0, 0.0, 1.0, -1.0, 0.0, 1.0, -1.0, 0.0]), n)
     buy = np.linspace(10.0, 20.0, N)
