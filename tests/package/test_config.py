@@ -62,6 +62,7 @@ BAD = [
     (MPCConfig, "tol", 2.0, "a value in (0, 1]"),
     (MPCConfig, "max_iter", 0, "an integer >= 1"),
     (MPCConfig, "warm_start", 1, "True or False"),
+    (MPCConfig, "polish", "no", "True or False"),
     (MPCConfig, "kkt_cond_max", 1.0, "a value in (1, inf)"),
     (MPCConfig, "forecast", "midnight", "one of 'paper', 'until_midnight'"),
     (LearningConfig, "step_size", -1.0, "a value in [0, inf)"),
