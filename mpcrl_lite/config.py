@@ -548,7 +548,9 @@ class MPCConfig(_Config):
     """After the KKT residual reaches ``tol``, take one more Newton step (quadratic
     convergence: the solution to rounding, where the KKT sensitivities are exact). Without
     it a solve stops at ``tol``: about one iteration fewer, for evaluations that use the
-    action only."""
+    action only (``tune``'s search, :attr:`~mpcrl_lite.studies.tune.TuneSettings.search_tol`).
+    The kernel and batch back-ends; the IPOPT back-end, which has its own stopping rule,
+    refuses ``False`` when asked for by name."""
     kkt_cond_max: float = 1e12
     """KKT matrices with a larger condition estimate are reported as ill-conditioned."""
     forecast: str = "paper"
