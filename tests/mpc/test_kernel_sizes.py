@@ -36,8 +36,10 @@ def _problems(mpc: MPC, days: int, seed: int) -> np.ndarray:
     return np.array(rows)
 
 
+@pytest.mark.parametrize("N", [12, 11])  # the paper's MPC, the Q-learner's tail
 @pytest.mark.parametrize("method", ["stage", "agent"])
-def test_specialised_kernels_equal_the_generic_ones_bit_for_bit(mpc, method):
+def test_specialised_kernels_equal_the_generic_ones_bit_for_bit(method, N):
+    mpc = MPC(SystemConfig(N=N))
     assert (mpc.n, mpc.N) in kernel_sizes.SPECIALISED_SIZES
     P = _problems(mpc, 23, seed=5)
     results = []
@@ -63,6 +65,13 @@ def test_specialised_kernels_equal_the_generic_ones_bit_for_bit(mpc, method):
         assert x.status == y.status
     for field in ("grad", "cond", "ok"):
         np.testing.assert_array_equal(getattr(asens, field), getattr(bsens, field))
+
+
+def test_the_q_learners_tail_runs_on_its_copy():
+    from mpcrl_lite.mpc.q_kernel import FixedActionKernel
+
+    tail = FixedActionKernel(MPC(SystemConfig())).tail
+    assert (tail._kernels.FIXED_N, tail._kernels.FIXED_HORIZON) == (3, 11)
 
 
 def test_other_sizes_use_the_generic_kernels():

@@ -3,7 +3,8 @@
 :mod:`~mpcrl_lite.mpc.backends.kernel_core` reads the number of batteries ``n`` and the
 horizon ``N`` from its arrays, so one compiled version serves every size. For the sizes in
 :data:`SPECIALISED_SIZES` (the paper's, which every learning run, study and search of the
-package uses) :func:`kernels` imports a copy of that module whose two constants
+package uses, and the 11-hour tail of the Q-learner's fixed-first-action MPC)
+:func:`kernels` imports a copy of that module whose two constants
 ``FIXED_N`` and ``FIXED_HORIZON`` hold the sizes. The compiler then knows the bounds of the
 small loops over batteries and stages, unrolls them and keeps their values in registers:
 about 1.5x less CPU per problem at n = 3, N = 12 (``benchmarks/README.md``). The copy does
@@ -38,8 +39,10 @@ from types import ModuleType
 __all__ = ["SPECIALISED_SIZES", "kernels", "prune", "source"]
 
 #: the sizes ``(n, N)`` served by a specialised copy: the paper's three batteries and
-#: 12-hour horizon (the package's defaults)
-SPECIALISED_SIZES = frozenset({(3, 12)})
+#: 12-hour horizon (the package's defaults), and the 11-hour tail of their fixed-first-action
+#: MPC (:mod:`mpcrl_lite.mpc.q_kernel`, every Q-learning step: about 12 % of a Q-learning
+#: month's time; each copy costs ``make setup`` about a minute of compiling)
+SPECIALISED_SIZES = frozenset({(3, 12), (3, 11)})
 
 _GENERIC = "mpcrl_lite.mpc.backends.kernel_core"
 _MARK = "FIXED_N = 0\nFIXED_HORIZON = 0\n"
