@@ -198,8 +198,13 @@ _WORKER: dict[str, Any] = {}
 def _worker_init(system: SystemConfig, mpc_configs: tuple[MPCConfig, ...],
                  prices: Prices) -> None:
     end_with_parent()  # in a pool's worker: a search killed outright leaves none behind
+    mpc = MPC(system)
+    built: dict[MPCConfig, Any] = {}  # one solver per distinct config (an exact search: one)
+    for config in mpc_configs:
+        if config not in built:
+            built[config] = make_solver(mpc, config)
     _WORKER.update(system=system, mpc_configs=mpc_configs, prices=prices,
-                   solvers=[make_solver(MPC(system), c) for c in mpc_configs])
+                   solvers=[built[c] for c in mpc_configs])
 
 
 def _worker_eval(vectors: np.ndarray, seed: int, draws: list[int],
