@@ -6,6 +6,8 @@ real closed loop gives what a direct evaluation gives, whatever the number of wo
 from __future__ import annotations
 
 import json
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,7 +16,7 @@ import mpcrl_lite.studies.tune as tune_module
 from mpcrl_lite.cli.main import main
 from mpcrl_lite.config import LearningConfig, MPCConfig, SystemConfig
 from mpcrl_lite.sim.candidates import candidate_noise, evaluate_candidates
-from mpcrl_lite.studies.tune import SCALES, SEARCH_PARTS, Space, TuneSettings, tune
+from mpcrl_lite.studies.tune import SCALES, SEARCH_PARTS, SEARCH_TOL, Space, TuneSettings, tune
 from mpcrl_lite.system.prices import Prices
 from mpcrl_lite.theta import Theta
 
@@ -216,3 +218,10 @@ def test_a_search_killed_outright_leaves_no_worker_behind(tmp_path):
                              str(tmp_path / "best"), "--evals", "400", "--draws", "2",
                              "--heldout-draws", "2", "--days", "2", "--workers", "2",
                              "--quiet"], workers=2)
+
+
+def test_the_readme_quotes_the_search_tolerance():
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    quoted = re.search(r"`--search-tol` \(default ([0-9.e+-]+)\)", readme)
+    assert quoted is not None and float(quoted.group(1)) == SEARCH_TOL
+    assert TuneSettings().search_tol == SEARCH_TOL
