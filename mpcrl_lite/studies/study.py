@@ -42,6 +42,11 @@ Written into ``out`` next to the sweep's files (``runs/``, ``results.csv``, ``sw
 * ``study_j_star.json`` -- the computed J* and what it was computed for (reused when the
   study is run again on the same system and prices);
 * ``study_curves.png`` -- every seed's ``J_eval`` curve and their median over seeds.
+
+With a ``tune`` result of the study's class (``class_best``) the regret is split in two
+(:func:`class_split`): the learner's part against the class's best theta, on the search's
+held-out draws (``learner_gap``) and paired on the runs' own evaluation draws
+(``learner_gap_paired``: :func:`class_on_run_draws`, the figure without the draws' noise).
 """
 
 from __future__ import annotations
@@ -66,14 +71,16 @@ from ..bounds.causal.table import causal_bound
 from ..config import SystemConfig
 from ..learning import durable, outdir
 from ..learning.checkpoint import prices_fingerprint
+from ..learning.experiment import Experiment
 from ..learning.history import History
+from ..sim.closed_loop import draw_J
 from ..system.prices import Prices
 from .sweep.api import run_sweep
 from .sweep.grid import load_grid
 from .sweep.store import check_out_dir
 
 __all__ = ["LATE_COLLAPSE", "SEED_COLUMNS", "TARGETS", "THRESHOLD", "causal_target",
-           "class_split", "gap_closed", "plot_curves", "run_study", "seed_band", "seed_row",
+           "class_on_run_draws", "class_split", "gap_closed", "plot_curves", "run_study", "seed_band", "seed_row",
            "summarize", "updates_to_close"]
 
 #: Default share of the gap ``J_nom - J_target`` a seed must close to count as converged.
@@ -515,7 +522,9 @@ def run_study(
         seed_table, summary = summarize(pd.DataFrame(rows), J_star, threshold,
                                         J_star_method=method or "given", J_star_note=note)
         if tuned is not None:
-            summary["class_split"] = class_split(seed_table, tuned, summary["J_star"])
+            summary["class_split"] = class_split(
+                seed_table, tuned, summary["J_star"],
+                class_on_run_draws(load_grid(grid).runs[0], tuned["theta_best"]))
             summary["class_split"]["source"] = str(class_best)
         seed_table = seed_table.reindex(columns=list(SEED_COLUMNS))
         curves = curves_table(histories)
@@ -532,8 +541,43 @@ def run_study(
         return summary
 
 
+def class_on_run_draws(run: Any, theta: Any) -> dict[str, Any] | None:
+    """``theta`` (the class's best) in closed loop on the evaluation draws of ``run`` (a
+    :class:`~mpcrl_lite.studies.sweep.grid.SweepRun` of the study: its system, MPC, month and
+    ``LearningConfig.eval_seed`` / ``eval_draws``), by the runs' own
+    :meth:`Experiment.evaluate <mpcrl_lite.learning.experiment.Experiment.evaluate>`: the
+    same noise as every run's ``J_eval``, so the difference of the two is paired.
+
+    Returns ``{"mean", "std", "ci_low", "ci_high", "draws", "seed", "J": [per draw]}``, or
+    None when the runs are not evaluated (``eval_every = 0``).
+    """
+    learning = run.learning
+    if not learning.eval_every:
+        return None
+    prices = (Prices.from_file(run.prices, run.system, learning.days_per_month)
+              if run.prices.file else None)
+    experiment = Experiment(run.system, run.mpc, learning, prices=prices)
+    J = draw_J(experiment.evaluate(theta), learning.eval_draws)
+    return {**mean_ci(J).as_dict(), "draws": int(learning.eval_draws),
+            "seed": int(learning.eval_seed), "J": [float(v) for v in J]}
+
+
+def _gap_stats(prefix: str, seeds: list[int], gaps: np.ndarray) -> dict[str, Any]:
+    """Per seed, median, IQR, worst and mean (with its interval) of a learner gap."""
+    return {
+        prefix: {str(s): float(g) for s, g in zip(seeds, gaps)},
+        f"{prefix}_median": float(np.median(gaps)) if gaps.size else math.nan,
+        f"{prefix}_iqr": ([float(np.percentile(gaps, 25)), float(np.percentile(gaps, 75))]
+                          if gaps.size else [math.nan, math.nan]),
+        f"{prefix}_worst": ({"seed": seeds[int(np.argmax(gaps))], "value": float(gaps.max())}
+                            if gaps.size else None),
+        f"{prefix}_mean": mean_ci(gaps).as_dict() if gaps.size else None,
+    }
+
+
 def class_split(table: pd.DataFrame, tuned: Mapping[str, Any],
-                J_star: float | None) -> dict[str, Any]:
+                J_star: float | None, on_run_draws: Mapping[str, Any] | None = None
+                ) -> dict[str, Any]:
     r"""The regret of every finished seed split in two against the class's best theta:
 
     ``J_eval_final - J* = (J_eval_final - J_class) [learner] + (J_class - J*) [class]``, with
@@ -541,30 +585,37 @@ def class_split(table: pd.DataFrame, tuned: Mapping[str, Any],
     baselines.load_class_best`: judged on draws of ``LearningConfig().eval_seed``, which
     include the runs' evaluation draws) and its 95 % interval.
 
+    The held-out draws are more (30 by default) than a run's evaluation draws (10), so
+    ``J_class`` and a seed's ``J_eval_final`` are means over different noise, whose difference
+    carries the draws' own spread (theta's J varies by about 50 NOK/day from draw to draw:
+    the mean of 10 draws by several NOK/day). ``on_run_draws`` (:func:`class_on_run_draws`)
+    is the class's best theta on the runs' own draws; with it the learner's part is also given
+    paired, ``J_eval_final - J_class_eval`` on the same noise.
+
     Returns
     -------
     dict
         ``J_class``, ``J_class_ci`` ([low, high]), ``learner_gap`` ({seed: J_eval_final -
         J_class}), ``learner_gap_median``, ``learner_gap_iqr``, ``learner_gap_worst``
         ({seed, value}), ``learner_gap_mean`` (with ``ci_low``/``ci_high`` over the seeds),
-        and with J* ``class_gap`` (``J_class - J*``, with the interval of ``J_class``).
+        and with J* ``class_gap`` (``J_class - J*``, with the interval of ``J_class``). With
+        ``on_run_draws`` also ``J_class_eval`` (it) and ``learner_gap_paired``,
+        ``learner_gap_paired_median``, ``_iqr``, ``_worst``, ``_mean`` as above.
     """
     held = tuned["J_heldout"]
     J_class = float(held["mean"])
     ok = (table["status"] == "done") & table["J_eval_final"].notna()
     seeds = [int(v) for v in table.loc[ok, "seed"]]
-    gaps = table.loc[ok, "J_eval_final"].to_numpy(float) - J_class
+    final = table.loc[ok, "J_eval_final"].to_numpy(float)
     out: dict[str, Any] = {
         "J_class": J_class,
         "J_class_ci": [held.get("ci_low"), held.get("ci_high")],
-        "learner_gap": {str(s): float(g) for s, g in zip(seeds, gaps)},
-        "learner_gap_median": float(np.median(gaps)) if gaps.size else math.nan,
-        "learner_gap_iqr": ([float(np.percentile(gaps, 25)), float(np.percentile(gaps, 75))]
-                            if gaps.size else [math.nan, math.nan]),
-        "learner_gap_worst": ({"seed": seeds[int(np.argmax(gaps))], "value": float(gaps.max())}
-                              if gaps.size else None),
-        "learner_gap_mean": mean_ci(gaps).as_dict() if gaps.size else None,
+        **_gap_stats("learner_gap", seeds, final - J_class),
     }
+    if on_run_draws is not None:
+        out["J_class_eval"] = dict(on_run_draws)
+        out.update(_gap_stats("learner_gap_paired", seeds,
+                              final - float(on_run_draws["mean"])))
     if J_star is not None:
         low, high = held.get("ci_low"), held.get("ci_high")
         out["class_gap"] = {"mean": J_class - J_star,

@@ -43,9 +43,12 @@ def test_readme_quotes_the_stored_study(name):
     gap_low, gap_high = split["learner_gap_iqr"]
     assert cells[6] == (f"{split['learner_gap_median']:.1f} ({gap_low:.1f} to {gap_high:.1f}), "
                         f"worst {split['learner_gap_worst']['value']:.1f}")
+    low, high = split["learner_gap_paired_iqr"]
+    assert cells[7] == (f"{split['learner_gap_paired_median']:.1f} ({low:.1f} to {high:.1f}), "
+                        f"worst {split['learner_gap_paired_worst']['value']:.1f}")
     share = max(study["late_regression_share"].values()) \
         if isinstance(study["late_regression_share"], dict) else study["late_regression_share"]
-    assert cells[7] == f"{100 * share:.2f} % of the gap"
+    assert cells[8] == f"{100 * share:.2f} % of the gap"
 
 
 def _gap(name: str) -> float:
@@ -67,3 +70,30 @@ def test_the_learner_gaps_quoted_in_prose_are_the_stored_ones():
     assert f"and {-rest:.0f} NOK/day *below* the rest-of-day class's" in notebook
     assert f"stays {critic_paper:.0f} above (paper, the same seeds) and {critic_rest:.0f} " \
            "above (rest of the day, seeds 4000-4009)" in notebook
+
+
+def test_the_paired_gap_and_the_second_fresh_judgement_are_the_stored_ones():
+    """The paragraph after README's results table: the class's best on both sets of draws and
+    the paper class on the seeds 6000-6019."""
+    text = " ".join(README.split())
+    first = json.loads((STUDIES / "paper_pathwise_5000" / "study.json").read_text())
+    split = first["class_split"]
+    assert f"held-out draws it has J = {split['J_class']:.1f}" in text
+    assert f"it has {split['J_class_eval']['mean']:.1f}." in text
+    assert split["J_class_eval"]["draws"] == 10 and first["eval_draws"] == 10
+    study = json.loads((STUDIES / "paper_pathwise_6000" / "study.json").read_text())
+    second = study["class_split"]
+    seeds = sorted(int(s) for s in second["learner_gap"])
+    assert (seeds[0], seeds[-1], len(seeds)) == (6000, 6019, 20)
+    held, pair = second["learner_gap_iqr"], second["learner_gap_paired_iqr"]
+    assert (f"Learner gap: median {second['learner_gap_median']:.1f} (IQR {held[0]:.1f} to "
+            f"{held[1]:.1f}); paired: {second['learner_gap_paired_median']:.1f} ({pair[0]:.1f} "
+            f"to {pair[1]:.1f})") in text
+    worst, worst_paired = second["learner_gap_worst"], second["learner_gap_paired_worst"]
+    assert worst["seed"] == worst_paired["seed"] == study["worst_seed"]["seed"]
+    assert (f"The worst seed is {worst['seed']}, with a gap of {worst['value']:.1f}, or "
+            f"{worst_paired['value']:.1f} paired.") in text
+    late = study["largest_late_regression"]
+    share = study["late_regression_share"][str(late["seed"])]
+    assert f"It lost {late['value']:.1f} NOK/day after its best evaluation, which is " \
+           f"{100 * share:.1f} % of the gap." in text

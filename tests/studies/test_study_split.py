@@ -1,6 +1,6 @@
 """The regret split in ``study --class-best``: each seed's learner gap against a tune result
-of the study's class, the class gap against J*, and a tune result of another class refused
-before any run."""
+of the study's class (on its held-out draws, and paired on the runs' own evaluation draws),
+the class gap against J*, and a tune result of another class refused before any run."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 
 from mpcrl_lite._util import jsonio
-from mpcrl_lite.config import SystemConfig
+from mpcrl_lite.config import LearningConfig, SystemConfig
 from mpcrl_lite.studies.study import class_split, run_study
 from mpcrl_lite.theta import Theta
 
@@ -37,18 +37,65 @@ def test_class_split_on_synthetic_seeds():
     assert split["class_gap"] == {"mean": 141.5, "ci_low": 134.5, "ci_high": 148.5}
     assert split["J_class_ci"] == [-267.0, -253.0]
     assert "class_gap" not in class_split(table, {"J_heldout": HELD}, None)
+    assert "learner_gap_paired" not in split and "J_class_eval" not in split
+
+
+def test_the_paired_gap_is_against_the_class_on_the_runs_draws():
+    table = pd.DataFrame({"seed": [0, 1, 2], "status": ["done", "done", "done"],
+                          "J_eval_final": [-210.0, -250.0, -200.0]})
+    runs = {"mean": -255.0, "ci_low": -262.0, "ci_high": -248.0, "draws": 10, "seed": 7,
+            "J": [-255.0] * 10}
+    split = class_split(table, {"J_heldout": HELD}, -401.5, runs)
+    assert split["J_class_eval"] == runs
+    assert split["learner_gap_paired"] == {"0": 45.0, "1": 5.0, "2": 55.0}
+    assert split["learner_gap_paired_median"] == 45.0
+    assert split["learner_gap_paired_iqr"] == [25.0, 50.0]
+    assert split["learner_gap_paired_worst"] == {"seed": 2, "value": 55.0}
+    # the held-out figures are unchanged beside it
+    assert split["learner_gap"] == {"0": 50.0, "1": 10.0, "2": 60.0}
+    assert split["class_gap"]["mean"] == 141.5
 
 
 def test_tiny_study_with_class_best(tmp_path):
     base = {"learning.days_per_month": 2, "learning.eval_draws": 2, "learning.eval_every": 1}
-    summary = run_study(2, 1, tmp_path / "s", base=base, workers=0, progress=False,
+    summary = run_study(2, 2, tmp_path / "s", base=base, workers=0, progress=False,
                         J_star=-400.0, class_best=tune_dir(tmp_path / "t"))
     split = summary["class_split"]
     saved = json.loads((tmp_path / "s" / "study.json").read_text())
     assert saved["class_split"] == json.loads(json.dumps(split))
     for seed, regret in summary["regret"].items():
         assert split["learner_gap"][seed] + split["class_gap"]["mean"] == pytest.approx(regret)
+    # the class's best theta (here the nominal one) ran on the runs' own draws: the runs'
+    # evaluation of month 0, the nominal theta, is the same number
+    on_runs = split["J_class_eval"]
+    assert on_runs["draws"] == 2 and on_runs["seed"] == LearningConfig().eval_seed
+    assert len(on_runs["J"]) == 2 and on_runs["mean"] == pytest.approx(np.mean(on_runs["J"]))
+    table = pd.read_csv(tmp_path / "s" / "study.csv")
+    for _, row in table.iterrows():
+        assert row["J_eval_nominal"] == pytest.approx(on_runs["mean"], rel=1e-12)
+        assert split["learner_gap_paired"][str(row["seed"])] == pytest.approx(
+            row["J_eval_final"] - on_runs["mean"], rel=1e-12)
     with pytest.raises(ValueError, match="searched for another class"):
         run_study(2, 1, tmp_path / "s2", base=base, workers=0, progress=False, J_star=-400.0,
                   class_best=tune_dir(tmp_path / "u", forecast="until_midnight"))
     assert not (tmp_path / "s2" / "runs").exists()
+
+
+def test_no_paired_gap_without_evaluations(tmp_path):
+    base = {"learning.days_per_month": 2, "learning.eval_every": 0}
+    summary = run_study(1, 1, tmp_path / "s", base=base, workers=0, progress=False,
+                        J_star=-400.0, target="causal", class_best=tune_dir(tmp_path / "t"))
+    assert "J_class_eval" not in summary["class_split"]
+
+
+def test_the_command_prints_the_paired_gap(tmp_path, capsys):
+    from mpcrl_lite.cli.main import main
+
+    assert main(["study", "--seeds", "1", "--months", "2", "--days", "2", "--eval-draws", "2",
+                 "--workers", "0", "--j-star", "-400", "--quiet", "--out", str(tmp_path / "s"),
+                 "--class-best", str(tune_dir(tmp_path / "t"))]) == 0
+    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    saved = json.loads((tmp_path / "s" / "study.json").read_text())["class_split"]
+    assert printed["J_class_eval"] == saved["J_class_eval"]["mean"]
+    assert printed["learner_gap_paired_median"] == saved["learner_gap_paired_median"]
+    assert printed["learner_gap_median"] == saved["learner_gap_median"]

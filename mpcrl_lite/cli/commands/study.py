@@ -42,7 +42,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
     _a.add_policy_class(p)
     p.add_argument("--class-best", type=Path, default=None, metavar="DIR",
                    help="a tune output directory of the study's class: split each seed's "
-                        "regret into the learner's part and the class's part")
+                        "regret into the learner's part and the class's part (the learner's "
+                        "also paired: the class's best theta on the runs' own evaluation "
+                        "draws)")
     _a.add_system_file(p)
     _a.add_price_args(p)
     p.add_argument("--scheduler", default=None, help="address of an existing Dask scheduler")
@@ -122,6 +124,9 @@ def run(args: argparse.Namespace) -> int:
         printed.update({"J_class": split["J_class"],
                         "learner_gap_median": split["learner_gap_median"],
                         "class_gap": (split.get("class_gap") or {}).get("mean")})
+        if "J_class_eval" in split:  # the class's best on the runs' own evaluation draws
+            printed.update({"J_class_eval": split["J_class_eval"]["mean"],
+                            "learner_gap_paired_median": split["learner_gap_paired_median"]})
     print(json.dumps({**printed, "study": str(args.out / "study.json")}, default=str))
     return 0
 
