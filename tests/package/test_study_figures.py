@@ -51,9 +51,8 @@ def test_readme_quotes_the_stored_study(name):
     assert cells[8] == f"{100 * share:.2f} % of the gap"
 
 
-def _gap(name: str) -> float:
-    return json.loads((STUDIES / name / "study.json").read_text())["class_split"][
-        "learner_gap_median"]
+def _gap(name: str, key: str = "learner_gap_median") -> float:
+    return json.loads((STUDIES / name / "study.json").read_text())["class_split"][key]
 
 
 def test_the_learner_gaps_quoted_in_prose_are_the_stored_ones():
@@ -70,6 +69,11 @@ def test_the_learner_gaps_quoted_in_prose_are_the_stored_ones():
     assert f"and {-rest:.0f} NOK/day *below* the rest-of-day class's" in notebook
     assert f"stays {critic_paper:.0f} above (paper, the same seeds) and {critic_rest:.0f} " \
            "above (rest of the day, seeds 4000-4009)" in notebook
+    paired_paper = _gap("paper_pathwise_5000", "learner_gap_paired_median")
+    paired_rest = _gap("rest_of_day_pathwise_5000", "learner_gap_paired_median")
+    assert paired_paper > 0 > paired_rest
+    assert f"the pathwise gaps are {paired_paper:.0f} above and {-paired_rest:.0f} below" \
+        in notebook
 
 
 def test_the_paired_gap_and_the_second_fresh_judgement_are_the_stored_ones():
