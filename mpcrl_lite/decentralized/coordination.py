@@ -67,9 +67,10 @@ problem in decomposed form (a Schur-complement, message-passing primal-dual meth
 
 This is exactly the centralized Newton step, so it converges like an interior-point method.
 Every hour starts from the same interior guess and follows the barrier path from a larger
-``tau`` down to the MPC's ``tau`` (on the paper's system about 14 rounds per hour for
-``n = 3`` and 20-26 for ``n = 20``; starting from the previous hour's shifted solution saved
-less than one round on average and occasionally stalled, so it is not done).
+``tau`` down to the MPC's ``tau`` (on the paper's system, the 24 hours of 30 days at the states
+of a learning month: 11.5 rounds per day and hour on average for ``n = 3``, 8 to 15, and 12.8
+for ``n = 20``, 11 to 17; starting from the previous hour's shifted solution saved less than one
+round on average and occasionally stalled, so it is not done).
 
 * **Tolerance.** Rounds stop when every KKT residual (local stationarity, dynamics, local and
   grid complementarity) is at most ``tol * (1 + max |q|)``, ``q`` the local linear costs
