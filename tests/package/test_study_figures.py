@@ -101,3 +101,26 @@ def test_the_paired_gap_and_the_second_fresh_judgement_are_the_stored_ones():
     share = study["late_regression_share"][str(late["seed"])]
     assert f"It lost {late['value']:.1f} NOK/day after its best evaluation, which is " \
            f"{100 * share:.1f} % of the gap." in text
+
+
+#: benchmarks/README.md's table of the paired learner gaps: row label -> stored study
+PAIRED_ROWS = {
+    "paper, pathwise, 5000-5019": "paper_pathwise_5000",
+    "day-end, pathwise, 5000-5019": "day_end_pathwise_5000",
+    "rest of the day, pathwise, 5000-5019": "rest_of_day_pathwise_5000",
+    "rest of the day, pathwise, scale 100, 5000-5019": "rest_of_day_pathwise_scale100_5000",
+    "paper, critic (default), 5000-5019": "paper_critic_5000",
+    "rest of the day, critic, 4000-4009": "rest_of_day_critic_4000",
+}
+
+
+@pytest.mark.parametrize("label", sorted(PAIRED_ROWS))
+def test_the_benchmarks_table_of_paired_gaps_is_the_stored_one(label):
+    text = (ROOT / "benchmarks" / "README.md").read_text()
+    rows = [line for line in text.splitlines() if line.startswith(f"| {label} |")]
+    assert len(rows) == 1, rows
+    split = json.loads((STUDIES / PAIRED_ROWS[label] / "study.json").read_text())["class_split"]
+    held = f"{split['learner_gap_median']:.1f} ({split['learner_gap_worst']['value']:.1f})"
+    paired = (f"{split['learner_gap_paired_median']:.1f} "
+              f"({split['learner_gap_paired_worst']['value']:.1f})")
+    assert rows[0] == f"| {label} | {held} | {paired} |"
