@@ -52,6 +52,7 @@ held-out draws (``learner_gap``) and paired on the runs' own evaluation draws
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 from collections.abc import Mapping, Sequence
@@ -80,8 +81,10 @@ from .sweep.grid import load_grid
 from .sweep.store import check_out_dir
 
 __all__ = ["LATE_COLLAPSE", "SEED_COLUMNS", "TARGETS", "THRESHOLD", "causal_target",
-           "class_on_run_draws", "class_split", "gap_closed", "plot_curves", "run_study", "seed_band", "seed_row",
-           "summarize", "updates_to_close"]
+           "class_on_run_draws", "class_split", "gap_closed", "plot_curves", "run_study",
+           "seed_band", "seed_row", "summarize", "updates_to_close"]
+
+log = logging.getLogger("mpcrl_lite.studies.study")
 
 #: Default share of the gap ``J_nom - J_target`` a seed must close to count as converged.
 THRESHOLD = 0.9
@@ -522,10 +525,17 @@ def run_study(
         seed_table, summary = summarize(pd.DataFrame(rows), J_star, threshold,
                                         J_star_method=method or "given", J_star_note=note)
         if tuned is not None:
-            summary["class_split"] = class_split(
-                seed_table, tuned, summary["J_star"],
-                class_on_run_draws(load_grid(grid).runs[0], tuned["theta_best"]))
+            on_runs, failure = None, None
+            try:  # after every run: a failure here must not cost the summary
+                on_runs = class_on_run_draws(load_grid(grid).runs[0], tuned["theta_best"])
+            except Exception as err:  # noqa: BLE001 (recorded in the summary and logged)
+                failure = f"{type(err).__name__}: {err}"
+                log.warning("study: the class's best theta on the runs' draws failed (%s); "
+                            "the paired learner gap is left out", failure)
+            summary["class_split"] = class_split(seed_table, tuned, summary["J_star"], on_runs)
             summary["class_split"]["source"] = str(class_best)
+            if failure is not None:
+                summary["class_split"]["J_class_eval_error"] = failure
         seed_table = seed_table.reindex(columns=list(SEED_COLUMNS))
         curves = curves_table(histories)
         seed_table.to_csv(out / "study.csv", index=False)

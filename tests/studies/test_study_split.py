@@ -99,3 +99,21 @@ def test_the_command_prints_the_paired_gap(tmp_path, capsys):
     assert printed["J_class_eval"] == saved["J_class_eval"]["mean"]
     assert printed["learner_gap_paired_median"] == saved["learner_gap_paired_median"]
     assert printed["learner_gap_median"] == saved["learner_gap_median"]
+
+
+def test_a_failed_paired_evaluation_keeps_the_summary(tmp_path, monkeypatch, caplog):
+    from mpcrl_lite.studies import study
+
+    def broken(run, theta):
+        raise RuntimeError("no memory left")
+
+    monkeypatch.setattr(study, "class_on_run_draws", broken)
+    base = {"learning.days_per_month": 2, "learning.eval_draws": 2, "learning.eval_every": 1}
+    summary = run_study(1, 1, tmp_path / "s", base=base, workers=0, progress=False,
+                        J_star=-400.0, class_best=tune_dir(tmp_path / "t"))
+    split = summary["class_split"]
+    assert split["J_class_eval_error"] == "RuntimeError: no memory left"
+    assert "learner_gap_paired" not in split and split["learner_gap"]
+    saved = json.loads((tmp_path / "s" / "study.json").read_text())
+    assert saved["class_split"]["J_class_eval_error"] == split["J_class_eval_error"]
+    assert "paired learner gap is left out" in caplog.text
