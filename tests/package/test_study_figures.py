@@ -5,6 +5,7 @@ converged, median regret and the learner's part of it, each rounded as quoted.""
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import pytest
@@ -124,3 +125,43 @@ def test_the_benchmarks_table_of_paired_gaps_is_the_stored_one(label):
     paired = (f"{split['learner_gap_paired_median']:.1f} "
               f"({split['learner_gap_paired_worst']['value']:.1f})")
     assert rows[0] == f"| {label} | {held} | {paired} |"
+
+
+#: stored study -> the tune result its class split was made against
+CLASS_BEST = {"paper_pathwise_5000": "paper", "paper_pathwise_6000": "paper",
+              "paper_critic_5000": "paper", "day_end_pathwise_5000": "day_end",
+              "rest_of_day_pathwise_5000": "rest_of_day",
+              "rest_of_day_pathwise_scale100_5000": "rest_of_day",
+              "rest_of_day_critic_4000": "rest_of_day"}
+
+
+def test_every_stored_study_has_a_class_best():
+    assert {p.name for p in STUDIES.iterdir() if (p / "study.json").exists()} == set(CLASS_BEST)
+
+
+@pytest.mark.parametrize("name", sorted(CLASS_BEST))
+def test_the_stored_paired_figures_are_what_their_files_give(name):
+    """``J_class_eval`` is the class's best theta on the draws of the study's runs (run again
+    here from the stored run config, to the rounding of another machine) and the paired gaps
+    are the stored final J_evals minus it."""
+    import pandas as pd
+
+    from mpcrl_lite.bounds.baselines import load_class_best
+    from mpcrl_lite.studies.study import class_on_run_draws
+
+    sys.path.insert(0, str(ROOT / "tools"))
+    from pair_study_split import run_of
+
+    folder = STUDIES / name
+    split = json.loads((folder / "study.json").read_text())["class_split"]
+    assert split["source"] == f"data/class_best_{CLASS_BEST[name]}"
+    tuned = load_class_best(ROOT / split["source"])
+    config = json.loads(next(folder.glob("config_seed*.json")).read_text())
+    again = class_on_run_draws(run_of(config), tuned["theta_best"])
+    stored = split["J_class_eval"]
+    assert (again["draws"], again["seed"]) == (stored["draws"], stored["seed"])
+    assert again["J"] == pytest.approx(stored["J"], rel=1e-8)
+    table = pd.read_csv(folder / "study.csv")
+    gaps = {str(int(s)): float(j) - stored["mean"]
+            for s, j in zip(table["seed"], table["J_eval_final"], strict=True)}
+    assert split["learner_gap_paired"] == pytest.approx(gaps, rel=1e-12)
