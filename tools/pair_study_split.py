@@ -22,7 +22,6 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from types import SimpleNamespace
 
 import pandas as pd
 
@@ -31,16 +30,8 @@ sys.path.insert(0, str(ROOT))
 
 from mpcrl_lite._util import jsonio
 from mpcrl_lite.bounds.baselines import load_class_best
-from mpcrl_lite.config import LearningConfig, MPCConfig, PriceFileConfig, SystemConfig
 from mpcrl_lite.studies.study import class_on_run_draws, class_split
-
-
-def run_of(config: dict) -> SimpleNamespace:
-    """The configurations of a run's ``config.json`` (what :func:`class_on_run_draws` reads)."""
-    return SimpleNamespace(system=SystemConfig.from_dict(config["system"]),
-                           mpc=MPCConfig.from_dict(config["mpc"]),
-                           learning=LearningConfig.from_dict(config["learning"]),
-                           prices=PriceFileConfig.from_dict(config.get("prices", {})))
+from mpcrl_lite.studies.sweep.grid import SweepRun
 
 
 def paired(study_dir: Path, class_best: Path) -> dict:
@@ -51,7 +42,7 @@ def paired(study_dir: Path, class_best: Path) -> dict:
         raise SystemExit(f"{study_dir}: no config_seed*.json (the configuration of a run)")
     tuned = load_class_best(class_best)
     table = pd.read_csv(study_dir / "study.csv")
-    run = run_of(json.loads(configs[0].read_text()))
+    run = SweepRun.from_config(json.loads(configs[0].read_text()))
     split = class_split(table, tuned, summary.get("J_star"),
                         class_on_run_draws(run, tuned["theta_best"]))
     return {**summary["class_split"], **split}

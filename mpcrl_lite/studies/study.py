@@ -491,12 +491,13 @@ def run_study(
     check_out_dir(out)  # before the DP writes its result there
     out.mkdir(parents=True, exist_ok=True)
     with outdir.lock_output_dir(out, "study"):  # one process at a time in out
+        # every run shares the system, the MPC, the month and the evaluation draws (only the
+        # seed varies): the first run stands for all of them
+        run = load_grid(grid).runs[0]
         if J_star is None and target == "causal":
-            # every run shares the system and the month (only the seed varies)
-            run = load_grid(grid).runs[0]
-            month = (Prices.from_file(run.prices, run.system, run.learning.days_per_month)
-                     if run.prices.file else Prices.month(run.system,
-                                                          run.learning.days_per_month))
+            month = run.file_month()
+            if month is None:  # the shipped month
+                month = Prices.month(run.system, run.learning.days_per_month)
             found = _study_target(out, run.system, month)
             J_star, method, note = found["J_star"], found["method"], found["note"]
         elif J_star is None:
@@ -504,7 +505,6 @@ def run_study(
         tuned = None
         if class_best is not None:  # checked before the runs start
             tuned = load_class_best(class_best)
-            run = load_grid(grid).runs[0]
             if tuned.get("system") != json.loads(jsonio.dumps(run.system.to_dict())) or \
                     tuned.get("forecast") != run.mpc.forecast:
                 raise ValueError(f"--class-best {class_best}: searched for another class (system "
@@ -527,7 +527,7 @@ def run_study(
         if tuned is not None:
             on_runs, failure = None, None
             try:  # after every run: a failure here must not cost the summary
-                on_runs = class_on_run_draws(load_grid(grid).runs[0], tuned["theta_best"])
+                on_runs = class_on_run_draws(run, tuned["theta_best"])
             except Exception as err:  # noqa: BLE001 (recorded in the summary and logged)
                 failure = f"{type(err).__name__}: {err}"
                 log.warning("study: the class's best theta on the runs' draws failed (%s); "
@@ -564,9 +564,7 @@ def class_on_run_draws(run: Any, theta: Any) -> dict[str, Any] | None:
     learning = run.learning
     if not learning.eval_every:
         return None
-    prices = (Prices.from_file(run.prices, run.system, learning.days_per_month)
-              if run.prices.file else None)
-    experiment = Experiment(run.system, run.mpc, learning, prices=prices)
+    experiment = Experiment(run.system, run.mpc, learning, prices=run.file_month())
     J = draw_J(experiment.evaluate(theta), learning.eval_draws)
     return {**mean_ci(J).as_dict(), "draws": int(learning.eval_draws),
             "seed": int(learning.eval_seed), "J": [float(v) for v in J]}

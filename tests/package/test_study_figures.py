@@ -5,7 +5,6 @@ converged, median regret and the learner's part of it, each rounded as quoted.""
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import pytest
@@ -148,16 +147,14 @@ def test_the_stored_paired_figures_are_what_their_files_give(name):
 
     from mpcrl_lite.bounds.baselines import load_class_best
     from mpcrl_lite.studies.study import class_on_run_draws
-
-    sys.path.insert(0, str(ROOT / "tools"))
-    from pair_study_split import run_of
+    from mpcrl_lite.studies.sweep.grid import SweepRun
 
     folder = STUDIES / name
     split = json.loads((folder / "study.json").read_text())["class_split"]
     assert split["source"] == f"data/class_best_{CLASS_BEST[name]}"
     tuned = load_class_best(ROOT / split["source"])
     config = json.loads(next(folder.glob("config_seed*.json")).read_text())
-    again = class_on_run_draws(run_of(config), tuned["theta_best"])
+    again = class_on_run_draws(SweepRun.from_config(config), tuned["theta_best"])
     stored = split["J_class_eval"]
     assert (again["draws"], again["seed"]) == (stored["draws"], stored["seed"])
     assert again["J"] == pytest.approx(stored["J"], rel=1e-8)

@@ -343,14 +343,13 @@ def test_notebook_route(tiny_notebook: Path, tmp_path: Path) -> None:
 #: What each sweep module may import from the package, read from the source (an import hidden
 #: in a function counts too): grid -> store -> table -> run -> schedule -> sweep.
 SWEEP_LAYER = {
-    "studies.sweep.grid": {"config"},
+    "studies.sweep.grid": {"config", "system.prices"},  # prices: a run's price file month
     # rundir: LEGACY_VALUES of older configs; durable, outdir: atomic files, the out check
     "studies.sweep.store": {"learning.durable", "learning.outdir", "learning.rundir",
                             "studies.sweep.grid"},
     "studies.sweep.table": {"learning.history", "studies.sweep.grid", "studies.sweep.store"},
     "studies.sweep.run": {"learning.experiment", "learning.q_experiment", "studies.lockstep",
-                          "publish.report", "system.prices",  # prices: a run on a price file
-                          "studies.sweep.grid", "studies.sweep.store", "studies.sweep.table"},
+                          "publish.report", "studies.sweep.grid", "studies.sweep.store", "studies.sweep.table"},
     "studies.sweep.schedule": {"studies.sweep.grid", "studies.sweep.run", "studies.sweep.store",
                                "studies.sweep.table"},
     # outdir: the lock of out; budget: the size of the work
@@ -734,3 +733,29 @@ def test_damaged_run_files_are_named_in_the_table(serial, tmp_path: Path) -> Non
     table = run_sweep(GRID, out, scheduler="serial", progress=False, only=[IDS[0]])
     assert table.set_index("run_id").loc[IDS[0], "status"] == "done"
     assert J_series(out, IDS[0]) == J_series(serial[0], IDS[0])
+
+
+def test_a_run_reads_back_from_its_stored_config():
+    """``SweepRun.from_config`` of what ``config.json`` holds gives the same configurations,
+    and the month of a price file (``file_month``) is read with the run's days; the shipped
+    month is None (each learner builds it)."""
+    from mpcrl_lite.studies.sweep.grid import SweepRun, load_grid
+    from mpcrl_lite.system.prices import Prices
+
+    run = load_grid({"base": {"learning.days_per_month": 3}, "grid": {"learning.seed": [4]}}).runs[0]
+    again = SweepRun.from_config({"run_id": run.run_id, **run.configs()})
+    assert again.run_id == run.run_id and again.configs() == run.configs()
+    assert (again.system, again.mpc, again.learning) == (run.system, run.mpc, run.learning)
+    assert run.file_month() is None
+    path = Path(__file__).resolve().parents[2] / "data" / \
+        "example_prices_nordpool_portal_NO3_2025-11.csv"
+    on_file = load_grid({"base": {"learning.days_per_month": 3, "prices.file": str(path),
+                                  "prices.month": "2025-11", "prices.area": "NO3"},
+                         "grid": {"learning.seed": [4]}}).runs[0]
+    month = on_file.file_month()
+    expected = Prices.from_file(on_file.prices, on_file.system, 3)
+    assert month.days == 3 and np.array_equal(month.buy, expected.buy)
+    assert not np.array_equal(month.buy, Prices.month(run.system, 3).buy)
+    stored = SweepRun.from_config({"run_id": on_file.run_id, **on_file.configs()})
+    assert stored.prices == on_file.prices
+    assert np.array_equal(stored.file_month().buy, month.buy)

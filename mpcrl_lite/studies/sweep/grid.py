@@ -22,6 +22,7 @@ from typing import Any
 import yaml
 
 from ...config import LearningConfig, MPCConfig, PriceFileConfig, SystemConfig, check_grid_bound
+from ...system.prices import Prices
 
 __all__ = [
     "SECTIONS",
@@ -93,6 +94,22 @@ class SweepRun:
             "learning": self.learning.to_dict(),
             **({"prices": self.prices.to_dict()} if self.prices.file else {}),
         }
+
+    @classmethod
+    def from_config(cls, data: Mapping[str, Any]) -> SweepRun:
+        """The run of a stored ``config.json`` (``run_id`` and :meth:`configs`); its grid
+        values and overrides are not stored there and read as empty."""
+        return cls(str(data.get("run_id", "")), {}, {},
+                   SystemConfig.from_dict(data["system"]), MPCConfig.from_dict(data["mpc"]),
+                   LearningConfig.from_dict(data["learning"]),
+                   PriceFileConfig.from_dict(data.get("prices", {})))
+
+    def file_month(self) -> Prices | None:
+        """The month of the run's price file, or None for the shipped month (which every
+        learner, given None, builds itself)."""
+        if not self.prices.file:
+            return None
+        return Prices.from_file(self.prices, self.system, self.learning.days_per_month)
 
 
 @dataclass(frozen=True)

@@ -23,7 +23,6 @@ from typing import Any
 from ...learning.experiment import Experiment
 from ...learning.q_experiment import QLearningExperiment
 from ...publish.report import _check_values, execute_notebook, notebook_parameters
-from ...system.prices import Prices
 from ..lockstep import run_lockstep
 from .grid import GridError, MissingFileError, Sweep, SweepRun
 from .store import (
@@ -108,10 +107,8 @@ def _learn(runs: list[SweepRun], out: Path) -> None:
             for name in ("checkpoint.json", "history.json"):
                 read_json(directory / name)
             fail = _injected_failure(run.run_id)
-            prices = (Prices.from_file(run.prices, run.system, run.learning.days_per_month)
-                      if run.prices.file else None)
             kind = QLearningExperiment if run.learning.learner == "q" else Experiment
-            learners.append(kind(run.system, run.mpc, run.learning, prices=prices,
+            learners.append(kind(run.system, run.mpc, run.learning, prices=run.file_month(),
                                  callbacks=[fail] if fail else ()))
         except Exception as err:  # noqa: BLE001 (the sweep goes on; the error is kept next to the run)
             write_json(directory / "error.json", _error(err, time.perf_counter() - t0))
