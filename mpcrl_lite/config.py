@@ -871,7 +871,10 @@ class LearningConfig(_Config):
     100 months with both curvature weights held at 0 (with the reset: -213); on 20 other
     fresh seeds (5000-5019) it changed the final J_eval by -2.3 +- 2.2 NOK/day (paired, s.e.),
     better on 12 of 20, so it stays off by default and the results keep their History
-    (``benchmarks/README.md``). ``to_dict`` leaves out ``False``."""
+    (``benchmarks/README.md``). On a month nothing was chosen on (October 2020, NO3) the
+    collapse struck 5 of 20 seeds of the default learner and the reset freed 3 of them
+    (median final J_eval -608.8 against -535.4): use it with other prices. ``to_dict`` leaves
+    out ``False``."""
 
     def __post_init__(self) -> None:
         set_ = self._set

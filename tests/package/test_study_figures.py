@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -126,12 +127,30 @@ def test_the_benchmarks_table_of_paired_gaps_is_the_stored_one(label):
     assert rows[0] == f"| {label} | {held} | {paired} |"
 
 
+#: the studies of months never used to choose anything (October and December 2020, NO3, from
+#: Nord Pool's export): folder -> the folder of the class's best theta found on that month
+UNSEEN = {"oct2020_paper_pathwise_7000": "oct2020_class_best_paper",
+          "oct2020_day_end_pathwise_7000": "oct2020_class_best_day_end",
+          "oct2020_rest_of_day_pathwise_7000": "oct2020_class_best_rest_of_day",
+          "oct2020_paper_critic_7000": "oct2020_class_best_paper",
+          "oct2020_paper_critic_reset_7000": "oct2020_class_best_paper",
+          "oct2020_day_end_pathwise_300m_7000": "oct2020_class_best_day_end",
+          "dec2020_paper_pathwise_8000": "dec2020_class_best_paper",
+          "dec2020_day_end_pathwise_8000": "dec2020_class_best_day_end",
+          "oct2020_day_end_pathwise_scaled_7000": "oct2020_class_best_day_end",
+          "oct2020_paper_pathwise_scaled_7000": "oct2020_class_best_paper"}
 #: stored study -> the tune result its class split was made against
-CLASS_BEST = {"paper_pathwise_5000": "paper", "paper_pathwise_6000": "paper",
-              "paper_critic_5000": "paper", "day_end_pathwise_5000": "day_end",
-              "rest_of_day_pathwise_5000": "rest_of_day",
-              "rest_of_day_pathwise_scale100_5000": "rest_of_day",
-              "rest_of_day_critic_4000": "rest_of_day"}
+CLASS_BEST = {"paper_pathwise_5000": "data/class_best_paper",
+              "paper_pathwise_6000": "data/class_best_paper",
+              "paper_critic_5000": "data/class_best_paper",
+              "day_end_pathwise_5000": "data/class_best_day_end",
+              "rest_of_day_pathwise_5000": "data/class_best_rest_of_day",
+              "rest_of_day_pathwise_scale100_5000": "data/class_best_rest_of_day",
+              "rest_of_day_critic_4000": "data/class_best_rest_of_day",
+              **{name: f"benchmarks/studies/{best}" for name, best in UNSEEN.items()}}
+#: where the October 2020 studies read their prices: Nord Pool's export, which its terms keep
+#: out of the project (``../shared/data/README.md``)
+NORD_POOL_2020 = ROOT.parent / "shared" / "data" / "nordpool" / "elspot-prices_2020_hourly_nok.csv"
 
 
 def test_every_stored_study_has_a_class_best():
@@ -139,26 +158,203 @@ def test_every_stored_study_has_a_class_best():
 
 
 @pytest.mark.parametrize("name", sorted(CLASS_BEST))
-def test_the_stored_paired_figures_are_what_their_files_give(name):
-    """``J_class_eval`` is the class's best theta on the draws of the study's runs (run again
-    here from the stored run config, to the rounding of another machine) and the paired gaps
-    are the stored final J_evals minus it."""
+def test_the_stored_paired_gaps_are_the_final_j_evals_less_the_class_best(name):
+    """The paired gaps are each seed's stored final J_eval minus ``J_class_eval``'s mean, and
+    that mean is the mean of its per-draw values."""
     import pandas as pd
 
+    folder = STUDIES / name
+    split = json.loads((folder / "study.json").read_text())["class_split"]
+    assert split["source"] == CLASS_BEST[name]
+    assert (ROOT / split["source"] / "tune.json").exists()
+    stored = split["J_class_eval"]
+    assert stored["mean"] == pytest.approx(sum(stored["J"]) / len(stored["J"]), rel=1e-12)
+    table = pd.read_csv(folder / "study.csv")
+    gaps = {str(int(s)): float(j) - stored["mean"]
+            for s, j in zip(table["seed"], table["J_eval_final"], strict=True)}
+    assert split["learner_gap_paired"] == pytest.approx(gaps, rel=1e-12)
+
+
+@pytest.mark.parametrize("name", sorted(CLASS_BEST))
+def test_the_stored_class_best_on_the_run_draws_is_what_their_files_give(name):
+    """``J_class_eval`` is the class's best theta on the draws of the study's runs, run again
+    here from the stored run config, to the rounding of another machine. The October studies
+    need Nord Pool's export beside the checkout, as the price-file tests do."""
     from mpcrl_lite.bounds.baselines import load_class_best
     from mpcrl_lite.studies.study import class_on_run_draws
     from mpcrl_lite.studies.sweep.grid import SweepRun
 
     folder = STUDIES / name
     split = json.loads((folder / "study.json").read_text())["class_split"]
-    assert split["source"] == f"data/class_best_{CLASS_BEST[name]}"
     tuned = load_class_best(ROOT / split["source"])
     config = json.loads(next(folder.glob("config_seed*.json")).read_text())
+    if config.get("prices", {}).get("file"):
+        assert config["prices"]["file"] == "../shared/data/nordpool/" + NORD_POOL_2020.name
+        if not NORD_POOL_2020.exists():
+            pytest.skip(f"needs {NORD_POOL_2020} (Nord Pool's export; not in the project)")
+        config["prices"]["file"] = str(NORD_POOL_2020)
     again = class_on_run_draws(SweepRun.from_config(config), tuned["theta_best"])
     stored = split["J_class_eval"]
     assert (again["draws"], again["seed"]) == (stored["draws"], stored["seed"])
     assert again["J"] == pytest.approx(stored["J"], rel=1e-8)
+
+
+#: README's table of the months never used to choose anything: row label -> stored study
+UNSEEN_ROWS = {
+    "October 2020: the rest of the day, pathwise": "oct2020_rest_of_day_pathwise_7000",
+    "October 2020: the day-end forecast, pathwise": "oct2020_day_end_pathwise_7000",
+    "October 2020: the paper's MPC, pathwise": "oct2020_paper_pathwise_7000",
+    "October 2020: the paper's MPC, critic (default)": "oct2020_paper_critic_7000",
+    "October 2020: the paper's MPC, critic, momentum reset at bounds":
+        "oct2020_paper_critic_reset_7000",
+    "December 2020: the day-end forecast, pathwise": "dec2020_day_end_pathwise_8000",
+    "December 2020: the paper's MPC, pathwise": "dec2020_paper_pathwise_8000",
+}
+
+
+@pytest.mark.parametrize("label", sorted(UNSEEN_ROWS))
+def test_readme_quotes_the_studies_of_unseen_months(label):
+    import pandas as pd
+
+    folder = STUDIES / UNSEEN_ROWS[label]
+    study = json.loads((folder / "study.json").read_text())
+    split = study["class_split"]
     table = pd.read_csv(folder / "study.csv")
-    gaps = {str(int(s)): float(j) - stored["mean"]
-            for s, j in zip(table["seed"], table["J_eval_final"], strict=True)}
-    assert split["learner_gap_paired"] == pytest.approx(gaps, rel=1e-12)
+    cells = [cell.strip() for cell in _row(label).strip("|").split("|")]
+    seeds = sorted(int(s) for s in split["learner_gap"])
+    assert cells[1] == f"{seeds[0]}-{seeds[-1]}"
+    assert cells[2] == f"{study['J_star']:.1f}"
+    low, high = study["J_eval_final_iqr"]
+    assert cells[3] == f"{study['J_eval_final_median']:.1f} ({low:.1f} to {high:.1f})"
+    assert cells[4] == f"{study['worst_seed']['J_eval_final']:.1f}"
+    assert cells[5] == f"{int((table['gap_closed'] >= 0.95).sum())} / {study['done']}"
+    assert cells[6] == f"{study['regret_median']:.1f}"
+    assert cells[7] == f"{split['J_class']:.1f} / {split['J_class_eval']['mean']:.1f}"
+    low, high = split["learner_gap_paired_iqr"]
+    assert cells[8] == (f"{split['learner_gap_paired_median']:.1f} ({low:.1f} to {high:.1f}), "
+                        f"worst {split['learner_gap_paired_worst']['value']:.1f}")
+
+
+def _study(name: str) -> tuple[dict, Any]:
+    """A stored study's summary and its table (a pandas DataFrame)."""
+    import pandas as pd
+
+    return (json.loads((STUDIES / name / "study.json").read_text()),
+            pd.read_csv(STUDIES / name / "study.csv"))
+
+
+def test_the_prose_on_unseen_months_is_the_stored_studies():
+    """The paragraph after README's table of the October and December studies."""
+    import math
+
+    text = " ".join(README.split())
+    pathwise = ["oct2020_rest_of_day_pathwise_7000", "oct2020_day_end_pathwise_7000",
+                "oct2020_paper_pathwise_7000", "dec2020_day_end_pathwise_8000",
+                "dec2020_paper_pathwise_8000"]
+    studies = [_study(name) for name in pathwise]
+    closed = min(float(table["gap_closed"].min()) for _, table in studies)
+    late = max(max(study["late_regression_share"].values()) for study, _ in studies)
+    assert f"pathwise run closes at least {math.floor(100 * closed)} % of the gap" in text
+    assert f"none loses more than {math.ceil(1000 * late) / 10:.1f} % of it" in text
+    kind = [study["class_split"]["J_class"] - study["class_split"]["J_class_eval"]["mean"]
+            for study, _ in studies]
+    assert min(kind) > 0
+    assert f"scores {min(kind):.0f} to {max(kind):.0f} NOK/day better on them" in text
+    long, _ = _study("oct2020_day_end_pathwise_300m_7000")
+    short, _ = _study("oct2020_day_end_pathwise_7000")
+    assert (long["months"], long["done"], long["seeds"]) == (300, 6, list(range(7000, 7006)))
+    assert (f"6 of its seeds run for 300 months end at a median of "
+            f"{long['J_eval_final_median']:.1f}, against {short['J_eval_final_median']:.1f} for "
+            "all 20 at month 100") in text
+    scaled_words = {"oct2020_day_end_pathwise_scaled_7000": "narrow the October day-end gap to {:.1f}",
+                    "oct2020_paper_pathwise_scaled_7000": "widen the paper class's to {:.1f}"}
+    for name, words in scaled_words.items():
+        study, _ = _study(name)
+        assert "2.3241971425734347" in study["note"]
+        assert words.format(study["class_split"]["learner_gap_paired_median"]) in text
+
+
+def test_the_critic_on_october_is_the_stored_studies():
+    """The seeds that never leave the nominal theta, and what the momentum reset changes."""
+    text = " ".join(README.split())
+    default, plain = _study("oct2020_paper_critic_7000")
+    reset, fixed = _study("oct2020_paper_critic_reset_7000")
+    stuck = plain[plain["best_month"] == 0]
+    assert (f"{len(stuck)} of the 20 seeds never leave the nominal theta (J_eval "
+            f"+{stuck['J_eval_final'].min():.0f} to +{stuck['J_eval_final'].max():.0f} after 100 "
+            "months)") in text
+    freed = set(stuck["seed"]) - set(fixed.loc[fixed["best_month"] == 0, "seed"])
+    better = int((fixed.set_index("seed")["J_eval_final"]
+                  < plain.set_index("seed")["J_eval_final"]).sum())
+    assert (f"With that option {len(freed)} of the {len(stuck)} learn, the median is "
+            f"{reset['J_eval_final_median']:.1f} instead of {default['J_eval_final_median']:.1f} "
+            f"and {better} of the 20 seeds end better") in text
+    config = json.loads((STUDIES / "oct2020_paper_critic_reset_7000" /
+                         "config_seed7000.json").read_text())
+    assert config["learning"]["reset_momentum_at_bounds"] is True
+
+
+#: benchmarks/README.md's table of the months never used: row label -> stored study
+BENCH_UNSEEN_ROWS = {
+    "October, paper, pathwise": "oct2020_paper_pathwise_7000",
+    "October, day-end, pathwise": "oct2020_day_end_pathwise_7000",
+    "October, rest of the day, pathwise": "oct2020_rest_of_day_pathwise_7000",
+    "October, paper, critic (default)": "oct2020_paper_critic_7000",
+    "October, paper, critic, `--reset-momentum-at-bounds`": "oct2020_paper_critic_reset_7000",
+    "December, paper, pathwise": "dec2020_paper_pathwise_8000",
+    "December, day-end, pathwise": "dec2020_day_end_pathwise_8000",
+}
+
+
+@pytest.mark.parametrize("label", sorted(BENCH_UNSEEN_ROWS))
+def test_the_benchmarks_table_of_unseen_months_is_the_stored_one(label):
+    text = (ROOT / "benchmarks" / "README.md").read_text()
+    rows = [line for line in text.splitlines() if line.startswith(f"| {label} |")]
+    assert len(rows) == 1, rows
+    study, _ = _study(BENCH_UNSEEN_ROWS[label])
+    split = study["class_split"]
+    low, high = study["J_eval_final_iqr"]
+    plow, phigh = split["learner_gap_paired_iqr"]
+    assert rows[0] == (
+        f"| {label} | {study['J_star']:.1f} | {study['J_eval_final_median']:.1f} ({low:.1f} to "
+        f"{high:.1f}) | {split['J_class']:.1f} / {split['J_class_eval']['mean']:.1f} | "
+        f"{split['learner_gap_paired_median']:.1f} ({plow:.1f} to {phigh:.1f}), "
+        f"{split['learner_gap_paired_worst']['value']:.1f} | {study['regret_median']:.1f} |")
+
+
+def test_the_benchmarks_prose_on_unseen_months_is_the_stored_one():
+    text = " ".join((ROOT / "benchmarks" / "README.md").read_text().split())
+    pathwise = [name for name in BENCH_UNSEEN_ROWS.values() if "pathwise" in name]
+    held = [_study(name)[0]["class_split"]["learner_gap_median"] for name in pathwise]
+    assert f"The held-out figures say otherwise ({min(held):.1f} to {max(held):.1f})" in text
+    spread = [json.loads((ROOT / _study(name)[0]["class_split"]["source"] / "tune.json")
+                         .read_text())["J_heldout"]["std"] for name in pathwise]
+    assert 80 <= min(spread) and max(spread) <= 115
+    assert "their standard deviation over draws is 80-115 NOK/day here" in text
+    shipped = [_gap(name, "learner_gap_paired_median") for name in
+               ("paper_pathwise_5000", "day_end_pathwise_5000", "rest_of_day_pathwise_5000")]
+    assert f"On the shipped month it is {min(shipped):.1f} to {max(shipped):.1f}" in text
+    labelled = [name for name in pathwise if "paper" not in name]
+    closed = min(float(_study(name)[1]["gap_closed"].min()) for name in labelled)
+    assert f"(the labelled classes at least {int(100 * closed)} %)" in text
+    scaled_words = {
+        "oct2020_day_end_pathwise_scaled_7000": "day-end {} (IQR {} to {}), paired gap {} instead of {}",
+        "oct2020_paper_pathwise_scaled_7000": "paper {} ({} to {}), paired gap {} instead of {}",
+    }
+    for name, words in scaled_words.items():
+        scaled = _study(name)[0]
+        plain = _study(name.replace("_scaled", ""))[0]
+        low, high = scaled["J_eval_final_iqr"]
+        assert words.format(*(f"{round(v, 1) + 0.0:.1f}" for v in (  # no "-0.0"
+            scaled["J_eval_final_median"], low, high,
+            scaled["class_split"]["learner_gap_paired_median"],
+            plain["class_split"]["learner_gap_paired_median"]))) in text
+
+
+def test_notebook_09_quotes_the_paired_gaps_of_unseen_months():
+    gaps = [_study(name)[0]["class_split"]["learner_gap_paired_median"]
+            for name in BENCH_UNSEEN_ROWS.values() if "pathwise" in name]
+    notebook = " ".join(NOTEBOOK_09.split())
+    assert (f"pathwise gaps are between {round(min(gaps)) + 0:d} and {round(max(gaps)):d} "
+            "NOK/day over the classes") in notebook
+    assert min(gaps) > -0.5 and max(gaps) > 10
