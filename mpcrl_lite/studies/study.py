@@ -66,6 +66,7 @@ import pandas as pd
 from .._util import jsonio
 from .._util.budget import Budget, check_estimate, learning_estimate
 from .._util.stats import mean_ci
+from .._util.validate import check_instance, check_int
 from ..bounds.baselines import load_class_best
 from ..bounds.causal.dual import lagrangian_bound
 from ..bounds.causal.table import causal_bound
@@ -76,13 +77,14 @@ from ..learning.experiment import Experiment
 from ..learning.history import History
 from ..sim.closed_loop import draw_J
 from ..system.prices import Prices
+from ..theta import Theta
 from .sweep.api import run_sweep
 from .sweep.grid import load_grid
 from .sweep.store import check_out_dir
 
 __all__ = ["LATE_COLLAPSE", "SEED_COLUMNS", "TARGETS", "THRESHOLD", "causal_target",
            "class_on_run_draws", "class_split", "gap_closed", "plot_curves", "run_study",
-           "seed_band", "seed_row", "summarize", "updates_to_close"]
+           "seed_band", "seed_row", "segment_on_run_draws", "summarize", "updates_to_close"]
 
 log = logging.getLogger("mpcrl_lite.studies.study")
 
@@ -568,6 +570,40 @@ def class_on_run_draws(run: Any, theta: Any) -> dict[str, Any] | None:
     J = draw_J(experiment.evaluate(theta), learning.eval_draws)
     return {**mean_ci(J).as_dict(), "draws": int(learning.eval_draws),
             "seed": int(learning.eval_seed), "J": [float(v) for v in J]}
+
+
+def segment_on_run_draws(run: Any, start: Any, end: Any, points: int = 11) -> dict[str, Any]:
+    r"""J along the straight segment from ``start`` to ``end`` (two :class:`~mpcrl_lite.theta.
+    Theta` of the run's class, e.g. a run's final theta and the class's best), on the run's own
+    evaluation draws (as :func:`class_on_run_draws`): is the class's best in the learner's
+    basin, or is there a rise between them?
+
+    ``theta(t) = (1 - t) start + t end`` at ``points`` evenly spaced ``t`` in [0, 1] (2 to
+    101). Returns ``{"t", "J"}`` (the mean over the draws at each ``t``), ``"J_start"``,
+    ``"J_end"`` and ``"rise"``: how much the worst point is above the worse end,
+    ``max J - max(J_start, J_end)`` (0 when J never climbs above its ends: no barrier along
+    the segment, though another path may still have one), with the draws and their seed.
+    Every ``theta(t)`` is convex when both ends are (a convex combination of two convex
+    MPCs, ``phi1, T1 >= 0``), so the compiled back-end solves them all.
+    """
+    points = check_int("points", points, 2)
+    if points > 101:
+        raise ValueError(f"points={points}: expected 2 to 101 (one evaluation each)")
+    for name, theta in (("start", start), ("end", end)):
+        check_instance(name, theta, Theta)
+        if theta.n != run.system.n:
+            raise ValueError(f"{name} has n={theta.n}; expected the run's n={run.system.n}")
+    learning = run.learning
+    if not learning.eval_every:
+        raise ValueError("the run is not evaluated (eval_every = 0): no draws to judge on")
+    experiment = Experiment(run.system, run.mpc, learning, prices=run.file_month())
+    a, b = start.to_vector(), end.to_vector()
+    ts = np.linspace(0.0, 1.0, points)
+    J = [float(draw_J(experiment.evaluate(Theta.from_vector((1.0 - t) * a + t * b, start.n)),
+                      learning.eval_draws).mean()) for t in ts]
+    return {"t": [float(t) for t in ts], "J": J, "J_start": J[0], "J_end": J[-1],
+            "rise": float(max(J) - max(J[0], J[-1])), "draws": int(learning.eval_draws),
+            "seed": int(learning.eval_seed)}
 
 
 def _gap_stats(prefix: str, seeds: list[int], gaps: np.ndarray) -> dict[str, Any]:

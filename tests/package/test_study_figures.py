@@ -5,6 +5,7 @@ converged, median regret and the learner's part of it, each rounded as quoted.""
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -358,3 +359,37 @@ def test_notebook_09_quotes_the_paired_gaps_of_unseen_months():
     assert (f"pathwise gaps are between {round(min(gaps)) + 0:d} and {round(max(gaps)):d} "
             "NOK/day over the classes") in notebook
     assert min(gaps) > -0.5 and max(gaps) > 10
+
+
+def test_the_segments_are_of_the_stored_studies_and_quoted():
+    """``segments_2020.jsonl`` (``tools/theta_segment.py``): each segment ends at the class's
+    best theta on the runs' draws, which the study scored too, and the rises are quoted."""
+    segments = [json.loads(line) for line in
+                (STUDIES / "segments_2020.jsonl").read_text().splitlines()]
+    assert len(segments) == 25
+    rises: dict[str, list[float]] = {}
+    for seg in segments:
+        study, _ = _study(seg["study"])
+        assert seg["J_end"] == pytest.approx(study["class_split"]["J_class_eval"]["mean"],
+                                             rel=1e-9)
+        assert seg["rise"] == pytest.approx(max(seg["J"]) - max(seg["J_start"], seg["J_end"]))
+        assert seg["run_seed"] in study["seeds"] and len(seg["t"]) == 11
+        rises.setdefault(seg["study"], []).append(seg["rise"])
+    bench = (ROOT / "benchmarks" / "README.md").read_text()
+    labels = {"oct2020_paper_pathwise_7000": "October, paper, pathwise",
+              "oct2020_day_end_pathwise_7000": "October, day-end, pathwise",
+              "oct2020_rest_of_day_pathwise_7000": "October, rest of the day, pathwise",
+              "dec2020_paper_pathwise_8000": "December, paper, pathwise",
+              "dec2020_day_end_pathwise_8000": "December, day-end, pathwise"}
+    for name, label in labels.items():
+        assert (f"| {label} (segment) | {min(rises[name]):.1f} to {max(rises[name]):.1f} |"
+                in bench)
+    labelled = [r for name, values in rises.items() if "paper" not in name for r in values]
+    text = " ".join(README.split())
+    assert (f"J rises by {math.floor(min(labelled)):d} to {round(max(labelled)):d} NOK/day in "
+            "the labelled classes") in text
+    assert max(rises["dec2020_paper_pathwise_8000"]) == 0.0
+    bench_text = " ".join(bench.split())
+    assert f"J rises by {math.floor(min(labelled)):d} NOK/day or more half-way" in bench_text
+    october = rises["oct2020_paper_pathwise_7000"]
+    assert f"a ridge of {round(min(october))} to {round(max(october))} NOK/day" in bench_text

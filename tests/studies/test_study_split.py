@@ -117,3 +117,65 @@ def test_a_failed_paired_evaluation_keeps_the_summary(tmp_path, monkeypatch, cap
     saved = json.loads((tmp_path / "s" / "study.json").read_text())
     assert saved["class_split"]["J_class_eval_error"] == split["J_class_eval_error"]
     assert "paired learner gap is left out" in caplog.text
+
+
+def test_the_segment_between_two_thetas_on_the_run_draws(tmp_path):
+    from mpcrl_lite.studies.study import class_on_run_draws, segment_on_run_draws
+    from mpcrl_lite.studies.sweep.grid import SweepRun
+
+    base = {"learning.days_per_month": 2, "learning.eval_draws": 2, "learning.eval_every": 1}
+    run_study(1, 1, tmp_path / "s", base=base, workers=0, progress=False, J_star=-400.0)
+    config = json.loads(next((tmp_path / "s" / "runs").glob("*/config.json")).read_text())
+    run = SweepRun.from_config(config)
+    start = Theta.nominal(SystemConfig())
+    end = start.replace(T1=[40.0] * 3, b=[5.0] * 3, phi2=[-3.0] * 3)
+    seg = segment_on_run_draws(run, start, end, points=5)
+    assert seg["t"] == [0.0, 0.25, 0.5, 0.75, 1.0]
+    assert (seg["draws"], seg["seed"]) == (2, LearningConfig().eval_seed)
+    # each point is the theta there on the same draws as the runs' evaluations
+    assert seg["J_start"] == pytest.approx(class_on_run_draws(run, start)["mean"], rel=1e-12)
+    assert seg["J_end"] == pytest.approx(class_on_run_draws(run, end)["mean"], rel=1e-12)
+    middle = Theta.from_vector(0.5 * (start.to_vector() + end.to_vector()), 3)
+    assert seg["J"][2] == pytest.approx(class_on_run_draws(run, middle)["mean"], rel=1e-12)
+    assert seg["rise"] == pytest.approx(max(seg["J"]) - max(seg["J"][0], seg["J"][-1]))
+    assert seg["rise"] >= 0.0 and len(set(seg["J"])) == 5
+    with pytest.raises(ValueError, match="points=1"):
+        segment_on_run_draws(run, start, end, points=1)
+    with pytest.raises(ValueError, match="points=102"):
+        segment_on_run_draws(run, start, end, points=102)
+    with pytest.raises(ValueError, match="end has n=2"):
+        segment_on_run_draws(run, start, Theta.nominal(SystemConfig(n=2)))
+    with pytest.raises(TypeError, match="start"):
+        segment_on_run_draws(run, start.to_vector(), end)
+
+
+def test_the_segment_tool_scores_each_run_against_the_class_best(tmp_path, capsys):
+    """``tools/theta_segment.py``: one JSON line per finished run, from its final theta (t = 0)
+    to the class's best (t = 1), on the run's own draws."""
+    import importlib.util
+    from pathlib import Path
+
+    from mpcrl_lite.learning.history import History
+    from mpcrl_lite.studies.study import class_on_run_draws
+    from mpcrl_lite.studies.sweep.grid import SweepRun
+
+    path = Path(__file__).resolve().parents[2] / "tools" / "theta_segment.py"
+    spec = importlib.util.spec_from_file_location("theta_segment", path)
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    base = {"learning.days_per_month": 2, "learning.eval_draws": 2, "learning.eval_every": 1}
+    run_study(2, 1, tmp_path / "s", base=base, workers=0, progress=False, J_star=-400.0)
+    best = tune_dir(tmp_path / "t")
+    assert tool.main([str(tmp_path / "s"), str(best), "--seeds", "1", "--points", "3"]) == 0
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert [line["run_seed"] for line in lines] == [1]
+    folder = next(p.parent for p in (tmp_path / "s" / "runs").glob("*/config.json")
+                  if SweepRun.from_config(json.loads(p.read_text())).learning.seed == 1)
+    run = SweepRun.from_config(json.loads((folder / "config.json").read_text()))
+    final = History.load(folder).final_theta()
+    assert lines[0]["t"] == [0.0, 0.5, 1.0]
+    assert lines[0]["J_start"] == pytest.approx(class_on_run_draws(run, final)["mean"], rel=1e-12)
+    nominal = Theta.nominal(SystemConfig())
+    assert lines[0]["J_end"] == pytest.approx(class_on_run_draws(run, nominal)["mean"], rel=1e-12)
+    with pytest.raises(SystemExit):
+        tool.main([str(tmp_path / "empty"), str(best)])
