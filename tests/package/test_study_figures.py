@@ -176,11 +176,28 @@ def test_the_stored_paired_gaps_are_the_final_j_evals_less_the_class_best(name):
     assert split["learner_gap_paired"] == pytest.approx(gaps, rel=1e-12)
 
 
-@pytest.mark.parametrize("name", sorted(CLASS_BEST))
+def _draws_key(name: str) -> str:
+    """What a study's ``J_class_eval`` depends on: the class's best theta and the runs'
+    system, MPC, month and evaluation draws (not the learner's settings or seeds)."""
+    folder = STUDIES / name
+    config = json.loads(next(folder.glob("config_seed*.json")).read_text())
+    learning = config["learning"]
+    return json.dumps([json.loads((folder / "study.json").read_text())["class_split"]["source"],
+                       config["system"], config["mpc"], config.get("prices", {}),
+                       {k: learning.get(k) for k in ("eval_seed", "eval_draws", "days_per_month")}],
+                      sort_keys=True)
+
+
+#: one study for each distinct key: its J_class_eval is run again; the others share it
+_KEYS = {name: _draws_key(name) for name in sorted(CLASS_BEST)}
+REPRESENTATIVE = {key: name for name, key in reversed(list(_KEYS.items()))}
+
+
+@pytest.mark.parametrize("name", sorted(set(REPRESENTATIVE.values())))
 def test_the_stored_class_best_on_the_run_draws_is_what_their_files_give(name):
     """``J_class_eval`` is the class's best theta on the draws of the study's runs, run again
-    here from the stored run config, to the rounding of another machine. The October studies
-    need Nord Pool's export beside the checkout, as the price-file tests do."""
+    here from the stored run config, to the rounding of another machine. The studies of 2020's
+    other months need Nord Pool's export beside the checkout, as the price-file tests do."""
     from mpcrl_lite.bounds.baselines import load_class_best
     from mpcrl_lite.studies.study import class_on_run_draws
     from mpcrl_lite.studies.sweep.grid import SweepRun
@@ -198,6 +215,16 @@ def test_the_stored_class_best_on_the_run_draws_is_what_their_files_give(name):
     stored = split["J_class_eval"]
     assert (again["draws"], again["seed"]) == (stored["draws"], stored["seed"])
     assert again["J"] == pytest.approx(stored["J"], rel=1e-8)
+
+
+@pytest.mark.parametrize("name", sorted(n for n, key in _KEYS.items() if REPRESENTATIVE[key] != n))
+def test_studies_on_the_same_draws_share_their_class_best_figure(name):
+    """A study whose class's best ran on the same draws as another's (same class, system,
+    MPC, month and draws; only the learner differs) has the same ``J_class_eval``."""
+    other = REPRESENTATIVE[_KEYS[name]]
+    mine = json.loads((STUDIES / name / "study.json").read_text())["class_split"]
+    theirs = json.loads((STUDIES / other / "study.json").read_text())["class_split"]
+    assert mine["J_class_eval"]["J"] == pytest.approx(theirs["J_class_eval"]["J"], rel=1e-12)
 
 
 #: README's table of the months never used to choose anything: row label -> stored study
