@@ -105,6 +105,14 @@ def test_the_paired_gap_and_the_second_fresh_judgement_are_the_stored_ones():
            f"{100 * share:.1f} % of the gap." in text
 
 
+def _bench_row(label: str) -> str:
+    """The one row of a table in benchmarks/README.md whose first cell is ``label``."""
+    text = (ROOT / "benchmarks" / "README.md").read_text()
+    rows = [line for line in text.splitlines() if line.startswith(f"| {label} |")]
+    assert len(rows) == 1, f"benchmarks/README.md has {len(rows)} rows {label!r}"
+    return rows[0]
+
+
 #: benchmarks/README.md's table of the paired learner gaps: row label -> stored study
 PAIRED_ROWS = {
     "paper, pathwise, 5000-5019": "paper_pathwise_5000",
@@ -118,14 +126,12 @@ PAIRED_ROWS = {
 
 @pytest.mark.parametrize("label", sorted(PAIRED_ROWS))
 def test_the_benchmarks_table_of_paired_gaps_is_the_stored_one(label):
-    text = (ROOT / "benchmarks" / "README.md").read_text()
-    rows = [line for line in text.splitlines() if line.startswith(f"| {label} |")]
-    assert len(rows) == 1, rows
+    row = _bench_row(label)
     split = json.loads((STUDIES / PAIRED_ROWS[label] / "study.json").read_text())["class_split"]
     held = f"{split['learner_gap_median']:.1f} ({split['learner_gap_worst']['value']:.1f})"
     paired = (f"{split['learner_gap_paired_median']:.1f} "
               f"({split['learner_gap_paired_worst']['value']:.1f})")
-    assert rows[0] == f"| {label} | {held} | {paired} |"
+    assert row == f"| {label} | {held} | {paired} |"
 
 
 #: the studies of months never used to choose anything (October and December 2020, NO3, from
@@ -336,14 +342,12 @@ BENCH_UNSEEN_ROWS = {
 
 @pytest.mark.parametrize("label", sorted(BENCH_UNSEEN_ROWS))
 def test_the_benchmarks_table_of_unseen_months_is_the_stored_one(label):
-    text = (ROOT / "benchmarks" / "README.md").read_text()
-    rows = [line for line in text.splitlines() if line.startswith(f"| {label} |")]
-    assert len(rows) == 1, rows
+    row = _bench_row(label)
     study, _ = _study(BENCH_UNSEEN_ROWS[label])
     split = study["class_split"]
     low, high = study["J_eval_final_iqr"]
     plow, phigh = split["learner_gap_paired_iqr"]
-    assert rows[0] == (
+    assert row == (
         f"| {label} | {study['J_star']:.1f} | {study['J_eval_final_median']:.1f} ({low:.1f} to "
         f"{high:.1f}) | {split['J_class']:.1f} / {split['J_class_eval']['mean']:.1f} | "
         f"{split['learner_gap_paired_median']:.1f} ({plow:.1f} to {phigh:.1f}), "
