@@ -572,7 +572,7 @@ def class_on_run_draws(run: Any, theta: Any) -> dict[str, Any] | None:
             "seed": int(learning.eval_seed), "J": [float(v) for v in J]}
 
 
-def segment_on_run_draws(run: Any, start: Any, end: Any, points: int = 11) -> dict[str, Any]:
+def segment_on_run_draws(run: Any, start: Theta, end: Theta, points: int = 11) -> dict[str, Any]:
     r"""J along the straight segment from ``start`` to ``end`` (two :class:`~mpcrl_lite.theta.
     Theta` of the run's class, e.g. a run's final theta and the class's best), on the run's own
     evaluation draws (as :func:`class_on_run_draws`): is the class's best in the learner's
