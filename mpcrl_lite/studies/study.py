@@ -55,7 +55,7 @@ import json
 import logging
 import math
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -563,13 +563,24 @@ def class_on_run_draws(run: Any, theta: Any) -> dict[str, Any] | None:
     Returns ``{"mean", "std", "ci_low", "ci_high", "draws", "seed", "J": [per draw]}``, or
     None when the runs are not evaluated (``eval_every = 0``).
     """
+    on_draws = _run_draws(run)
+    if on_draws is None:
+        return None
+    J = on_draws(theta)
+    learning = run.learning
+    return {**mean_ci(J).as_dict(), "draws": int(learning.eval_draws),
+            "seed": int(learning.eval_seed), "J": [float(v) for v in J]}
+
+
+def _run_draws(run: Any) -> Callable[[Theta], np.ndarray] | None:
+    """Each evaluation draw's J of a theta on the draws of ``run``, through the runs' own
+    :meth:`Experiment.evaluate` (built once, for every theta asked); None when the runs are
+    not evaluated (``eval_every = 0``)."""
     learning = run.learning
     if not learning.eval_every:
         return None
     experiment = Experiment(run.system, run.mpc, learning, prices=run.file_month())
-    J = draw_J(experiment.evaluate(theta), learning.eval_draws)
-    return {**mean_ci(J).as_dict(), "draws": int(learning.eval_draws),
-            "seed": int(learning.eval_seed), "J": [float(v) for v in J]}
+    return lambda theta: draw_J(experiment.evaluate(theta), learning.eval_draws)
 
 
 def segment_on_run_draws(run: Any, start: Theta, end: Theta, points: int = 11) -> dict[str, Any]:
@@ -593,14 +604,13 @@ def segment_on_run_draws(run: Any, start: Theta, end: Theta, points: int = 11) -
         check_instance(name, theta, Theta)
         if theta.n != run.system.n:
             raise ValueError(f"{name} has n={theta.n}; expected the run's n={run.system.n}")
-    learning = run.learning
-    if not learning.eval_every:
+    on_draws = _run_draws(run)
+    if on_draws is None:
         raise ValueError("the run is not evaluated (eval_every = 0): no draws to judge on")
-    experiment = Experiment(run.system, run.mpc, learning, prices=run.file_month())
     a, b = start.to_vector(), end.to_vector()
     ts = np.linspace(0.0, 1.0, points)
-    J = [float(draw_J(experiment.evaluate(Theta.from_vector((1.0 - t) * a + t * b, start.n)),
-                      learning.eval_draws).mean()) for t in ts]
+    J = [float(on_draws(Theta.from_vector((1.0 - t) * a + t * b, start.n)).mean()) for t in ts]
+    learning = run.learning
     return {"t": [float(t) for t in ts], "J": J, "J_start": J[0], "J_end": J[-1],
             "rise": float(max(J) - max(J[0], J[-1])), "draws": int(learning.eval_draws),
             "seed": int(learning.eval_seed)}
