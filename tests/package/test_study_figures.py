@@ -24,6 +24,16 @@ ROWS = {"paper_pathwise_5000": "the paper's MPC, pathwise gradient",
         "rest_of_day_pathwise_5000": "the rest of the day, pathwise gradient"}
 
 
+def _summary(name: str) -> dict[str, Any]:
+    """The ``study.json`` of the stored study ``name``."""
+    return json.loads((STUDIES / name / "study.json").read_text())
+
+
+def _config(name: str) -> dict[str, Any]:
+    """The stored run configuration (``config_seed*.json``) of the stored study ``name``."""
+    return json.loads(next((STUDIES / name).glob("config_seed*.json")).read_text())
+
+
 def _row(label: str) -> str:
     rows = [line for line in README.splitlines() if line.startswith(f"| {label}")]
     assert len(rows) == 1, f"README has {len(rows)} rows starting with {label!r}"
@@ -32,7 +42,7 @@ def _row(label: str) -> str:
 
 @pytest.mark.parametrize("name", sorted(ROWS))
 def test_readme_quotes_the_stored_study(name):
-    study = json.loads((STUDIES / name / "study.json").read_text())
+    study = _summary(name)
     split = study["class_split"]
     cells = [cell.strip() for cell in _row(ROWS[name]).strip("|").split("|")]
     low, high = study["J_eval_final_iqr"]
@@ -54,7 +64,7 @@ def test_readme_quotes_the_stored_study(name):
 
 
 def _gap(name: str, key: str = "learner_gap_median") -> float:
-    return json.loads((STUDIES / name / "study.json").read_text())["class_split"][key]
+    return _summary(name)["class_split"][key]
 
 
 def test_the_learner_gaps_quoted_in_prose_are_the_stored_ones():
@@ -82,12 +92,12 @@ def test_the_paired_gap_and_the_second_fresh_judgement_are_the_stored_ones():
     """The paragraph after README's results table: the class's best on both sets of draws and
     the paper class on the seeds 6000-6019."""
     text = " ".join(README.split())
-    first = json.loads((STUDIES / "paper_pathwise_5000" / "study.json").read_text())
+    first = _summary("paper_pathwise_5000")
     split = first["class_split"]
     assert f"held-out draws it has J = {split['J_class']:.1f}" in text
     assert f"it has {split['J_class_eval']['mean']:.1f}." in text
     assert split["J_class_eval"]["draws"] == 10 and first["eval_draws"] == 10
-    study = json.loads((STUDIES / "paper_pathwise_6000" / "study.json").read_text())
+    study = _summary("paper_pathwise_6000")
     second = study["class_split"]
     seeds = sorted(int(s) for s in second["learner_gap"])
     assert (seeds[0], seeds[-1], len(seeds)) == (6000, 6019, 20)
@@ -127,7 +137,7 @@ PAIRED_ROWS = {
 @pytest.mark.parametrize("label", sorted(PAIRED_ROWS))
 def test_the_benchmarks_table_of_paired_gaps_is_the_stored_one(label):
     row = _bench_row(label)
-    split = json.loads((STUDIES / PAIRED_ROWS[label] / "study.json").read_text())["class_split"]
+    split = _summary(PAIRED_ROWS[label])["class_split"]
     held = f"{split['learner_gap_median']:.1f} ({split['learner_gap_worst']['value']:.1f})"
     paired = (f"{split['learner_gap_paired_median']:.1f} "
               f"({split['learner_gap_paired_worst']['value']:.1f})")
@@ -169,15 +179,12 @@ def test_every_stored_study_has_a_class_best():
 def test_the_stored_paired_gaps_are_the_final_j_evals_less_the_class_best(name):
     """The paired gaps are each seed's stored final J_eval minus ``J_class_eval``'s mean, and
     that mean is the mean of its per-draw values."""
-    import pandas as pd
-
-    folder = STUDIES / name
-    split = json.loads((folder / "study.json").read_text())["class_split"]
+    study, table = _study(name)
+    split = study["class_split"]
     assert split["source"] == CLASS_BEST[name]
     assert (ROOT / split["source"] / "tune.json").exists()
     stored = split["J_class_eval"]
     assert stored["mean"] == pytest.approx(sum(stored["J"]) / len(stored["J"]), rel=1e-12)
-    table = pd.read_csv(folder / "study.csv")
     gaps = {str(int(s)): float(j) - stored["mean"]
             for s, j in zip(table["seed"], table["J_eval_final"], strict=True)}
     assert split["learner_gap_paired"] == pytest.approx(gaps, rel=1e-12)
@@ -186,10 +193,9 @@ def test_the_stored_paired_gaps_are_the_final_j_evals_less_the_class_best(name):
 def _draws_key(name: str) -> str:
     """What a study's ``J_class_eval`` depends on: the class's best theta and the runs'
     system, MPC, month and evaluation draws (not the learner's settings or seeds)."""
-    folder = STUDIES / name
-    config = json.loads(next(folder.glob("config_seed*.json")).read_text())
+    config = _config(name)
     learning = config["learning"]
-    return json.dumps([json.loads((folder / "study.json").read_text())["class_split"]["source"],
+    return json.dumps([_summary(name)["class_split"]["source"],
                        config["system"], config["mpc"], config.get("prices", {}),
                        {k: learning.get(k) for k in ("eval_seed", "eval_draws", "days_per_month")}],
                       sort_keys=True)
@@ -209,10 +215,9 @@ def test_the_stored_class_best_on_the_run_draws_is_what_their_files_give(name):
     from mpcrl_lite.studies.study import class_on_run_draws
     from mpcrl_lite.studies.sweep.grid import SweepRun
 
-    folder = STUDIES / name
-    split = json.loads((folder / "study.json").read_text())["class_split"]
+    split = _summary(name)["class_split"]
     tuned = load_class_best(ROOT / split["source"])
-    config = json.loads(next(folder.glob("config_seed*.json")).read_text())
+    config = _config(name)
     if config.get("prices", {}).get("file"):
         assert config["prices"]["file"] == "../shared/data/nordpool/" + NORD_POOL_2020.name
         if not NORD_POOL_2020.exists():
@@ -229,8 +234,8 @@ def test_studies_on_the_same_draws_share_their_class_best_figure(name):
     """A study whose class's best ran on the same draws as another's (same class, system,
     MPC, month and draws; only the learner differs) has the same ``J_class_eval``."""
     other = REPRESENTATIVE[_KEYS[name]]
-    mine = json.loads((STUDIES / name / "study.json").read_text())["class_split"]
-    theirs = json.loads((STUDIES / other / "study.json").read_text())["class_split"]
+    mine = _summary(name)["class_split"]
+    theirs = _summary(other)["class_split"]
     assert mine["J_class_eval"]["J"] == pytest.approx(theirs["J_class_eval"]["J"], rel=1e-12)
 
 
@@ -250,12 +255,8 @@ UNSEEN_ROWS = {
 
 @pytest.mark.parametrize("label", sorted(UNSEEN_ROWS))
 def test_readme_quotes_the_studies_of_unseen_months(label):
-    import pandas as pd
-
-    folder = STUDIES / UNSEEN_ROWS[label]
-    study = json.loads((folder / "study.json").read_text())
+    study, table = _study(UNSEEN_ROWS[label])
     split = study["class_split"]
-    table = pd.read_csv(folder / "study.csv")
     cells = [cell.strip() for cell in _row(label).strip("|").split("|")]
     seeds = sorted(int(s) for s in split["learner_gap"])
     assert cells[1] == f"{seeds[0]}-{seeds[-1]}"
@@ -275,8 +276,7 @@ def _study(name: str) -> tuple[dict, Any]:
     """A stored study's summary and its table (a pandas DataFrame)."""
     import pandas as pd
 
-    return (json.loads((STUDIES / name / "study.json").read_text()),
-            pd.read_csv(STUDIES / name / "study.csv"))
+    return _summary(name), pd.read_csv(STUDIES / name / "study.csv")
 
 
 def test_the_prose_on_unseen_months_is_the_stored_studies():
@@ -325,8 +325,7 @@ def test_the_critic_on_october_is_the_stored_studies():
     assert (f"With that option {len(freed)} of the {len(stuck)} learn, the median is "
             f"{reset['J_eval_final_median']:.1f} instead of {default['J_eval_final_median']:.1f} "
             f"and {better} of the 20 seeds end better") in text
-    config = json.loads((STUDIES / "oct2020_paper_critic_reset_7000" /
-                         "config_seed7000.json").read_text())
+    config = _config("oct2020_paper_critic_reset_7000")
     assert config["learning"]["reset_momentum_at_bounds"] is True
 
 
