@@ -693,6 +693,7 @@ EXPLORATION_BOUNDS = ("symmetric", "radial", "project")
 EARLIER_BEHAVIOUR: dict[str, Any] = {
     "eval_draws": 1,
     "exploration_bounds": "project",
+    "scale_to_prices": False,
     "tie_agents": False,
     "value_features": "hour*paper",
 }
@@ -871,10 +872,29 @@ class LearningConfig(_Config):
     100 months with both curvature weights held at 0 (with the reset: -213); on 20 other
     fresh seeds (5000-5019) it changed the final J_eval by -2.3 +- 2.2 NOK/day (paired, s.e.),
     better on 12 of 20, so it stays off by default and the results keep their History
-    (``benchmarks/README.md``). On a month nothing was chosen on (October 2020, NO3) the
-    collapse struck 5 of 20 seeds of the default learner and the reset freed 3 of them
-    (median final J_eval -608.8 against -535.4): use it with other prices. ``to_dict`` leaves
-    out ``False``."""
+    (``benchmarks/README.md``). On a month nothing was chosen on (October 2020, NO3) with the
+    shipped month's step scales the collapse struck 5 of 20 seeds of the default learner and
+    the reset freed 3 of them (median final J_eval -608.8 against -535.4); with the month's
+    own step scales (``scale_to_prices``, the default for a price file) it struck 3 and the
+    reset did not help (5 stuck, median -589.0 against -610.8). ``to_dict`` leaves out
+    ``False``."""
+    scale_to_prices: bool | None = None
+    """Adam's typical magnitudes of the cost parts (:data:`mpcrl_lite.learning.dpg.DEFAULT_SCALE`
+    and ``terminal_scale``) are set for the shipped month's price level (mean buying price
+    :data:`mpcrl_lite.learning.dpg.REFERENCE_PRICE`, 56.3 NOK/MWh). With True they are
+    multiplied by the level of the learning month's own prices instead (their mean buying
+    price over that one; :func:`mpcrl_lite.learning.dpg.price_level`), so that a price
+    correction or a soc weight moves by the same fraction of its natural size whatever the
+    month's prices (``SystemConfig.price_scale`` is then part of that level); with False
+    they are multiplied by ``SystemConfig.price_scale`` only. ``None`` (the default) is True
+    for prices read from a file (``--prices``) and False for the shipped month, whose level is
+    the reference, and for price arrays given directly; every learner resolves it when it is
+    built and records the result. Measured on two months nothing was chosen on (October and
+    December 2020, NO3, price levels 2.32 and 2.68, 20 new seeds each): the pathwise learner's
+    paired gap to its class's best fell in five of six class-months (October's rest-of-day
+    class from 13.1 to 3.8 NOK/day, its regret from 33.1 to 23.9) and the critic's median
+    final J_eval improved from -535.4 to -610.8 (``benchmarks/README.md``). ``to_dict``
+    leaves out ``False`` (files read as before the field: :data:`EARLIER_BEHAVIOUR`)."""
 
     def __post_init__(self) -> None:
         set_ = self._set
@@ -922,6 +942,8 @@ class LearningConfig(_Config):
         set_("newton_step", check_real("newton_step", self.newton_step, 0.0, low_open=True))
         set_("reset_momentum_at_bounds", check_bool("reset_momentum_at_bounds",
                                                     self.reset_momentum_at_bounds))
+        if self.scale_to_prices is not None:
+            set_("scale_to_prices", check_bool("scale_to_prices", self.scale_to_prices))
         set_("gradient", check_choice("gradient", self.gradient, GRADIENTS))
         auto_scale = self.terminal_scale is None
         if auto_scale:
@@ -957,6 +979,8 @@ class LearningConfig(_Config):
             out.pop("terminal_scale")
         if not self.reset_momentum_at_bounds:
             out.pop("reset_momentum_at_bounds")
+        if self.scale_to_prices is False:
+            out.pop("scale_to_prices")
         if self.learner == "dpg" and self.hessian == "approx" and self.newton_step == 0.3:
             for key in ("learner", "hessian", "newton_step"):
                 out.pop(key)
@@ -966,7 +990,8 @@ class LearningConfig(_Config):
     def from_dict(cls, data: dict[str, Any]) -> LearningConfig:
         """Inverse of :meth:`to_dict`. A dict written before a field existed reads back with
         what its run did (:data:`EARLIER_BEHAVIOUR`): one evaluation draw, the projected
-        exploration, one parameter set per battery and the per-hour value features."""
+        exploration, one parameter set per battery, the per-hour value features and the
+        shipped month's step scales."""
         if isinstance(data, dict):
             data = {**{k: v for k, v in EARLIER_BEHAVIOUR.items() if k not in data}, **data}
         return super().from_dict(data)

@@ -253,7 +253,7 @@ class DecentralizedExperiment(Learner):
         self.thetas = split_theta(theta0)
         self.callbacks = list(callbacks)
         self.policy = CoordinatedMPC(self.system, self.mpc_config, self.coordination)
-        self.updaters = [DPGUpdater.from_configs(self.learning, self._local(i))
+        self.updaters = [DPGUpdater.from_configs(self.learning, self._local(i), self.prices)
                          for i in range(self.system.n)]
         self.rng = np.random.default_rng(self.learning.seed)
         self.history = History(self.system, self.mpc_config, self.learning, backend=self.backend)
@@ -338,7 +338,7 @@ class DecentralizedExperiment(Learner):
         if not isinstance(saved, list) or len(saved) != self.system.n:
             raise RunDirError(f"{where}: 'updaters' is not a list of {self.system.n} optimizer "
                               "states; start over with --force")
-        fresh = [DPGUpdater.from_configs(self.learning, self._local(i))
+        fresh = [DPGUpdater.from_configs(self.learning, self._local(i), self.prices)
                  for i in range(len(saved))]
         try:
             for updater, s in zip(fresh, saved):

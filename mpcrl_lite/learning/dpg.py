@@ -57,7 +57,8 @@ from .update_rules import (
     make_update_rule,
 )
 
-__all__ = ["DEFAULT_SCALE", "DPGUpdater", "learnable_mask", "part_scales", "policy_gradient", "policy_metric"]
+__all__ = ["DEFAULT_SCALE", "REFERENCE_PRICE", "DPGUpdater", "learnable_mask", "part_scales",
+           "policy_gradient", "policy_metric", "price_level", "scales_follow_prices"]
 
 
 #: Typical magnitude of each part of theta for Adam, for prices in NOK/MWh (multiplied by
@@ -78,6 +79,36 @@ DEFAULT_SCALE: dict[str, float | None] = {
     "T2": 100.0,
     "T3": 100.0,
 }
+
+
+#: The price level :data:`DEFAULT_SCALE` is set for: the shipped month's mean buying price
+#: (NOK/MWh; :func:`mpcrl_lite.system.prices.load_default_profile`, NO3 November 2020).
+REFERENCE_PRICE = 56.34688545236111
+
+
+def price_level(buy: Any) -> float:
+    """The price level of a month for Adam's scales of the cost parts
+    (``LearningConfig.scale_to_prices``): its mean buying price over :data:`REFERENCE_PRICE`,
+    exactly 1 for the shipped month. ``buy`` is the month's buying prices (any shape) or a
+    :class:`~mpcrl_lite.system.prices.Prices`."""
+    buy = np.asarray(getattr(buy, "buy", buy), dtype=float)
+    if buy.size == 0 or not np.all(np.isfinite(buy)):
+        raise ValueError(f"price_level of {buy.size} buying prices: expected finite prices")
+    level = float(buy.mean()) / REFERENCE_PRICE
+    if not level > 0.0:
+        raise ValueError(
+            f"the month's mean buying price is {float(buy.mean())!r}: scale_to_prices needs a "
+            "positive price level; expected scale_to_prices=False for these prices")
+    return level
+
+
+def scales_follow_prices(learning: LearningConfig, prices: Any) -> bool:
+    """``learning.scale_to_prices`` resolved for the learning month ``prices``: as given,
+    or (``None``) True exactly when the prices were read from a file (their ``origin`` names
+    one)."""
+    if learning.scale_to_prices is not None:
+        return learning.scale_to_prices
+    return bool((getattr(prices, "origin", None) or {}).get("file"))
 
 
 def part_scales(system_alpha: float, price_scale: float = 1.0) -> dict[str, float]:
@@ -331,9 +362,18 @@ class DPGUpdater:
         self.reset()
 
     @classmethod
-    def from_configs(cls, learning: LearningConfig, system: SystemConfig, **kwargs: Any):
+    def from_configs(cls, learning: LearningConfig, system: SystemConfig, prices: Any = None,
+                     **kwargs: Any):
         """Build from the two configs (``n``, ``alpha`` and ``price_scale`` taken from
-        ``system``)."""
+        ``system``). Where ``learning.scale_to_prices`` says so (:func:`scales_follow_prices`)
+        the cost parts' scales follow the level of ``prices`` (the learning month's
+        :class:`~mpcrl_lite.system.prices.Prices`, :func:`price_level`) instead of
+        ``system.price_scale``."""
+        if scales_follow_prices(learning, prices):
+            if prices is None:
+                raise ValueError("learning.scale_to_prices=True without the month's prices: "
+                                 "expected prices= (the learning month's Prices)")
+            kwargs.setdefault("price_scale", price_level(prices))
         kwargs.setdefault("price_scale", system.price_scale if system.price_scale > 0 else 1.0)
         terminal = learning.terminal_scale * kwargs["price_scale"]  # as part_scales scales
         kwargs.setdefault("scale", {"T1": terminal, "T2": terminal, "T3": terminal})

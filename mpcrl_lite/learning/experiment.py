@@ -121,7 +121,7 @@ class Experiment(Learner):
         self.callbacks = list(callbacks)
         self.mpc = MPC(self.system)
         self.solver = make_solver(self.mpc, self.mpc_config, self.theta)
-        self.updater = self.UPDATER.from_configs(self.learning, self.system)
+        self.updater = self.UPDATER.from_configs(self.learning, self.system, self.prices)
         self.rng = np.random.default_rng(self.learning.seed)
         # the pathwise gradient recorded while the month ran: (its record, the gradient)
         self._pathwise: tuple[MonthRecord, PathwiseGradient] | None = None
@@ -373,7 +373,7 @@ class Experiment(Learner):
     def restore_learner_state(self, state: dict[str, Any], where: str) -> Callable[[], None]:
         """Check theta and the optimizer state of a checkpoint; return their application."""
         theta = parse_theta(state["theta"], self.system.n, where)
-        updater = self.UPDATER.from_configs(self.learning, self.system)
+        updater = self.UPDATER.from_configs(self.learning, self.system, self.prices)
         try:
             updater.load_state_dict(state["updater"])
         except (TypeError, ValueError, KeyError, AttributeError) as err:

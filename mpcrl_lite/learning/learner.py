@@ -43,6 +43,7 @@ from ..system.prices import Prices
 from ..theta import Theta
 from . import outdir
 from .checkpoint import Checkpointing, open_run
+from .dpg import scales_follow_prices
 from .history import History
 
 __all__ = [
@@ -80,7 +81,9 @@ def resolve_setup(
     The prices returned are those the MPC sees (:func:`mpcrl_lite.system.forecast.forecast_prices`
     of ``MPCConfig.forecast``); prices given already as
     :func:`~mpcrl_lite.system.forecast.until_midnight` set ``forecast='until_midnight'`` in the
-    returned config, so that the run records what its MPC saw."""
+    returned config, so that the run records what its MPC saw. ``learning.scale_to_prices=None``
+    is resolved for these prices (:func:`~mpcrl_lite.learning.dpg.scales_follow_prices`), so
+    that the run records what its learner did."""
     system = check_grid_bound(system or SystemConfig())
     mpc_config = mpc_config or MPCConfig()
     learning = learning or LearningConfig()
@@ -98,6 +101,8 @@ def resolve_setup(
         )
     if forecast_of(prices) != mpc_config.forecast and mpc_config.forecast == "paper":
         mpc_config = mpc_config.replace(forecast=forecast_of(prices))
+    if learning.scale_to_prices is None:  # recorded as it was resolved
+        learning = learning.replace(scale_to_prices=scales_follow_prices(learning, prices))
     prices = forecast_prices(prices, mpc_config)
     theta0 = theta0 or Theta.nominal(system)
     if theta0.n != system.n:

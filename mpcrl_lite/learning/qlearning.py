@@ -183,14 +183,14 @@ class QLearningUpdater:
     ``newton_shift`` the ``t`` of :func:`regularised_solve`).
     """
 
-    def __init__(self, config: LearningConfig, system: SystemConfig) -> None:
+    def __init__(self, config: LearningConfig, system: SystemConfig, prices: Any = None) -> None:
         self.config = check_instance("config", config, LearningConfig)
         self.n = system.n
         self.second_order = config.hessian != "none"
         inner = config.replace(learn_constants=True)
         if self.second_order:  # the direction is the Newton step itself
             inner = inner.replace(optimizer="sgd", step_size=config.newton_step)
-        self.inner = DPGUpdater.from_configs(inner, system)
+        self.inner = DPGUpdater.from_configs(inner, system, prices)
         self._basis = self._make_basis()
         self._hessian: np.ndarray | None = None
 
@@ -199,8 +199,9 @@ class QLearningUpdater:
         self._hessian = None if hessian is None else np.asarray(hessian, float)
 
     @classmethod
-    def from_configs(cls, learning: LearningConfig, system: SystemConfig) -> QLearningUpdater:
-        return cls(learning, system)
+    def from_configs(cls, learning: LearningConfig, system: SystemConfig,
+                     prices: Any = None) -> QLearningUpdater:
+        return cls(learning, system, prices)
 
     def _make_basis(self) -> np.ndarray:
         """Columns spanning what is learned: one per learnable entry of the non-constant

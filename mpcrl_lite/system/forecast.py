@@ -71,7 +71,8 @@ def until_midnight(prices: Prices) -> DayEndPrices:
     """The same prices with a forecast that stops at midnight (:class:`DayEndPrices`)."""
     check_instance("prices", prices, Prices)
     return DayEndPrices(prices.buy, sell_ratio=prices.sell_ratio, unit=prices.unit,
-                        source=f"{prices.source}; forecast until midnight")
+                        source=f"{prices.source}; forecast until midnight",
+                        origin=prices.origin)
 
 
 def forecast_prices(prices: Prices, forecast: str | MPCConfig) -> Prices:

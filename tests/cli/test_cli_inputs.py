@@ -23,6 +23,7 @@ from mpcrl_lite.cli.main import main
 from mpcrl_lite.config import SystemConfig
 from mpcrl_lite.decentralized import learner as decentralized
 from mpcrl_lite.learning import experiment
+from mpcrl_lite.learning.dpg import REFERENCE_PRICE, price_level
 from mpcrl_lite.learning.history import History
 from mpcrl_lite.mpc.backends import registry as solvers
 from mpcrl_lite.mpc.formulation import MPC
@@ -475,6 +476,35 @@ def test_learn_on_another_month(export, tmp_path, capsys):
     expected = experiment.Experiment(
         system, None, history.learning, prices=prices).run(months=1, progress=False)
     assert history.J == pytest.approx(expected.J, rel=1e-9)
+    # on a price file Adam's cost scales follow its price level (recorded as resolved) ...
+    assert history.learning.scale_to_prices is True
+    level = price_level(prices)
+    assert level == pytest.approx(np.mean([[price(d, h) for h in range(24)] for d in (1, 2)])
+                                  / REFERENCE_PRICE, rel=1e-12)
+    auto = experiment.Experiment(system, None, experiment.LearningConfig(days_per_month=2),
+                                 prices=prices)
+    assert auto.learning.scale_to_prices is True
+    np.testing.assert_allclose(auto.updater.scale[Theta.index(3, "b")], 10.0 * level,
+                               rtol=1e-15)
+    # ... unless told not to; a resume cannot change it
+    code, err = run_cli(["learn", "--months", "2", "--days", "2", "--prices", export, "--month",
+                         "2021-02", "--out", out, "--no-figures", "--quiet", "--resume",
+                         "--no-scale-to-prices"], capsys)
+    assert code == 2 and len(err) == 1 and "--no-scale-to-prices with --resume" in err[0], err
+    plain = tmp_path / "plain"
+    code, err = run_cli(["learn", "--months", "1", "--days", "2", "--prices", export, "--month",
+                         "2021-02", "--out", plain, "--no-figures", "--quiet",
+                         "--no-scale-to-prices"], capsys)
+    assert code == 0, err
+    assert History.load(plain).learning.scale_to_prices is False
+    # the first month runs on the nominal theta either way; the step differs by the level
+    unscaled = History.load(plain)
+    assert unscaled.J[0] == history.J[0]
+    first = np.array(history.theta_final) - np.array(history.theta[0])
+    second = np.array(unscaled.theta_final) - np.array(unscaled.theta[0])
+    b = Theta.index(3, "b")
+    assert np.all(second[b] != 0)
+    np.testing.assert_allclose(first[b], level * second[b], rtol=1e-9)
 
 
 def test_baselines_json_writes_nan_as_null(tmp_path, monkeypatch):

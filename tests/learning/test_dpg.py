@@ -17,11 +17,14 @@ from mpcrl_lite.config import (
 )
 from mpcrl_lite.learning.dpg import (
     DEFAULT_SCALE,
+    REFERENCE_PRICE,
     DPGUpdater,
     learnable_mask,
     part_scales,
     policy_gradient,
     policy_metric,
+    price_level,
+    scales_follow_prices,
 )
 from mpcrl_lite.learning.update_rules import (
     ADAM_BETAS,
@@ -159,6 +162,58 @@ def test_default_is_per_part_scaled_adam():
     np.testing.assert_allclose(cheap.scale[Theta.index(N, "alpha")], ALPHA)
     with pytest.raises(ValueError, match="price_scale"):
         part_scales(ALPHA, 0.0)
+
+
+def test_scales_follow_the_months_price_level_on_request():
+    """scale_to_prices: the cost parts' scales (and the terminal scale) are multiplied by the
+    month's mean buying price over the shipped month's; the model parts keep theirs."""
+    from mpcrl_lite.system.prices import Prices, load_default_profile
+
+    assert REFERENCE_PRICE == float(load_default_profile().mean())
+    shipped = Prices.default()
+    assert price_level(shipped) == 1.0 and price_level(shipped.buy) == 1.0
+    system = SystemConfig(n=N)
+    config = LearningConfig(scale_to_prices=True, gradient="pathwise")
+    plain = DPGUpdater.from_configs(config.replace(scale_to_prices=False), system, shipped)
+    # the shipped month: the same scales bit for bit, so the same History
+    np.testing.assert_array_equal(DPGUpdater.from_configs(config, system, shipped).scale,
+                                  plain.scale)
+    dear = shipped.scaled(2.5)
+    assert price_level(dear) == pytest.approx(2.5, rel=1e-15)
+    up = DPGUpdater.from_configs(config, system, dear)
+    model = np.zeros(10 * N, dtype=bool)
+    for part in ("alpha", "delta"):
+        model[Theta.index(N, part)] = True
+    np.testing.assert_array_equal(up.scale[model], plain.scale[model])
+    np.testing.assert_allclose(up.scale[~model], price_level(dear) * plain.scale[~model],
+                               rtol=1e-15)
+    np.testing.assert_allclose(up.scale[Theta.index(N, "T1")], 2.5 * config.terminal_scale)
+    # off, the prices change nothing
+    np.testing.assert_array_equal(
+        DPGUpdater.from_configs(config.replace(scale_to_prices=False), system, dear).scale,
+        plain.scale)
+    # the default (None) follows prices read from a file, not the shipped month or arrays
+    auto = LearningConfig()
+    assert auto.scale_to_prices is None and auto.to_dict()["scale_to_prices"] is None
+    filed = Prices(dear.buy, origin={"file": "prices.csv", "month": "2020-10"})
+    assert not scales_follow_prices(auto, shipped) and not scales_follow_prices(auto, dear)
+    assert scales_follow_prices(auto, filed)
+    assert not scales_follow_prices(auto.replace(scale_to_prices=False), filed)
+    np.testing.assert_array_equal(DPGUpdater.from_configs(auto, system, dear).scale,
+                                  DPGUpdater.from_configs(auto, system).scale)
+    np.testing.assert_array_equal(
+        DPGUpdater.from_configs(auto, system, filed).scale,
+        DPGUpdater.from_configs(auto.replace(scale_to_prices=True), system, dear).scale)
+    # a config written before the field reads back as its run learned: without it
+    old = {k: v for k, v in auto.to_dict().items() if k != "scale_to_prices"}
+    assert LearningConfig.from_dict(old).scale_to_prices is False
+    assert LearningConfig.from_dict(auto.to_dict()).scale_to_prices is None
+    with pytest.raises(ValueError, match="without the month's prices"):
+        DPGUpdater.from_configs(config, system)
+    with pytest.raises(ValueError, match="positive price level"):
+        price_level(-shipped.buy)
+    with pytest.raises(ValueError, match="expected finite prices"):
+        price_level(np.array([1.0, np.nan]))
 
 
 def test_scaled_gradient_norm_is_recorded():
@@ -443,6 +498,47 @@ def test_step_errors():
 def test_from_configs():
     up = DPGUpdater.from_configs(LearningConfig(), SystemConfig(n=2))
     assert up.n == 2 and up.system_alpha == pytest.approx(1 / 12) and up.mask.sum() == 16
+
+
+def test_learn_scales_to_prices_on_request(tmp_path, capsys):
+    """learn --scale-to-prices records the option, a resume keeps it (with or without the
+    flag); the updater's scales are the month's; the Q-learner's inner updater follows too."""
+    from conftest import run_cli
+
+    from mpcrl_lite.learning.experiment import Experiment
+    from mpcrl_lite.learning.history import History
+    from mpcrl_lite.learning.q_experiment import QLearningExperiment
+    from mpcrl_lite.system.prices import Prices
+
+    out = tmp_path / "run"
+    (tmp_path / "dear.yaml").write_text("price_scale: 2.0\n")
+    common = ["learn", "--days", "3", "--out", str(out), "--no-figures", "--eval-draws", "1",
+              "--system", str(tmp_path / "dear.yaml")]
+    status, _, err = run_cli([*common, "--months", "1", "--scale-to-prices"], capsys)
+    assert status == 0, err
+    status, _, err = run_cli([*common, "--months", "2", "--resume"], capsys)
+    assert status == 0, err
+    history = History.load(out)
+    assert history.months == 2 and history.learning.scale_to_prices
+    status, _, err = run_cli([*common, "--months", "3", "--resume", "--scale-to-prices"],
+                             capsys)
+    assert status == 0, err
+    system = SystemConfig(price_scale=2.0)
+    learning = LearningConfig(days_per_month=3, scale_to_prices=True)
+    prices = Prices.month(system, 3)
+    level = price_level(prices)
+    exp = Experiment(system, learning=learning, prices=prices)
+    plain = DPGUpdater.from_configs(learning.replace(scale_to_prices=False),
+                                    SystemConfig(price_scale=1.0))
+    b = Theta.index(system.n, "b")
+    np.testing.assert_allclose(exp.updater.scale[b], level * plain.scale[b], rtol=1e-15)
+    q = QLearningExperiment(system, learning=learning.replace(learner="q"), prices=prices)
+    np.testing.assert_allclose(q.updater.inner.scale[b], level * plain.scale[b], rtol=1e-15)
+    from mpcrl_lite.decentralized.learner import DecentralizedExperiment
+
+    dec = DecentralizedExperiment(system, learning=learning, prices=prices)
+    for local in dec.updaters:  # one battery each: its part b is entry 2
+        np.testing.assert_allclose(local.scale[2], level * plain.scale[b][0], rtol=1e-15)
 
 
 def test_learn_resets_momentum_at_bounds_on_request(tmp_path, capsys):

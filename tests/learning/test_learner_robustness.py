@@ -364,6 +364,9 @@ def test_day_end_forecast_stops_at_midnight():
         np.testing.assert_array_equal(sell[:, today], ref_sell[:, today])
         assert np.all(buy[:, ~today] == 0.0) and np.all(sell[:, ~today] == 0.0)
     assert "until midnight" in late.source and repr(late).startswith("DayEndPrices(days=5")
+    # a file's month keeps its origin (recorded by a run, and it sets the step scales)
+    filed = Prices(prices.buy, origin={"file": "prices.csv", "month": "2020-10"})
+    assert until_midnight(filed).origin == filed.origin
     with pytest.raises(ValueError, match="prices: expected a Prices"):
         until_midnight(prices.buy)
 

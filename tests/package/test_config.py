@@ -75,6 +75,7 @@ BAD = [
     (LearningConfig, "gradient", "exact", "one of 'critic', 'pathwise'"),
     (LearningConfig, "terminal_scale", -100.0, "a value in (0, inf)"),
     (LearningConfig, "reset_momentum_at_bounds", 1, "True or False"),
+    (LearningConfig, "scale_to_prices", "yes", "True or False"),
     (LearningConfig, "exploration_std", -0.1, "a value in [0, inf)"),
     (LearningConfig, "ridge", -1e-6, "a value in [0, inf)"),
     (LearningConfig, "value_features", "quadratic",

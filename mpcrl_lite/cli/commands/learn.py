@@ -71,6 +71,17 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="reset the update's momentum of entries the projection holds at a "
                         "bound (LearningConfig.reset_momentum_at_bounds; a resumed run keeps "
                         "its own)")
+    scale = p.add_mutually_exclusive_group()
+    scale.add_argument("--scale-to-prices", action="store_const", const=True, default=None,
+                       help="Adam's scales of the cost parts follow the month's price level "
+                            "(its mean buying price over the shipped month's; "
+                            "LearningConfig.scale_to_prices); the default with --prices, so "
+                            "this flag matters for the shipped month with another price scale "
+                            "(a resumed run keeps its own)")
+    scale.add_argument("--no-scale-to-prices", dest="scale_to_prices", action="store_const",
+                       const=False,
+                       help="keep the shipped month's scales (times the price scale) with "
+                            "--prices too, as runs did before the option")
     p.add_argument("--learner", choices=LEARNERS, default=None,
                    help="dpg: the paper's policy gradient (default); q: LSTD Q-learning with the "
                         "MPC as the action-value function (a resumed run keeps its own)")
@@ -119,7 +130,7 @@ def _run_eval_draws(out: Path) -> int | None:
 #: LearningConfig fields a resumed run keeps (those ``learn`` has a flag for are checked
 #: against it in :func:`run`: another value with ``--resume`` is refused).
 _RUN_FIELDS = ("exploration_bounds", "exploration_margin", "ridge", "value_features", "gradient",
-               "terminal_scale", "reset_momentum_at_bounds",
+               "terminal_scale", "reset_momentum_at_bounds", "scale_to_prices",
                "learn_constants", "grad_clip", "tie_agents", "natural_damping", "step_warmup",
                "step_decay", "max_policy_change", "average_months", "keep_well_posed",
                "alpha_min")
@@ -184,12 +195,16 @@ def run(args: argparse.Namespace) -> int:
     kept = {**kept, **{k: v for k, v in chosen.items() if v is not None}}
     for flag, field in (("--value-features", "value_features"), ("--gradient", "gradient"),
                         ("--terminal-scale", "terminal_scale"),
-                        ("--reset-momentum-at-bounds", "reset_momentum_at_bounds")):
+                        ("--reset-momentum-at-bounds", "reset_momentum_at_bounds"),
+                        ("--scale-to-prices", "scale_to_prices")):
         value = getattr(args, field)
         if value is None:
             continue
         if args.resume and kept.get(field, value) != value:
-            raise UsageError(f"{flag} {value} with --resume: the run in {args.out} learns with "
+            named = f"{flag} {value}"
+            if isinstance(value, bool):  # a switch: --flag or --no-flag
+                named = flag if value else "--no-" + flag[2:]
+            raise UsageError(f"{named} with --resume: the run in {args.out} learns with "
                              f"{kept[field]!r}; expected that or no {flag}")
         kept[field] = value
     if args.decentralized and args.gradient not in (None, "critic"):

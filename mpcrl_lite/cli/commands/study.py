@@ -68,6 +68,14 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--reset-momentum-at-bounds", action="store_true",
                    help="every run resets the update's momentum of entries the projection "
                         "holds at a bound (LearningConfig.reset_momentum_at_bounds)")
+    scale = p.add_mutually_exclusive_group()
+    scale.add_argument("--scale-to-prices", action="store_const", const=True, default=None,
+                       help="every run sets Adam's scales of the cost parts by its month's "
+                            "price level (LearningConfig.scale_to_prices; the default with "
+                            "--prices)")
+    scale.add_argument("--no-scale-to-prices", dest="scale_to_prices", action="store_const",
+                       const=False, help="every run keeps the shipped month's scales, also "
+                                         "with --prices")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -100,6 +108,8 @@ def run(args: argparse.Namespace) -> int:
         base["learning.gradient"] = args.gradient
     if args.reset_momentum_at_bounds:
         base["learning.reset_momentum_at_bounds"] = True
+    if args.scale_to_prices is not None:
+        base["learning.scale_to_prices"] = args.scale_to_prices
     if args.terminal_scale is not None:
         base["learning.terminal_scale"] = args.terminal_scale
     prices = _a.month_prices(args, _a.SYSTEM, args.days)  # checked before any work
