@@ -891,7 +891,7 @@ class LearningConfig(_Config):
     the reference, and for price arrays given directly; every learner resolves it when it is
     built and records the result. Measured on two months nothing was chosen on (October and
     December 2020, NO3, price levels 2.32 and 2.68, 20 new seeds each): the pathwise learner's
-    paired gap to its class's best fell in five of six class-months (October's rest-of-day
+    paired gap to its class's best fell in four of six class-months (October's rest-of-day
     class from 13.1 to 3.8 NOK/day, its regret from 33.1 to 23.9) and the critic's median
     final J_eval improved from -535.4 to -610.8 (``benchmarks/README.md``). ``to_dict``
     leaves out ``False`` (files read as before the field: :data:`EARLIER_BEHAVIOUR`)."""

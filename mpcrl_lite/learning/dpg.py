@@ -61,8 +61,10 @@ __all__ = ["DEFAULT_SCALE", "REFERENCE_PRICE", "DPGUpdater", "learnable_mask", "
            "policy_gradient", "policy_metric", "price_level", "scales_follow_prices"]
 
 
-#: Typical magnitude of each part of theta for Adam, for prices in NOK/MWh (multiplied by
-#: ``SystemConfig.price_scale`` in :meth:`DPGUpdater.from_configs`). ``None`` means "the true
+#: Typical magnitude of each part of theta for Adam, for prices in NOK/MWh at the shipped
+#: month's level (multiplied by ``SystemConfig.price_scale`` in :meth:`DPGUpdater.from_configs`,
+#: or by the learning month's :func:`price_level` where ``LearningConfig.scale_to_prices``
+#: says so, e.g. for a month read from a file). ``None`` means "the true
 #: battery factor ``SystemConfig.alpha``" (theta_alpha and theta_delta are soc per MWh and soc
 #: per hour). Price corrections: 10 NOK/MWh, a fifth of the mean price. soc cost weights:
 #: 100 NOK per unit of soc (or soc^2), about a seventh of the value of a full battery

@@ -35,7 +35,8 @@ def _config(name: str) -> dict[str, Any]:
 
 
 def _row(label: str) -> str:
-    rows = [line for line in README.splitlines() if line.startswith(f"| {label}")]
+    rows = [line for line in README.splitlines() if line.startswith(f"| {label} |")] or [
+        line for line in README.splitlines() if line.startswith(f"| {label}")]
     assert len(rows) == 1, f"README has {len(rows)} rows starting with {label!r}"
     return rows[0]
 
@@ -156,7 +157,13 @@ UNSEEN = {"oct2020_paper_pathwise_7000": "oct2020_class_best_paper",
           "dec2020_day_end_pathwise_8000": "dec2020_class_best_day_end",
           "dec2020_rest_of_day_pathwise_8000": "dec2020_class_best_rest_of_day",
           "oct2020_day_end_pathwise_scaled_7000": "oct2020_class_best_day_end",
-          "oct2020_paper_pathwise_scaled_7000": "oct2020_class_best_paper"}
+          "oct2020_paper_pathwise_scaled_7000": "oct2020_class_best_paper",
+          "oct2020_rest_of_day_pathwise_scaled_7000": "oct2020_class_best_rest_of_day",
+          "oct2020_paper_critic_scaled_7000": "oct2020_class_best_paper",
+          "oct2020_paper_critic_scaled_reset_7000": "oct2020_class_best_paper",
+          "dec2020_paper_pathwise_scaled_8000": "dec2020_class_best_paper",
+          "dec2020_day_end_pathwise_scaled_8000": "dec2020_class_best_day_end",
+          "dec2020_rest_of_day_pathwise_scaled_8000": "dec2020_class_best_rest_of_day"}
 #: stored study -> the tune result its class split was made against
 CLASS_BEST = {"paper_pathwise_5000": "data/class_best_paper",
               "paper_pathwise_6000": "data/class_best_paper",
@@ -241,15 +248,30 @@ def test_studies_on_the_same_draws_share_their_class_best_figure(name):
 
 #: README's table of the months never used to choose anything: row label -> stored study
 UNSEEN_ROWS = {
-    "October 2020: the rest of the day, pathwise": "oct2020_rest_of_day_pathwise_7000",
-    "October 2020: the day-end forecast, pathwise": "oct2020_day_end_pathwise_7000",
-    "October 2020: the paper's MPC, pathwise": "oct2020_paper_pathwise_7000",
-    "October 2020: the paper's MPC, critic (default)": "oct2020_paper_critic_7000",
+    "October 2020: the rest of the day, pathwise": "oct2020_rest_of_day_pathwise_scaled_7000",
+    "October 2020: the day-end forecast, pathwise": "oct2020_day_end_pathwise_scaled_7000",
+    "October 2020: the paper's MPC, pathwise": "oct2020_paper_pathwise_scaled_7000",
+    "October 2020: the paper's MPC, critic (default)": "oct2020_paper_critic_scaled_7000",
     "October 2020: the paper's MPC, critic, momentum reset at bounds":
+        "oct2020_paper_critic_scaled_reset_7000",
+    "December 2020: the rest of the day, pathwise": "dec2020_rest_of_day_pathwise_scaled_8000",
+    "December 2020: the day-end forecast, pathwise": "dec2020_day_end_pathwise_scaled_8000",
+    "December 2020: the paper's MPC, pathwise": "dec2020_paper_pathwise_scaled_8000",
+    "October 2020: the rest of the day, pathwise, shipped month's scales":
+        "oct2020_rest_of_day_pathwise_7000",
+    "October 2020: the day-end forecast, pathwise, shipped month's scales":
+        "oct2020_day_end_pathwise_7000",
+    "October 2020: the paper's MPC, pathwise, shipped month's scales":
+        "oct2020_paper_pathwise_7000",
+    "October 2020: the paper's MPC, critic, shipped month's scales": "oct2020_paper_critic_7000",
+    "October 2020: the paper's MPC, critic, shipped month's scales, momentum reset at bounds":
         "oct2020_paper_critic_reset_7000",
-    "December 2020: the rest of the day, pathwise": "dec2020_rest_of_day_pathwise_8000",
-    "December 2020: the day-end forecast, pathwise": "dec2020_day_end_pathwise_8000",
-    "December 2020: the paper's MPC, pathwise": "dec2020_paper_pathwise_8000",
+    "December 2020: the rest of the day, pathwise, shipped month's scales":
+        "dec2020_rest_of_day_pathwise_8000",
+    "December 2020: the day-end forecast, pathwise, shipped month's scales":
+        "dec2020_day_end_pathwise_8000",
+    "December 2020: the paper's MPC, pathwise, shipped month's scales":
+        "dec2020_paper_pathwise_8000",
 }
 
 
@@ -280,53 +302,103 @@ def _study(name: str) -> tuple[dict, Any]:
 
 
 def test_the_prose_on_unseen_months_is_the_stored_studies():
-    """The paragraph after README's table of the October and December studies."""
+    """The paragraphs after README's tables of the October and December studies."""
     import math
 
     text = " ".join(README.split())
-    pathwise = ["oct2020_rest_of_day_pathwise_7000", "oct2020_day_end_pathwise_7000",
-                "oct2020_paper_pathwise_7000", "dec2020_rest_of_day_pathwise_8000",
-                "dec2020_day_end_pathwise_8000", "dec2020_paper_pathwise_8000"]
-    studies = [_study(name) for name in pathwise]
-    closed = min(float(table["gap_closed"].min()) for _, table in studies)
-    late = max(max(study["late_regression_share"].values()) for study, _ in studies)
+    pathwise = ["oct2020_rest_of_day_pathwise_scaled_7000", "oct2020_day_end_pathwise_scaled_7000",
+                "oct2020_paper_pathwise_scaled_7000", "dec2020_rest_of_day_pathwise_scaled_8000",
+                "dec2020_day_end_pathwise_scaled_8000", "dec2020_paper_pathwise_scaled_8000"]
+    studies = {name: _study(name) for name in pathwise}
+    closed = min(float(table["gap_closed"].min()) for _, table in studies.values())
+    late = max(max(study["late_regression_share"].values()) for study, _ in studies.values())
     assert f"pathwise run closes at least {math.floor(100 * closed)} % of the gap" in text
     assert f"none loses more than {math.ceil(1000 * late) / 10:.1f} % of it" in text
     kind = [study["class_split"]["J_class"] - study["class_split"]["J_class_eval"]["mean"]
-            for study, _ in studies]
+            for study, _ in studies.values()]
     assert min(kind) > 0
     assert f"scores {min(kind):.0f} to {max(kind):.0f} NOK/day better on them" in text
+
+    def regret(name: str) -> str:
+        return f"{studies[name][0]['regret_median']:.1f}"
+
+    def gap(name: str) -> float:
+        return studies[name][0]["class_split"]["learner_gap_paired_median"]
+
+    oct_, dec = [n for n in pathwise if "oct" in n], [n for n in pathwise if "dec" in n]
+    assert (f"(regret {regret(oct_[0])} and {regret(oct_[1])} against {regret(oct_[2])} for the "
+            f"paper's class in October, {regret(dec[0])} and {regret(dec[1])} against "
+            f"{regret(dec[2])} in December)") in text
+    best = [studies[n] for n in (oct_[0], dec[0])]
+    assert all(s["regret_median"] <= 30 and (t["gap_closed"] >= 0.95).all() for s, t in best)
+    assert all(gap(n) <= 10 for n in (oct_[0], dec[0]))
+    assert (f"(regret {regret(oct_[0])} and {regret(dec[0])}, paired learner gap "
+            f"{gap(oct_[0]):.1f} and {gap(dec[0]):.1f}, all 20 seeds close 95 % of the gap)"
+            ) in text
+    within = sum(gap(n) <= 10 for n in pathwise)
+    over = sorted((n for n in pathwise if gap(n) > 10), key=gap)
+    assert (within, over) == (4, ["dec2020_paper_pathwise_scaled_8000",
+                                  "dec2020_day_end_pathwise_scaled_8000"])
+    assert (f"10 NOK/day or less in four of the six class-months; it is {gap(over[0]):.1f} in the "
+            f"paper's class and {gap(over[1]):.1f} in the day-end class in December") in text
     long, _ = _study("oct2020_day_end_pathwise_300m_7000")
     short, _ = _study("oct2020_day_end_pathwise_7000")
     assert (long["months"], long["done"], long["seeds"]) == (300, 6, list(range(7000, 7006)))
     assert (f"6 of its seeds run for 300 months end at a median of "
             f"{long['J_eval_final_median']:.1f}, against {short['J_eval_final_median']:.1f} for "
             "all 20 at month 100") in text
-    scaled_words = {"oct2020_day_end_pathwise_scaled_7000": "narrow the October day-end gap to {:.1f}",
-                    "oct2020_paper_pathwise_scaled_7000": "widen the paper class's to {:.1f}"}
-    for name, words in scaled_words.items():
-        study, _ = _study(name)
-        assert "2.3241971425734347" in study["note"]
-        assert words.format(study["class_split"]["learner_gap_paired_median"]) in text
+    # each class-month with the shipped month's scales, then with its own
+    pairs = {"the rest-of-day gap from {} to {}": "oct2020_rest_of_day_pathwise",
+             "the day-end gap from {} to {}": "oct2020_day_end_pathwise",
+             "December day-end gap from {} to {}": "dec2020_day_end_pathwise",
+             "the paper's class moves from {} to {} in October": "oct2020_paper_pathwise",
+             "and from {} to {} in December": "dec2020_paper_pathwise"}
+    for words, stem in pairs.items():
+        seed = 7000 if stem.startswith("oct") else 8000
+        before = _summary(f"{stem}_{seed}")["class_split"]["learner_gap_paired_median"]
+        after = _summary(f"{stem}_scaled_{seed}")["class_split"]["learner_gap_paired_median"]
+        assert words.format(f"{round(before, 1) + 0.0:.1f}", f"{after:.1f}") in text
+    before = _summary("dec2020_rest_of_day_pathwise_8000")["class_split"]
+    assert (f"December's rest of the day stays at {gap(dec[0]):.1f} "
+            f"({before['learner_gap_paired_median']:.1f})") in text
+    for name in ("oct2020_day_end_pathwise_scaled_7000", "oct2020_paper_pathwise_scaled_7000"):
+        note = _summary(name)["note"]
+        assert "2.3241971425734347" in note and "bit for bit" in note
+        assert _config(name)["learning"]["scale_to_prices"] is True
+    for name in pathwise[:1] + pathwise[3:]:  # made with the option itself
+        assert _config(name)["learning"]["scale_to_prices"] is True and "note" not in _summary(name)
+    for name in ("oct2020_rest_of_day_pathwise_7000", "dec2020_paper_pathwise_8000"):
+        assert "scale_to_prices" not in _config(name)["learning"]  # before the option: False
 
 
 def test_the_critic_on_october_is_the_stored_studies():
-    """The seeds that never leave the nominal theta, and what the momentum reset changes."""
+    """The seeds that never leave the nominal theta, and what the momentum reset changes, with
+    the shipped month's step scales and with the month's own."""
     text = " ".join(README.split())
     default, plain = _study("oct2020_paper_critic_7000")
     reset, fixed = _study("oct2020_paper_critic_reset_7000")
-    stuck = plain[plain["best_month"] == 0]
-    assert (f"{len(stuck)} of the 20 seeds never leave the nominal theta (J_eval "
-            f"+{stuck['J_eval_final'].min():.0f} to +{stuck['J_eval_final'].max():.0f} after 100 "
-            "months)") in text
-    freed = set(stuck["seed"]) - set(fixed.loc[fixed["best_month"] == 0, "seed"])
-    better = int((fixed.set_index("seed")["J_eval_final"]
-                  < plain.set_index("seed")["J_eval_final"]).sum())
-    assert (f"With that option {len(freed)} of the {len(stuck)} learn, the median is "
-            f"{reset['J_eval_final_median']:.1f} instead of {default['J_eval_final_median']:.1f} "
-            f"and {better} of the 20 seeds end better") in text
-    config = _config("oct2020_paper_critic_reset_7000")
-    assert config["learning"]["reset_momentum_at_bounds"] is True
+    scaled, own = _study("oct2020_paper_critic_scaled_7000")
+    both, own_reset = _study("oct2020_paper_critic_scaled_reset_7000")
+
+    def stuck(table) -> set[int]:
+        return set(table.loc[table["best_month"] == 0, "seed"])
+
+    assert (f"gains most in its median ({scaled['J_eval_final_median']:.1f} against "
+            f"{default['J_eval_final_median']:.1f})") in text
+    assert (f"in October {len(stuck(own))} of the 20 seeds never leave the nominal theta "
+            f"({len(stuck(plain))} with the shipped month's scales, J_eval "
+            f"+{plain.loc[plain['best_month'] == 0, 'J_eval_final'].min():.0f} to "
+            f"+{plain.loc[plain['best_month'] == 0, 'J_eval_final'].max():.0f} after 100 months)"
+            ) in text
+    freed = stuck(plain) - stuck(fixed)
+    assert (f"With the shipped month's scales that option freed {len(freed)} of the "
+            f"{len(stuck(plain))} (median {reset['J_eval_final_median']:.1f})") in text
+    assert not stuck(own) - stuck(own_reset)
+    assert (f"with the month's own it frees none and the median is "
+            f"{both['J_eval_final_median']:.1f}") in text
+    assert _config("oct2020_paper_critic_reset_7000")["learning"]["reset_momentum_at_bounds"]
+    learning = _config("oct2020_paper_critic_scaled_reset_7000")["learning"]
+    assert learning["reset_momentum_at_bounds"] and learning["scale_to_prices"]
 
 
 #: benchmarks/README.md's table of the months never used: row label -> stored study
@@ -339,6 +411,16 @@ BENCH_UNSEEN_ROWS = {
     "December, paper, pathwise": "dec2020_paper_pathwise_8000",
     "December, day-end, pathwise": "dec2020_day_end_pathwise_8000",
     "December, rest of the day, pathwise": "dec2020_rest_of_day_pathwise_8000",
+    "October, rest of the day, pathwise, month's scales": "oct2020_rest_of_day_pathwise_scaled_7000",
+    "October, day-end, pathwise, month's scales": "oct2020_day_end_pathwise_scaled_7000",
+    "October, paper, pathwise, month's scales": "oct2020_paper_pathwise_scaled_7000",
+    "October, paper, critic (default), month's scales": "oct2020_paper_critic_scaled_7000",
+    "October, paper, critic, month's scales, `--reset-momentum-at-bounds`":
+        "oct2020_paper_critic_scaled_reset_7000",
+    "December, paper, pathwise, month's scales": "dec2020_paper_pathwise_scaled_8000",
+    "December, day-end, pathwise, month's scales": "dec2020_day_end_pathwise_scaled_8000",
+    "December, rest of the day, pathwise, month's scales":
+        "dec2020_rest_of_day_pathwise_scaled_8000",
 }
 
 
@@ -358,39 +440,52 @@ def test_the_benchmarks_table_of_unseen_months_is_the_stored_one(label):
 
 def test_the_benchmarks_prose_on_unseen_months_is_the_stored_one():
     text = " ".join((ROOT / "benchmarks" / "README.md").read_text().split())
-    pathwise = [name for name in BENCH_UNSEEN_ROWS.values() if "pathwise" in name]
-    held = [_study(name)[0]["class_split"]["learner_gap_median"] for name in pathwise]
+    first = [name for name in BENCH_UNSEEN_ROWS.values()
+             if "pathwise" in name and "scaled" not in name]  # the shipped month's scales
+    held = [_study(name)[0]["class_split"]["learner_gap_median"] for name in first]
     assert f"The held-out figures say otherwise ({min(held):.1f} to {max(held):.1f})" in text
     spread = [json.loads((ROOT / _study(name)[0]["class_split"]["source"] / "tune.json")
-                         .read_text())["J_heldout"]["std"] for name in pathwise]
+                         .read_text())["J_heldout"]["std"] for name in first]
     assert 80 <= min(spread) and max(spread) <= 115
     assert "their standard deviation over draws is 80-115 NOK/day here" in text
     shipped = [_gap(name, "learner_gap_paired_median") for name in
                ("paper_pathwise_5000", "day_end_pathwise_5000", "rest_of_day_pathwise_5000")]
     assert f"On the shipped month it is {min(shipped):.1f} to {max(shipped):.1f}" in text
-    labelled = [name for name in pathwise if "paper" not in name]
+    labelled = [name for name in first if "paper" not in name]
     closed = min(float(_study(name)[1]["gap_closed"].min()) for name in labelled)
     assert f"(the labelled classes at least {int(100 * closed)} %)" in text
-    scaled_words = {
-        "oct2020_day_end_pathwise_scaled_7000": "day-end {} (IQR {} to {}), paired gap {} instead of {}",
-        "oct2020_paper_pathwise_scaled_7000": "paper {} ({} to {}), paired gap {} instead of {}",
-    }
-    for name, words in scaled_words.items():
-        scaled = _study(name)[0]
-        plain = _study(name.replace("_scaled", ""))[0]
-        low, high = scaled["J_eval_final_iqr"]
-        assert words.format(*(f"{round(v, 1) + 0.0:.1f}" for v in (  # no "-0.0"
-            scaled["J_eval_final_median"], low, high,
-            scaled["class_split"]["learner_gap_paired_median"],
-            plain["class_split"]["learner_gap_paired_median"]))) in text
+    # each class-month: the paired gap and the median final J, before -> with the month's scales
+    fell = improved = 0
+    for name in first:
+        plain = _study(name)[0]
+        scaled = _study(name.replace("_7000", "_scaled_7000").replace("_8000", "_scaled_8000"))[0]
+        before = plain["class_split"]["learner_gap_paired_median"]
+        after = scaled["class_split"]["learner_gap_paired_median"]
+        j0, j1 = plain["J_eval_final_median"], scaled["J_eval_final_median"]
+        fell += after < before
+        improved += round(j1, 1) < round(j0, 1)
+        gaps = f"{round(before, 1) + 0.0:.1f} -> {after:.1f}"
+        js = f"{j0:.1f} -> {j1:.1f}" if round(j0, 1) != round(j1, 1) else f"{j0:.1f} both"
+        assert gaps in text and js in text, (name, gaps, js)
+    assert (fell, improved) == (4, 4)
+    assert ("the pathwise learner's paired gap fell in four of the six class-months and its "
+            "median final J improved in four") in text
+    critic, scaled = (_study(n)[0] for n in ("oct2020_paper_critic_7000",
+                                              "oct2020_paper_critic_scaled_7000"))
+    assert (f"The critic's median: {critic['J_eval_final_median']:.1f} -> "
+            f"{scaled['J_eval_final_median']:.1f}") in text
+    both = _study("oct2020_paper_critic_scaled_reset_7000")[0]
+    assert (f"median {both['J_eval_final_median']:.1f} against "
+            f"{scaled['J_eval_final_median']:.1f}") in text
 
 
 def test_notebook_09_quotes_the_paired_gaps_of_unseen_months():
     gaps = [_study(name)[0]["class_split"]["learner_gap_paired_median"]
-            for name in BENCH_UNSEEN_ROWS.values() if "pathwise" in name]
+            for name in BENCH_UNSEEN_ROWS.values() if "pathwise" in name and "scaled" in name]
     notebook = " ".join(NOTEBOOK_09.split())
+    assert len(gaps) == 6 and sum(g <= 10 for g in gaps) == 4
     assert (f"pathwise gaps are between {round(min(gaps)) + 0:d} and {round(max(gaps)):d} "
-            "NOK/day over the classes") in notebook
+            "NOK/day over the classes, 10 or less in four of the six") in notebook
     assert min(gaps) > -0.5 and max(gaps) > 10
 
 
@@ -423,7 +518,7 @@ def test_the_segments_are_of_the_stored_studies_and_quoted():
                              "dec2020_day_end_pathwise_8000") for r in rises[name]]
     text = " ".join(README.split())
     assert (f"J rises by {math.floor(min(basins)):d} to {round(max(basins)):d} NOK/day in "
-            "the labelled classes where the gap is large") in text
+            "the labelled classes where the gap was large") in text
     near = rises["dec2020_rest_of_day_pathwise_8000"]
     assert f"In the rest-of-day class in December it rises by {math.ceil(max(near))} at most" in text
     assert max(rises["dec2020_paper_pathwise_8000"]) == 0.0
