@@ -99,8 +99,9 @@ def price_level(buy: Any) -> float:
     level = float(buy.mean()) / REFERENCE_PRICE
     if not level > 0.0:
         raise ValueError(
-            f"the month's mean buying price is {float(buy.mean())!r}: scale_to_prices needs a "
-            "positive price level; expected scale_to_prices=False for these prices")
+            f"the month's mean buying price is {float(buy.mean())!r}: Adam's scales cannot "
+            "follow a price level that is not positive; expected scale_to_prices=False "
+            "(--no-scale-to-prices) for these prices")
     return level
 
 

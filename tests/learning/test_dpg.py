@@ -210,7 +210,7 @@ def test_scales_follow_the_months_price_level_on_request():
     assert LearningConfig.from_dict(auto.to_dict()).scale_to_prices is None
     with pytest.raises(ValueError, match="without the month's prices"):
         DPGUpdater.from_configs(config, system)
-    with pytest.raises(ValueError, match="positive price level"):
+    with pytest.raises(ValueError, match="not positive; expected scale_to_prices=False"):
         price_level(-shipped.buy)
     with pytest.raises(ValueError, match="expected finite prices"):
         price_level(np.array([1.0, np.nan]))
