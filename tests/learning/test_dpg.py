@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import warnings
+from typing import Any
 
 import numpy as np
 import pytest
@@ -500,26 +501,39 @@ def test_from_configs():
     assert up.n == 2 and up.system_alpha == pytest.approx(1 / 12) and up.mask.sum() == 16
 
 
-def test_learn_scales_to_prices_on_request(tmp_path, capsys):
-    """learn --scale-to-prices records the option, a resume keeps it (with or without the
-    flag); the updater's scales are the month's; the Q-learner's inner updater follows too."""
+def _learn_and_resume(tmp_path, capsys, flag: str, *extra: str) -> tuple[list[str], Any]:
+    """``learn`` one month with ``flag``, resume to two without it: the command's common
+    arguments and the History."""
     from conftest import run_cli
 
-    from mpcrl_lite.learning.experiment import Experiment
     from mpcrl_lite.learning.history import History
-    from mpcrl_lite.learning.q_experiment import QLearningExperiment
-    from mpcrl_lite.system.prices import Prices
 
-    out = tmp_path / "run"
-    (tmp_path / "dear.yaml").write_text("price_scale: 2.0\n")
-    common = ["learn", "--days", "3", "--out", str(out), "--no-figures", "--eval-draws", "1",
-              "--system", str(tmp_path / "dear.yaml")]
-    status, _, err = run_cli([*common, "--months", "1", "--scale-to-prices"], capsys)
+    common = ["learn", "--days", "3", "--out", str(tmp_path / "run"), "--no-figures",
+              "--eval-draws", "1", *extra]
+    status, _, err = run_cli([*common, "--months", "1", flag], capsys)
     assert status == 0, err
     status, _, err = run_cli([*common, "--months", "2", "--resume"], capsys)
     assert status == 0, err
-    history = History.load(out)
-    assert history.months == 2 and history.learning.scale_to_prices
+    history = History.load(tmp_path / "run")
+    assert history.months == 2
+    return common, history
+
+
+def test_learn_scales_to_prices_on_request(tmp_path, capsys):
+    """learn --scale-to-prices records the option, a resume keeps it (with or without the
+    flag); the updater's scales are the month's; the Q-learner's inner updater and every
+    decentralized local updater follow too."""
+    from conftest import run_cli
+
+    from mpcrl_lite.decentralized.learner import DecentralizedExperiment
+    from mpcrl_lite.learning.experiment import Experiment
+    from mpcrl_lite.learning.q_experiment import QLearningExperiment
+    from mpcrl_lite.system.prices import Prices
+
+    (tmp_path / "dear.yaml").write_text("price_scale: 2.0\n")
+    common, history = _learn_and_resume(tmp_path, capsys, "--scale-to-prices",
+                                         "--system", str(tmp_path / "dear.yaml"))
+    assert history.learning.scale_to_prices
     status, _, err = run_cli([*common, "--months", "3", "--resume", "--scale-to-prices"],
                              capsys)
     assert status == 0, err
@@ -534,8 +548,6 @@ def test_learn_scales_to_prices_on_request(tmp_path, capsys):
     np.testing.assert_allclose(exp.updater.scale[b], level * plain.scale[b], rtol=1e-15)
     q = QLearningExperiment(system, learning=learning.replace(learner="q"), prices=prices)
     np.testing.assert_allclose(q.updater.inner.scale[b], level * plain.scale[b], rtol=1e-15)
-    from mpcrl_lite.decentralized.learner import DecentralizedExperiment
-
     dec = DecentralizedExperiment(system, learning=learning, prices=prices)
     for local in dec.updaters:  # one battery each: its part b is entry 2
         np.testing.assert_allclose(local.scale[2], level * plain.scale[b][0], rtol=1e-15)
@@ -543,15 +555,5 @@ def test_learn_scales_to_prices_on_request(tmp_path, capsys):
 
 def test_learn_resets_momentum_at_bounds_on_request(tmp_path, capsys):
     """learn --reset-momentum-at-bounds records the option, a resume keeps it."""
-    from conftest import run_cli
-
-    from mpcrl_lite.learning.history import History
-
-    out = tmp_path / "run"
-    common = ["learn", "--days", "3", "--out", str(out), "--no-figures", "--eval-draws", "1"]
-    status, _, err = run_cli([*common, "--months", "1", "--reset-momentum-at-bounds"], capsys)
-    assert status == 0, err
-    status, _, err = run_cli([*common, "--months", "2", "--resume"], capsys)
-    assert status == 0, err
-    history = History.load(out)
-    assert history.months == 2 and history.learning.reset_momentum_at_bounds
+    _, history = _learn_and_resume(tmp_path, capsys, "--reset-momentum-at-bounds")
+    assert history.learning.reset_momentum_at_bounds
