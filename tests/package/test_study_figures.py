@@ -494,7 +494,7 @@ def test_the_segments_are_of_the_stored_studies_and_quoted():
     best theta on the runs' draws, which the study scored too, and the rises are quoted."""
     segments = [json.loads(line) for line in
                 (STUDIES / "segments_2020.jsonl").read_text().splitlines()]
-    assert len(segments) == 30
+    assert len(segments) == 33
     rises: dict[str, list[float]] = {}
     for seg in segments:
         study, _ = _study(seg["study"])
@@ -525,5 +525,11 @@ def test_the_segments_are_of_the_stored_studies_and_quoted():
     bench_text = " ".join(bench.split())
     assert f"rises by {math.floor(min(basins)):d} NOK/day or more half-way" in bench_text
     assert f"it rises by {math.ceil(max(near))} at most" in bench_text
+    scaled = rises["dec2020_day_end_pathwise_scaled_8000"]
+    assert len(scaled) == 3
+    assert (f"| December, day-end, pathwise, month's scales (segment; seeds 8000-8002) | "
+            f"{min(scaled):.1f} to {max(scaled):.1f} |") in bench
+    assert (f"where the ridge on the way to the best is now {math.floor(min(scaled))} to "
+            f"{round(max(scaled))} NOK/day high (3 seeds)") in text
     october = rises["oct2020_paper_pathwise_7000"]
     assert f"a ridge of {round(min(october))} to {round(max(october))} NOK/day" in bench_text
