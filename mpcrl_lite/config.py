@@ -178,6 +178,7 @@ __all__ = [
     "PRICE_FEATURES_MIN_DAYS",
     "PRICE_LIMIT",
     "PRICE_UNIT",
+    "Q_STEP_LIMIT",
     "RANGES",
     "TERMINAL_SCALE",
     "VALUE_FEATURES",
@@ -666,6 +667,13 @@ TERMINAL_SCALE = 100.0
 #: rest-of-day class (median gap -2.3 against 1.0 with 100) and judged on 5000-5019 in both
 #: (``benchmarks/README.md``).
 PATHWISE_TERMINAL_SCALE = 3000.0
+#: The ``LearningConfig.step_limit`` to use with the Q-learner (``--learner q --step-limit 5``):
+#: no entry of theta moves by more than 5 of its typical magnitudes in one Newton step. On the
+#: shipped month (fresh seeds 7000-7009, 100 months, without a limit) the 4 runs that learned
+#: never stepped farther than 3.4 of them, while each of the 6 that collapsed (every MPC
+#: failing, J_eval stuck at +266) ran away with steps of 10 to 10^10 of them first
+#: (``benchmarks/README.md``).
+Q_STEP_LIMIT = 5.0
 #: The curvature of a Q-learning update (:attr:`LearningConfig.hessian`): ``'none'`` (a
 #: first-order step with ``optimizer``), ``'approx'`` (Gauss-Newton) or ``'full'``.
 HESSIANS = ("none", "approx", "full")
@@ -842,6 +850,16 @@ class LearningConfig(_Config):
     (seed 0): 0.1 learns steadily but slowly, 0.3 reaches the DPG's level of J_eval, 1.0
     (the full step) throws theta where the MPC no longer solves; the ``'full'`` Hessian is
     less stable than Gauss-Newton at the same step."""
+    step_limit: float = 0.0
+    """The largest move of any learnable entry of theta in one update, in units of its
+    typical magnitude (Adam's scale: :data:`mpcrl_lite.learning.dpg.DEFAULT_SCALE`,
+    ``terminal_scale``, times the price level of ``scale_to_prices``); a longer step is
+    shortened, its direction kept, and the update's info says so (``step_limited``). 0 (the
+    default) sets no limit. Adam moves an entry by about ``step_size`` of its scale, so the
+    limit matters for the Q-learner's Newton steps, which run away on some seeds without it:
+    use :data:`Q_STEP_LIMIT` (5) there. It is not the Q-learner's default because notebook 08
+    shows what happens without it. ``to_dict`` leaves out 0 (files read as before the
+    field)."""
     gradient: str = "critic"
     """``learner='dpg'`` only (:data:`GRADIENTS`): ``'critic'`` (the default, the paper's
     method) estimates the policy gradient with the compatible critic fitted by LSTD from the
@@ -940,6 +958,7 @@ class LearningConfig(_Config):
         set_("learner", check_choice("learner", self.learner, LEARNERS))
         set_("hessian", check_choice("hessian", self.hessian, HESSIANS))
         set_("newton_step", check_real("newton_step", self.newton_step, 0.0, low_open=True))
+        set_("step_limit", check_real("step_limit", self.step_limit, 0.0))
         set_("reset_momentum_at_bounds", check_bool("reset_momentum_at_bounds",
                                                     self.reset_momentum_at_bounds))
         if self.scale_to_prices is not None:
@@ -981,6 +1000,8 @@ class LearningConfig(_Config):
             out.pop("reset_momentum_at_bounds")
         if self.scale_to_prices is False:
             out.pop("scale_to_prices")
+        if self.step_limit == 0.0:
+            out.pop("step_limit")
         if self.learner == "dpg" and self.hessian == "approx" and self.newton_step == 0.3:
             for key in ("learner", "hessian", "newton_step"):
                 out.pop(key)

@@ -553,6 +553,12 @@ class DPGUpdater:
             shrunk = change > config.max_policy_change
             if shrunk:
                 step = step * (config.max_policy_change / change)
+        limited = 1.0
+        if config.step_limit:  # the longest move, in units of each entry's scale
+            reach = float(np.max(np.abs(step) / self.scale))
+            if reach > config.step_limit:
+                limited = config.step_limit / reach
+                step = step * limited
         current = theta.to_vector()
         start = current if self.raw is None or not config.average_months else self.raw
         moved = start - step
@@ -579,6 +585,8 @@ class DPGUpdater:
         # keep the keys they always had)
         if config.step_warmup or config.step_decay:
             self.last_info["step_size"] = float(step_size)
+        if config.step_limit:
+            self.last_info["step_limited"] = float(limited)
         if self._metric is not None and (self.rule.NEEDS_METRIC or config.max_policy_change):
             change = new - current
             self.last_info["policy_change"] = float(np.sqrt(max(change @ self._metric @ change,

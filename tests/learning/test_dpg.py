@@ -12,6 +12,7 @@ import pytest
 from mpcrl_lite.config import (
     OPTIMIZERS,
     PAPER_STEP_SIZE,
+    Q_STEP_LIMIT,
     ConfigWarning,
     LearningConfig,
     SystemConfig,
@@ -215,6 +216,35 @@ def test_scales_follow_the_months_price_level_on_request():
         price_level(-shipped.buy)
     with pytest.raises(ValueError, match="expected finite prices"):
         price_level(np.array([1.0, np.nan]))
+
+
+def test_step_limit_shortens_a_step_that_runs_away():
+    """step_limit: no entry moves by more than step_limit of its scale; a longer step keeps
+    its direction; shorter steps (and no limit) are untouched, bit for bit."""
+    theta = theta_from(3)
+    grad = np.random.default_rng(3).normal(size=10 * N) * 1e3
+    free = updater()
+    limited = updater(step_limit=2.0)
+    full = free.step(theta, grad).to_vector() - theta.to_vector()
+    assert free.config.step_limit == 0.0 and "step_limited" not in free.last_info
+    moved = limited.step(theta, grad).to_vector() - theta.to_vector()
+    reach = np.abs(moved) / limited.scale
+    assert reach.max() == pytest.approx(2.0, rel=1e-12)
+    factor = limited.last_info["step_limited"]
+    assert 0.0 < factor < 1.0
+    np.testing.assert_allclose(moved, factor * full, rtol=1e-12, atol=1e-15)
+    # a short step is not touched
+    short = updater(step_limit=2.0)
+    small = short.step(theta, grad * 1e-9).to_vector()
+    np.testing.assert_array_equal(small, updater().step(theta, grad * 1e-9).to_vector())
+    assert short.last_info["step_limited"] == 1.0
+    # off by default; the Q-learner's inner updater applies it to its Newton steps
+    assert LearningConfig().step_limit == 0.0 and "step_limit" not in LearningConfig().to_dict()
+    q = LearningConfig(learner="q", step_limit=Q_STEP_LIMIT)
+    assert q.to_dict()["step_limit"] == 5.0 and LearningConfig.from_dict(q.to_dict()) == q
+    from mpcrl_lite.learning.qlearning import QLearningUpdater
+
+    assert QLearningUpdater(q, SystemConfig(n=N)).inner.config.step_limit == 5.0
 
 
 def test_scaled_gradient_norm_is_recorded():
@@ -551,6 +581,19 @@ def test_learn_scales_to_prices_on_request(tmp_path, capsys):
     dec = DecentralizedExperiment(system, learning=learning, prices=prices)
     for local in dec.updaters:  # one battery each: its part b is entry 2
         np.testing.assert_allclose(local.scale[2], level * plain.scale[b][0], rtol=1e-15)
+
+
+def test_learn_limits_the_steps_on_request(tmp_path, capsys):
+    """learn --step-limit records the limit, a resume keeps it and refuses another; each
+    update's info says by how much its step was shortened."""
+    from conftest import run_cli
+
+    common, history = _learn_and_resume(tmp_path, capsys, "--step-limit=5", "--learner", "q")
+    assert history.learning.step_limit == 5.0 and history.learning.learner == "q"
+    assert all(0.0 < info["step_limited"] <= 1.0 for info in history.update_info)
+    status, _, err = run_cli([*common, "--months", "3", "--resume", "--step-limit", "0"],
+                             capsys)
+    assert status == 2 and "--step-limit 0.0 with --resume" in err, err
 
 
 def test_learn_resets_momentum_at_bounds_on_request(tmp_path, capsys):

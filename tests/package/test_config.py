@@ -76,6 +76,7 @@ BAD = [
     (LearningConfig, "terminal_scale", -100.0, "a value in (0, inf)"),
     (LearningConfig, "reset_momentum_at_bounds", 1, "True or False"),
     (LearningConfig, "scale_to_prices", "yes", "True or False"),
+    (LearningConfig, "step_limit", -1.0, "a value in [0, inf)"),
     (LearningConfig, "exploration_std", -0.1, "a value in [0, inf)"),
     (LearningConfig, "ridge", -1e-6, "a value in [0, inf)"),
     (LearningConfig, "value_features", "quadratic",

@@ -302,13 +302,15 @@ def test_seed_band_is_the_mean_and_t_interval_over_the_seeds():
 
 
 def test_study_command_passes_the_learning_options_to_every_run(tmp_path):
-    """--scale-to-prices and --reset-momentum-at-bounds reach every run's LearningConfig
-    (its stored config), and each run learns with them."""
+    """--scale-to-prices, --reset-momentum-at-bounds and --step-limit reach every run's
+    LearningConfig (its stored config), and each run learns with them."""
     out = tmp_path / "s"
     assert main(["study", "--seeds", "1", "--months", "1", "--days", "2", "--eval-draws", "1",
                  "--out", str(out), "--workers", "0", "--quiet", "--scale-to-prices",
-                 "--reset-momentum-at-bounds"]) == 0
+                 "--reset-momentum-at-bounds", "--step-limit", "3"]) == 0
     stored = json.loads((out / "runs" / "seed=0" / "config.json").read_text())["learning"]
     assert stored["scale_to_prices"] is True and stored["reset_momentum_at_bounds"] is True
+    assert stored["step_limit"] == 3.0
     history = History.load(out / "runs" / "seed=0")
     assert history.learning.scale_to_prices and history.learning.reset_momentum_at_bounds
+    assert history.learning.step_limit == 3.0 and "step_limited" in history.update_info[0]

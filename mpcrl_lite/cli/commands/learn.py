@@ -82,6 +82,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
                        const=False,
                        help="keep the shipped month's scales (times the price scale) with "
                             "--prices too, as runs did before the option")
+    p.add_argument("--step-limit", type=_a.finite_float, default=None,
+                   help="the largest move of a theta entry per update, in units of its typical "
+                        "magnitude (LearningConfig.step_limit; default 0: no limit; 5 keeps "
+                        "--learner q from running away; a resumed run keeps its own)")
     p.add_argument("--learner", choices=LEARNERS, default=None,
                    help="dpg: the paper's policy gradient (default); q: LSTD Q-learning with the "
                         "MPC as the action-value function (a resumed run keeps its own)")
@@ -130,7 +134,7 @@ def _run_eval_draws(out: Path) -> int | None:
 #: LearningConfig fields a resumed run keeps (those ``learn`` has a flag for are checked
 #: against it in :func:`run`: another value with ``--resume`` is refused).
 _RUN_FIELDS = ("exploration_bounds", "exploration_margin", "ridge", "value_features", "gradient",
-               "terminal_scale", "reset_momentum_at_bounds", "scale_to_prices",
+               "terminal_scale", "reset_momentum_at_bounds", "scale_to_prices", "step_limit",
                "learn_constants", "grad_clip", "tie_agents", "natural_damping", "step_warmup",
                "step_decay", "max_policy_change", "average_months", "keep_well_posed",
                "alpha_min")
@@ -196,7 +200,8 @@ def run(args: argparse.Namespace) -> int:
     for flag, field in (("--value-features", "value_features"), ("--gradient", "gradient"),
                         ("--terminal-scale", "terminal_scale"),
                         ("--reset-momentum-at-bounds", "reset_momentum_at_bounds"),
-                        ("--scale-to-prices", "scale_to_prices")):
+                        ("--scale-to-prices", "scale_to_prices"),
+                        ("--step-limit", "step_limit")):
         value = getattr(args, field)
         if value is None:
             continue

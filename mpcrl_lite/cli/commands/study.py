@@ -76,6 +76,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
     scale.add_argument("--no-scale-to-prices", dest="scale_to_prices", action="store_const",
                        const=False, help="every run keeps the shipped month's scales, also "
                                          "with --prices")
+    p.add_argument("--step-limit", type=_a.finite_float, default=None,
+                   help="every run's largest move of a theta entry per update, in units of its "
+                        "typical magnitude (LearningConfig.step_limit; default 0: no limit; 5 "
+                        "keeps --learner q from running away)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -110,6 +114,8 @@ def run(args: argparse.Namespace) -> int:
         base["learning.reset_momentum_at_bounds"] = True
     if args.scale_to_prices is not None:
         base["learning.scale_to_prices"] = args.scale_to_prices
+    if args.step_limit is not None:
+        base["learning.step_limit"] = args.step_limit
     if args.terminal_scale is not None:
         base["learning.terminal_scale"] = args.terminal_scale
     prices = _a.month_prices(args, _a.SYSTEM, args.days)  # checked before any work
