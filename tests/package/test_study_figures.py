@@ -533,3 +533,56 @@ def test_the_segments_are_of_the_stored_studies_and_quoted():
             f"{round(max(scaled))} NOK/day high (3 seeds)") in text
     october = rises["oct2020_paper_pathwise_7000"]
     assert f"a ridge of {round(min(october))} to {round(max(october))} NOK/day" in bench_text
+
+
+#: benchmarks/README.md's table of the Q-learner with and without the step limit
+Q_LIMIT = {("7000-7009", "none"): ("unlimited_7000", 7000, 7009),
+           ("7010-7029", "none"): ("unlimited_7010", 7010, 7029),
+           ("7000-7009", "5"): ("limited_7000", 7000, 7009),
+           ("7010-7029", "5"): ("limited_7000", 7010, 7029)}
+
+
+def _q_limit_runs(name: str, low: int, high: int):
+    """The final J_eval per seed and the month each run collapsed in (or None)."""
+    import pandas as pd
+
+    folder = STUDIES / "q_step_limit" / name
+    table = pd.read_csv(folder / "study.csv").set_index("seed").loc[low:high]
+    collapse = json.loads((folder / "collapse.json").read_text())["first_month"]
+    config = json.loads(next(folder.glob("config_seed*.json")).read_text())["learning"]
+    return table["J_eval_final"], [collapse[str(s)] for s in table.index], config
+
+
+@pytest.mark.parametrize("key", sorted(Q_LIMIT))
+def test_the_q_step_limit_table_is_the_stored_studies(key):
+    seeds, limit = key
+    final, collapsed, config = _q_limit_runs(*Q_LIMIT[key])
+    assert config["learner"] == "q" and config.get("step_limit", 0.0) == (
+        0.0 if limit == "none" else float(limit))
+    n = len(final)
+    assert _bench_row(seeds + " | " + limit) == (
+        f"| {seeds} | {limit} | {sum(c is not None for c in collapsed)} of {n} | "
+        f"{int((final <= -150).sum())} of {n} | {int((final > 266.3).sum())} of {n} | "
+        f"{final.median():.1f} |")
+
+
+def test_readme_quotes_the_q_step_limit_studies():
+    text = " ".join(README.split())
+    without = [_q_limit_runs(*Q_LIMIT[(s, "none")]) for s in ("7000-7009", "7010-7029")]
+    limited = [_q_limit_runs(*Q_LIMIT[(s, "5")]) for s in ("7000-7009", "7010-7029")]
+
+    def count(runs, test) -> int:
+        return sum(int(test(final, collapsed)) for final, collapsed, _ in runs)
+
+    ran_away = count(without, lambda f, c: sum(m is not None for m in c))
+    good = count(limited, lambda f, c: (f <= -150).sum())
+    good_without = count(without, lambda f, c: (f <= -150).sum())
+    worse = count(limited, lambda f, c: (f > 266.3).sum())
+    worse_without = count(without, lambda f, c: (f > 266.3).sum())
+    worst = max(float(f.max()) for f, _, _ in limited)
+    assert count(limited, lambda f, c: sum(m is not None for m in c)) == 0
+    assert (f"{ran_away} of 30 fresh Q-learning runs (seeds 7000-7029, 100 months) ran away"
+            in text)
+    assert (f"with `--step-limit 5` none did, and {good} of 30 ended at -150 NOK/day or better, "
+            f"against {good_without} without; but {worse} ended worse than idling (up to "
+            f"+{worst:.0f}, against {worse_without} without)") in text
