@@ -253,11 +253,15 @@ class DecentralizedExperiment(Learner):
         self.thetas = split_theta(theta0)
         self.callbacks = list(callbacks)
         self.policy = CoordinatedMPC(self.system, self.mpc_config, self.coordination)
-        self.updaters = [DPGUpdater.from_configs(self.learning, self._local(i), self.prices)
-                         for i in range(self.system.n)]
+        self.updaters = self._new_updaters()
         self.rng = np.random.default_rng(self.learning.seed)
         self.history = History(self.system, self.mpc_config, self.learning, backend=self.backend)
         self.history.prices_origin = dict(getattr(self.prices, "origin", {}) or {})
+
+    def _new_updaters(self) -> list[DPGUpdater]:
+        """One fresh optimizer per battery, each with its local system's scales."""
+        return [DPGUpdater.from_configs(self.learning, self._local(i), self.prices)
+                for i in range(self.system.n)]
 
     def _local(self, battery: int) -> SystemConfig:
         """Battery ``battery``'s own local system (its alpha scales its updater's steps)."""
@@ -338,8 +342,7 @@ class DecentralizedExperiment(Learner):
         if not isinstance(saved, list) or len(saved) != self.system.n:
             raise RunDirError(f"{where}: 'updaters' is not a list of {self.system.n} optimizer "
                               "states; start over with --force")
-        fresh = [DPGUpdater.from_configs(self.learning, self._local(i), self.prices)
-                 for i in range(len(saved))]
+        fresh = self._new_updaters()  # len(saved) == n, checked above
         try:
             for updater, s in zip(fresh, saved):
                 updater.load_state_dict(s)

@@ -96,10 +96,11 @@ def price_level(buy: Any) -> float:
     buy = np.asarray(getattr(buy, "buy", buy), dtype=float)
     if buy.size == 0 or not np.all(np.isfinite(buy)):
         raise ValueError(f"price_level of {buy.size} buying prices: expected finite prices")
-    level = float(buy.mean()) / REFERENCE_PRICE
+    mean = float(buy.mean())
+    level = mean / REFERENCE_PRICE
     if not level > 0.0:
         raise ValueError(
-            f"the month's mean buying price is {float(buy.mean())!r}: Adam's scales cannot "
+            f"the month's mean buying price is {mean!r}: Adam's scales cannot "
             "follow a price level that is not positive; expected scale_to_prices=False "
             "(--no-scale-to-prices) for these prices")
     return level
