@@ -41,24 +41,43 @@ def _row(label: str) -> str:
     return rows[0]
 
 
+def _cells(label: str) -> list[str]:
+    """The cells of README's table row ``label``."""
+    return [cell.strip() for cell in _row(label).strip("|").split("|")]
+
+
+def _seed_span(study: dict) -> str:
+    """``first-last`` of the seeds a study's class split covers."""
+    seeds = sorted(int(s) for s in study["class_split"]["learner_gap"])
+    return f"{seeds[0]}-{seeds[-1]}"
+
+
+def _median_iqr(study: dict) -> str:
+    """The median final J_eval with its IQR, as README writes it."""
+    low, high = study["J_eval_final_iqr"]
+    return f"{study['J_eval_final_median']:.1f} ({low:.1f} to {high:.1f})"
+
+
+def _gap_cell(split: dict, key: str) -> str:
+    """A learner gap (``key``: ``learner_gap`` or ``learner_gap_paired``) as README writes it:
+    median (IQR), worst."""
+    low, high = split[f"{key}_iqr"]
+    return (f"{split[f'{key}_median']:.1f} ({low:.1f} to {high:.1f}), "
+            f"worst {split[f'{key}_worst']['value']:.1f}")
+
+
 @pytest.mark.parametrize("name", sorted(ROWS))
 def test_readme_quotes_the_stored_study(name):
     study = _summary(name)
     split = study["class_split"]
-    cells = [cell.strip() for cell in _row(ROWS[name]).strip("|").split("|")]
-    low, high = study["J_eval_final_iqr"]
-    seeds = sorted(int(s) for s in split["learner_gap"])
-    assert cells[1] == f"{seeds[0]}-{seeds[-1]}"
-    assert cells[2] == f"{study['J_eval_final_median']:.1f} ({low:.1f} to {high:.1f})"
+    cells = _cells(ROWS[name])
+    assert cells[1] == _seed_span(study)
+    assert cells[2] == _median_iqr(study)
     assert cells[3] == f"{study['worst_seed']['J_eval_final']:.1f}"
     assert cells[4] == f"{len(study['converged_seeds'])} / {study['done']}"
     assert cells[5] == f"{study['regret_median']:.1f}"
-    gap_low, gap_high = split["learner_gap_iqr"]
-    assert cells[6] == (f"{split['learner_gap_median']:.1f} ({gap_low:.1f} to {gap_high:.1f}), "
-                        f"worst {split['learner_gap_worst']['value']:.1f}")
-    low, high = split["learner_gap_paired_iqr"]
-    assert cells[7] == (f"{split['learner_gap_paired_median']:.1f} ({low:.1f} to {high:.1f}), "
-                        f"worst {split['learner_gap_paired_worst']['value']:.1f}")
+    assert cells[6] == _gap_cell(split, "learner_gap")
+    assert cells[7] == _gap_cell(split, "learner_gap_paired")
     share = max(study["late_regression_share"].values()) \
         if isinstance(study["late_regression_share"], dict) else study["late_regression_share"]
     assert cells[8] == f"{100 * share:.2f} % of the gap"
@@ -279,19 +298,15 @@ UNSEEN_ROWS = {
 def test_readme_quotes_the_studies_of_unseen_months(label):
     study, table = _study(UNSEEN_ROWS[label])
     split = study["class_split"]
-    cells = [cell.strip() for cell in _row(label).strip("|").split("|")]
-    seeds = sorted(int(s) for s in split["learner_gap"])
-    assert cells[1] == f"{seeds[0]}-{seeds[-1]}"
+    cells = _cells(label)
+    assert cells[1] == _seed_span(study)
     assert cells[2] == f"{study['J_star']:.1f}"
-    low, high = study["J_eval_final_iqr"]
-    assert cells[3] == f"{study['J_eval_final_median']:.1f} ({low:.1f} to {high:.1f})"
+    assert cells[3] == _median_iqr(study)
     assert cells[4] == f"{study['worst_seed']['J_eval_final']:.1f}"
     assert cells[5] == f"{int((table['gap_closed'] >= 0.95).sum())} / {study['done']}"
     assert cells[6] == f"{study['regret_median']:.1f}"
     assert cells[7] == f"{split['J_class']:.1f} / {split['J_class_eval']['mean']:.1f}"
-    low, high = split["learner_gap_paired_iqr"]
-    assert cells[8] == (f"{split['learner_gap_paired_median']:.1f} ({low:.1f} to {high:.1f}), "
-                        f"worst {split['learner_gap_paired_worst']['value']:.1f}")
+    assert cells[8] == _gap_cell(split, "learner_gap_paired")
 
 
 def _study(name: str) -> tuple[dict, Any]:
