@@ -215,9 +215,27 @@ class History:
         """theta after the last update."""
         return Theta.from_vector(np.asarray(self.theta_final), self.system.n)
 
+    def improvement(self) -> dict[str, Any] | None:
+        """How the last evaluation compares with the first, on the same evaluation draws.
+
+        ``J_eval[0]`` is the starting theta's (the run's first month; the nominal theta
+        unless the run was given another); every evaluation uses the same noise draws
+        (``LearningConfig.eval_seed``), so the difference is paired. Returns None without
+        two evaluations, else ``{"J_eval_start", "J_eval_last", "change",
+        "improved_on_start"}``: ``change`` is last minus start (negative: a lower cost) and
+        ``improved_on_start`` says whether it is negative. A run that did not improve has
+        learned nothing usable: with the paper's critic this happens on some seeds of some
+        months (``benchmarks/README.md``, "Runs that never leave the start")."""
+        if len(self.J_eval) < 2:
+            return None
+        start, last = float(self.J_eval[0]), float(self.J_eval[-1])
+        return {"J_eval_start": start, "J_eval_last": last, "change": last - start,
+                "improved_on_start": bool(last < start)}
+
     def summary(self) -> dict[str, Any]:
         """The JSON summary written next to a run (see the ``learn`` command)."""
         n = self.system.n
+        improvement = self.improvement()
         return {
             "months": self.months,
             "J": self.J,
@@ -237,6 +255,7 @@ class History:
             "backend": self.backend,
             **{k: getattr(self, k) for k in self.EVAL_SERIES + self.EVAL_CI_SERIES},
             **({"prices_origin": dict(self.prices_origin)} if self.prices_origin else {}),
+            **({"improvement": improvement} if improvement is not None else {}),
         }
 
     # -- storage --------------------------------------------------------------------------

@@ -165,7 +165,9 @@ def summarize(
     ([q25, q75]), ``late_collapse_limit`` (:data:`LATE_COLLAPSE`), ``late_regression_share``
     ({seed: late_regression / (J_nominal - J_target)}), ``late_collapse_seeds`` (those above
     the limit), ``late_collapse_count`` and ``no_late_collapse`` (True when that count is 0
-    and some seed finished). Statistics are over the finished seeds with an evaluation; NaN
+    and some seed finished); ``no_improvement_seeds`` and ``no_improvement_count``: the
+    seeds whose final J_eval is no lower than their J_eval at month 0 (on the same draws:
+    they learned nothing usable). Statistics are over the finished seeds with an evaluation; NaN
     (``null``) when there is none.
     """
     if isinstance(threshold, bool) or not (isinstance(threshold, (int, float))
@@ -203,6 +205,8 @@ def summarize(
     regress = good.set_index("seed")["late_regression"]
     largest = regress.idxmax() if len(regress) else None
     collapsed = [int(s) for s in good.loc[good["late_collapse"], "seed"]]
+    # the runs that end no better than they started (the same evaluation draws)
+    still = [int(s) for s in good.loc[good["J_eval_final"] >= good["J_eval_nominal"], "seed"]]
     summary = {
         "seeds": [int(s) for s in table["seed"]],
         "done": int(ok.sum()),
@@ -244,6 +248,8 @@ def summarize(
         "late_collapse_seeds": collapsed,
         "late_collapse_count": len(collapsed),
         "no_late_collapse": bool(len(good)) and not collapsed,
+        "no_improvement_seeds": still,
+        "no_improvement_count": len(still),
     }
     return table, summary
 

@@ -62,6 +62,22 @@ def test_learn_writes_history_summary_and_figures(tmp_path):
     assert len(json.loads((out / "summary.json").read_text())["J"]) == 3
 
 
+def test_learn_warns_when_the_run_ends_no_better_than_it_started(tmp_path, capsys):
+    # a zero step keeps the starting theta: its last evaluation equals the first, on the
+    # same draws, and the command says so in one line (the run is kept, exit code 0)
+    out = tmp_path / "still"
+    assert main(["learn", "--months", "2", "--days", "2", "--out", str(out), "--quiet",
+                 "--no-figures", "--eval-draws", "1", "--step-size", "0"]) == 0
+    err = capsys.readouterr().err
+    warnings = [line for line in err.splitlines() if "learned nothing usable" in line]
+    assert len(warnings) == 1, err
+    summary = json.loads((out / "summary.json").read_text())
+    verdict = summary["improvement"]
+    assert verdict["improved_on_start"] is False and verdict["change"] == 0.0
+    assert f"{verdict['J_eval_start']:.1f}" in warnings[0]
+    assert "--gradient pathwise" in warnings[0]  # the critic's run names the other gradient
+
+
 @pytest.mark.parametrize(
     "argv, message",
     [

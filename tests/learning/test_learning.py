@@ -54,6 +54,28 @@ def test_evaluation_J_and_low_soc_hours_fall(default_run):
     assert sum(history.solver_failures) == 0
 
 
+def test_the_summary_says_the_run_improved_on_its_start(default_run):
+    _, history = default_run
+    verdict = history.summary()["improvement"]
+    assert verdict == history.improvement()
+    assert verdict["J_eval_start"] == history.J_eval[0]
+    assert verdict["J_eval_last"] == history.J_eval[-1]
+    assert verdict["change"] == pytest.approx(history.J_eval[-1] - history.J_eval[0])
+    assert verdict["change"] < -100.0 and verdict["improved_on_start"] is True
+
+
+def test_no_improvement_verdict_without_two_evaluations():
+    from mpcrl_lite.learning.history import History
+
+    history = History(SYSTEM, MPCConfig(), LearningConfig())
+    assert history.improvement() is None and "improvement" not in history.summary()
+    history.J_eval.extend([120.0, 120.0])  # no change on the same draws: not improved
+    assert history.improvement()["improved_on_start"] is False
+    history.J_eval[-1] = 119.5
+    assert history.improvement() == {"J_eval_start": 120.0, "J_eval_last": 119.5,
+                                     "change": -0.5, "improved_on_start": True}
+
+
 def test_defaults_do_not_blow_up_theta(default_run):
     experiment, history = default_run
     theta = np.vstack([history.theta_array(), np.asarray(history.theta_final)[None]])

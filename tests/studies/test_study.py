@@ -157,6 +157,18 @@ def test_regret_and_late_collapse_on_synthetic_seeds():
     assert s["no_late_collapse"] is False
     _, s = summarize(table[table["seed"] != 1], J_star=-100.0)
     assert s["late_collapse_count"] == 0 and s["no_late_collapse"] is True
+    # seeds that end no better than they started (two of five here) are named
+    stuck = synthetic([
+        {"seed": 5, "status": "done", "J_eval_nominal": 1000.0, "J_eval_final": 1000.0,
+         "J_eval_best": 990.0, "late_regression": 10.0},     # back where it began
+        {"seed": 6, "status": "done", "J_eval_nominal": 1000.0, "J_eval_final": 1200.0,
+         "J_eval_best": 1000.0, "late_regression": 200.0},   # worse than its start
+        {"seed": 7, "status": "done", "J_eval_nominal": 1000.0, "J_eval_final": 999.9,
+         "J_eval_best": 999.9, "late_regression": 0.0},      # a little better
+    ])
+    _, s_stuck = summarize(pd.concat([table, stuck], ignore_index=True), J_star=-100.0)
+    assert s_stuck["no_improvement_seeds"] == [5, 6] and s_stuck["no_improvement_count"] == 2
+    assert s["no_improvement_seeds"] == [] and s["no_improvement_count"] == 0
     # without a J*: judged against the best reached, J_star null
     _, s = summarize(table)
     assert s["J_star"] is None and s["J_star_method"] is None and s["J_target"] == -60.0

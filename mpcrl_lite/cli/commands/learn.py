@@ -317,6 +317,7 @@ def _learn(args, out, system, mpc_config, learning, prices) -> int:
         "skipped_steps": int(sum(history.skipped_steps)),
         "wall_time_s": float(sum(history.wall_time_s)),
     })))
+    _warn_if_not_improved(history)
     share = history.failed_solve_share()
     if share > MAX_FAILED_SOLVE_SHARE:
         raise UsageError(
@@ -327,3 +328,17 @@ def _learn(args, out, system, mpc_config, learning, prices) -> int:
     return 0
 
 
+def _warn_if_not_improved(history) -> None:
+    """One line on stderr when the last evaluation is no better than the first (the run's
+    starting theta, on the same draws): the run has learned nothing usable
+    (:meth:`History.improvement <mpcrl_lite.learning.history.History.improvement>`)."""
+    verdict = history.improvement()
+    if verdict is None or verdict["improved_on_start"]:
+        return
+    hint = ("another --seed, or --gradient pathwise (an extension that needs the model)"
+            if history.learning.gradient == "critic" and history.learning.learner == "dpg"
+            else "another --seed")
+    print(f"mpcrl_lite learn: warning: after {history.months} months J_eval is "
+          f"{verdict['J_eval_last']:.1f} NOK/day, no lower than the starting theta's "
+          f"{verdict['J_eval_start']:.1f} on the same evaluation draws: this run learned "
+          f"nothing usable (summary.json 'improvement'); try {hint}", file=sys.stderr)

@@ -133,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(" ".join(str(err).split())) from None
     keys = ("done", "fraction_converged", "J_eval_final_median", "J_eval_final_iqr",
             "worst_seed", "largest_late_regression", "J_target", "J_star_method",
-            "regret_median", "regret_iqr", "late_collapse_count")
+            "regret_median", "regret_iqr", "late_collapse_count", "no_improvement_count")
     printed = {k: summary[k] for k in keys}
     if "class_split" in summary:
         split = summary["class_split"]
