@@ -416,6 +416,27 @@ def test_the_critic_on_october_is_the_stored_studies():
     assert learning["reset_momentum_at_bounds"] and learning["scale_to_prices"]
 
 
+def test_the_seeds_that_never_leave_the_start_are_those_the_stored_study_gives():
+    """``study``'s ``no_improvement_seeds`` of the stored October critic study (summarized
+    again from its table: the field is newer than the study), as benchmarks/README.md and
+    README name them."""
+    from mpcrl_lite.studies.study import summarize
+
+    summary, table = _study("oct2020_paper_critic_scaled_7000")
+    _, again = summarize(table, J_star=summary["J_star"])
+    still = again["no_improvement_seeds"]
+    assert still == [7000, 7007, 7017]
+    finals = table.set_index("seed")["J_eval_final"]
+    nominal = table["J_eval_nominal"].iloc[0]
+    bench = " ".join((ROOT / "benchmarks" / "README.md").read_text().split())
+    assert (f"seeds {still[0]}, {still[1]} and {still[2]} at a final J_eval of "
+            f"{finals[still[0]]:.1f}, {finals[still[1]]:.1f} and {finals[still[2]]:.1f} "
+            f"NOK/day against the nominal MPC's {nominal:.1f}") in bench
+    assert f"(the October study above: {still[0]}, {still[1]}, {still[2]})" in bench
+    text = " ".join(README.split())
+    assert f"with the paper's critic on October 2020, {len(still)} of 20 seeds never left" in text
+
+
 #: benchmarks/README.md's table of the months never used: row label -> stored study
 BENCH_UNSEEN_ROWS = {
     "October, paper, pathwise": "oct2020_paper_pathwise_7000",
