@@ -113,6 +113,23 @@ def out_dir(text: str) -> Path:
 SYSTEM, MPC_DEFAULTS, LEARNING = SystemConfig(), MPCConfig(), LearningConfig()
 
 
+def add_step_rule(p: argparse.ArgumentParser, kept: str = "") -> None:
+    """``--step-warmup``, ``--step-decay`` and ``--average-months``: how the update's step
+    changes over the months (``LearningConfig``'s fields of the same names; ``kept`` ends
+    each help, e.g. what a resume does with them)."""
+    p.add_argument("--step-warmup", type=nonneg_int, default=None, metavar="MONTHS",
+                   help="months of a linear warm-up of the step size (default "
+                        f"{LEARNING.step_warmup}: none; LearningConfig.step_warmup{kept})")
+    p.add_argument("--step-decay", type=nonneg_int, default=None, metavar="MONTHS",
+                   help="months after which a harmonic decay has halved the step size "
+                        f"(default {LEARNING.step_decay}: a constant step; "
+                        f"LearningConfig.step_decay{kept})")
+    p.add_argument("--average-months", type=nonneg_int, default=None, metavar="MONTHS",
+                   help="use an exponential average of the raw iterates over about this many "
+                        f"months (default {LEARNING.average_months}: the iterates themselves; "
+                        f"LearningConfig.average_months{kept})")
+
+
 def add_system_file(p: argparse.ArgumentParser) -> None:
     """``--system FILE.yaml``: the fields of SystemConfig from a YAML file."""
     p.add_argument("--system", type=Path, default=None, metavar="FILE.yaml",

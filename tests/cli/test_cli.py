@@ -78,6 +78,29 @@ def test_learn_warns_when_the_run_ends_no_better_than_it_started(tmp_path, capsy
     assert "--gradient pathwise" in warnings[0]  # the critic's run names the other gradient
 
 
+def test_learn_records_the_step_rule_and_a_resume_keeps_it(tmp_path, capsys):
+    out = tmp_path / "rule"
+    common = ["learn", "--days", "2", "--out", str(out), "--quiet", "--no-figures",
+              "--eval-draws", "1"]
+    assert main([*common, "--months", "2", "--step-warmup", "3", "--step-decay", "5",
+                 "--average-months", "2"]) == 0
+    learning = json.loads((out / "summary.json").read_text())  # the run's own files
+    stored = json.loads((out / "history.json").read_text())["learning"]
+    assert (stored["step_warmup"], stored["step_decay"], stored["average_months"]) == (3, 5, 2)
+    assert learning["months"] == 2
+    info = json.loads((out / "history.json").read_text())["update_info"]
+    # update t: 0.02 * min(1, t / 3) / (1 + (t - 1) / 5)
+    assert [i["step_size"] for i in info] == pytest.approx([0.02 / 3, 0.02 * 2 / 3 / 1.2])
+    # a resume keeps the rule without the flags, and refuses another one in one line
+    assert main([*common, "--months", "3", "--resume"]) == 0
+    info = json.loads((out / "history.json").read_text())["update_info"]
+    assert info[-1]["step_size"] == pytest.approx(0.02 / 1.4)
+    capsys.readouterr()
+    assert main([*common, "--months", "4", "--resume", "--step-decay", "9"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--step-decay 9 with --resume" in err[0] and "5" in err[0], err
+
+
 @pytest.mark.parametrize(
     "argv, message",
     [

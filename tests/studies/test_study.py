@@ -326,3 +326,23 @@ def test_study_command_passes_the_learning_options_to_every_run(tmp_path):
     history = History.load(out / "runs" / "seed=0")
     assert history.learning.scale_to_prices and history.learning.reset_momentum_at_bounds
     assert history.learning.step_limit == 3.0 and "step_limited" in history.update_info[0]
+
+
+def test_study_command_passes_the_step_rule_to_every_run(tmp_path):
+    """--step-size, --optimizer, --exploration-std, --step-warmup, --step-decay and
+    --average-months reach every run's stored LearningConfig, and the first update's step
+    is the warmed-up, decayed one."""
+    out = tmp_path / "s"
+    assert main(["study", "--seeds", "1", "--months", "1", "--days", "2", "--eval-draws", "1",
+                 "--out", str(out), "--workers", "0", "--quiet", "--step-size", "0.03",
+                 "--optimizer", "adam", "--exploration-std", "0.1", "--step-warmup", "4",
+                 "--step-decay", "7", "--average-months", "3"]) == 0
+    stored = json.loads((out / "runs" / "seed=0" / "config.json").read_text())["learning"]
+    assert (stored["step_size"], stored["optimizer"], stored["exploration_std"]) == (
+        0.03, "adam", 0.1)
+    assert (stored["step_warmup"], stored["step_decay"], stored["average_months"]) == (4, 7, 3)
+    history = History.load(out / "runs" / "seed=0")
+    # update 1: 0.03 * min(1, 1/4) / (1 + 0/7)
+    assert history.update_info[0]["step"] == 1
+    assert history.update_info[0]["step_size"] == pytest.approx(0.03 / 4)
+    assert history.learning.step_warmup == 4 and history.learning.average_months == 3

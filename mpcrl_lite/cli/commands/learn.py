@@ -86,6 +86,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="the largest move of a theta entry per update, in units of its typical "
                         "magnitude (LearningConfig.step_limit; default 0: no limit; 5 keeps "
                         "--learner q from running away; a resumed run keeps its own)")
+    _a.add_step_rule(p, "; a resumed run keeps its own")
     p.add_argument("--learner", choices=LEARNERS, default=None,
                    help="dpg: the paper's policy gradient (default); q: LSTD Q-learning with the "
                         "MPC as the action-value function (a resumed run keeps its own)")
@@ -201,7 +202,8 @@ def run(args: argparse.Namespace) -> int:
                         ("--terminal-scale", "terminal_scale"),
                         ("--reset-momentum-at-bounds", "reset_momentum_at_bounds"),
                         ("--scale-to-prices", "scale_to_prices"),
-                        ("--step-limit", "step_limit")):
+                        ("--step-limit", "step_limit"), ("--step-warmup", "step_warmup"),
+                        ("--step-decay", "step_decay"), ("--average-months", "average_months")):
         value = getattr(args, field)
         if value is None:
             continue

@@ -6,7 +6,7 @@ import argparse
 import json
 from pathlib import Path
 
-from ...config import GRADIENTS, HESSIANS, LEARNERS, VALUE_FEATURES
+from ...config import GRADIENTS, HESSIANS, LEARNERS, OPTIMIZERS, VALUE_FEATURES
 from .. import args as _a
 from ..args import UsageError
 
@@ -52,6 +52,14 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--lockstep", type=_a.positive_int, default=None, metavar="K",
                    help="runs per task, stepped together in one process (default: each "
                         "worker's share; 1: one run per task)")
+    p.add_argument("--step-size", type=_a.finite_float, default=None,
+                   help=f"every run's step size (default {_a.LEARNING.step_size})")
+    p.add_argument("--optimizer", choices=OPTIMIZERS, default=None,
+                   help=f"every run's update rule (default {_a.LEARNING.optimizer})")
+    p.add_argument("--exploration-std", type=_a.finite_float, default=None,
+                   help=f"every run's exploration in MW (default {_a.LEARNING.exploration_std}; "
+                        "the critic's)")
+    _a.add_step_rule(p, "; every run")
     p.add_argument("--learner", choices=LEARNERS, default=None,
                    help="dpg (the policy gradient, default) or q (LSTD Q-learning)")
     p.add_argument("--hessian", choices=HESSIANS, default=None,
@@ -116,6 +124,10 @@ def run(args: argparse.Namespace) -> int:
         base["learning.scale_to_prices"] = args.scale_to_prices
     if args.step_limit is not None:
         base["learning.step_limit"] = args.step_limit
+    for field in ("step_size", "optimizer", "exploration_std", "step_warmup", "step_decay",
+                  "average_months"):
+        if getattr(args, field) is not None:
+            base[f"learning.{field}"] = getattr(args, field)
     if args.terminal_scale is not None:
         base["learning.terminal_scale"] = args.terminal_scale
     prices = _a.month_prices(args, _a.SYSTEM, args.days)  # checked before any work
