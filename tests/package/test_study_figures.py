@@ -182,7 +182,11 @@ UNSEEN = {"oct2020_paper_pathwise_7000": "oct2020_class_best_paper",
           "oct2020_paper_critic_scaled_reset_7000": "oct2020_class_best_paper",
           "dec2020_paper_pathwise_scaled_8000": "dec2020_class_best_paper",
           "dec2020_day_end_pathwise_scaled_8000": "dec2020_class_best_day_end",
-          "dec2020_rest_of_day_pathwise_scaled_8000": "dec2020_class_best_rest_of_day"}
+          "dec2020_rest_of_day_pathwise_scaled_8000": "dec2020_class_best_rest_of_day",
+          "jul2020_rest_of_day_pathwise_9000": "jul2020_class_best_rest_of_day",
+          "jul2020_day_end_pathwise_9000": "jul2020_class_best_day_end",
+          "jul2020_paper_pathwise_9000": "jul2020_class_best_paper",
+          "jul2020_paper_critic_9000": "jul2020_class_best_paper"}
 #: stored study -> the tune result its class split was made against
 CLASS_BEST = {"paper_pathwise_5000": "data/class_best_paper",
               "paper_pathwise_6000": "data/class_best_paper",
@@ -285,6 +289,10 @@ UNSEEN_ROWS = {
     "October 2020: the paper's MPC, critic, shipped month's scales": "oct2020_paper_critic_7000",
     "October 2020: the paper's MPC, critic, shipped month's scales, momentum reset at bounds":
         "oct2020_paper_critic_reset_7000",
+    "July 2020: the rest of the day, pathwise": "jul2020_rest_of_day_pathwise_9000",
+    "July 2020: the day-end forecast, pathwise": "jul2020_day_end_pathwise_9000",
+    "July 2020: the paper's MPC, pathwise": "jul2020_paper_pathwise_9000",
+    "July 2020: the paper's MPC, critic (default)": "jul2020_paper_critic_9000",
     "December 2020: the rest of the day, pathwise, shipped month's scales":
         "dec2020_rest_of_day_pathwise_8000",
     "December 2020: the day-end forecast, pathwise, shipped month's scales":
@@ -384,6 +392,46 @@ def test_the_prose_on_unseen_months_is_the_stored_studies():
         assert _config(name)["learning"]["scale_to_prices"] is True and "note" not in _summary(name)
     for name in ("oct2020_rest_of_day_pathwise_7000", "dec2020_paper_pathwise_8000"):
         assert "scale_to_prices" not in _config(name)["learning"]  # before the option: False
+
+
+def test_the_prose_on_july_is_the_stored_studies():
+    """The paragraph on the third month, July 2020, run with today's defaults."""
+    import math
+
+    text = " ".join(README.split())
+    pathwise = ["jul2020_rest_of_day_pathwise_9000", "jul2020_day_end_pathwise_9000",
+                "jul2020_paper_pathwise_9000"]
+    studies = {name: _study(name) for name in pathwise}
+    best, table = studies[pathwise[0]]
+    gap = {name: study["class_split"]["learner_gap_paired_median"]
+           for name, (study, _) in studies.items()}
+    assert best["regret_median"] <= 30 and (table["gap_closed"] >= 0.95).all()
+    assert (f"(regret {best['regret_median']:.1f}, paired learner gap {gap[pathwise[0]]:.1f}, "
+            "all 20 seeds close 95 % of the gap)") in text
+    assert (f"the paired gap is {gap[pathwise[1]]:.1f} in the day-end class and "
+            f"{gap[pathwise[2]]:.1f} in the paper's") in text
+    earlier = ["oct2020_rest_of_day_pathwise_scaled_7000", "oct2020_day_end_pathwise_scaled_7000",
+               "oct2020_paper_pathwise_scaled_7000", "dec2020_rest_of_day_pathwise_scaled_8000",
+               "dec2020_day_end_pathwise_scaled_8000", "dec2020_paper_pathwise_scaled_8000"]
+    within = sum(_summary(n)["class_split"]["learner_gap_paired_median"] <= 10
+                 for n in earlier + pathwise)
+    assert within == 7
+    assert "10 NOK/day or less in seven of the nine class-months of the three months" in text
+    closed = min(float(t["gap_closed"].min()) for _, t in studies.values())
+    late = max(max(v for v in s["late_regression_share"].values() if v is not None)
+               for s, _ in studies.values())
+    assert (f"Every pathwise run closes at least {math.floor(100 * closed)} % of the gap and "
+            f"none loses more than {math.ceil(1000 * late) / 10:.1f} % of it") in text
+    critic, critic_table = _study("jul2020_paper_critic_9000")
+    assert critic["no_improvement_seeds"] == [] and critic["done"] == 20
+    assert (critic_table["J_eval_final"] < critic_table["J_eval_nominal"]).all()
+    split = critic["class_split"]
+    assert (f"{split['learner_gap_paired_median']:.1f} NOK/day short of its class's best (worst "
+            f"{split['learner_gap_paired_worst']['value']:.1f})") in text
+    for name in [*pathwise, "jul2020_paper_critic_9000"]:
+        config = _config(name)
+        assert config["prices"]["month"] == "2020-07"
+        assert config["learning"]["scale_to_prices"] is None  # the default: on for a file
 
 
 def test_the_critic_on_october_is_the_stored_studies():
