@@ -62,12 +62,16 @@ def test_learn_writes_history_summary_and_figures(tmp_path):
     assert len(json.loads((out / "summary.json").read_text())["J"]) == 3
 
 
-def test_learn_warns_when_the_run_ends_no_better_than_it_started(tmp_path, capsys):
+@pytest.mark.parametrize("extra, names_pathwise",
+                         [([], True), (["--learner", "q", "--hessian", "none"], False)])
+def test_learn_warns_when_the_run_ends_no_better_than_it_started(extra, names_pathwise,
+                                                                  tmp_path, capsys):
     # a zero step keeps the starting theta: its last evaluation equals the first, on the
-    # same draws, and the command says so in one line (the run is kept, exit code 0)
+    # same draws, and the command says so in one line (the run is kept, exit code 0); the
+    # pathwise gradient is named only where it could replace the run's critic
     out = tmp_path / "still"
     assert main(["learn", "--months", "2", "--days", "2", "--out", str(out), "--quiet",
-                 "--no-figures", "--eval-draws", "1", "--step-size", "0"]) == 0
+                 "--no-figures", "--eval-draws", "1", "--step-size", "0", *extra]) == 0
     err = capsys.readouterr().err
     warnings = [line for line in err.splitlines() if "learned nothing usable" in line]
     assert len(warnings) == 1, err
@@ -75,7 +79,8 @@ def test_learn_warns_when_the_run_ends_no_better_than_it_started(tmp_path, capsy
     verdict = summary["improvement"]
     assert verdict["improved_on_start"] is False and verdict["change"] == 0.0
     assert f"{verdict['J_eval_start']:.1f}" in warnings[0]
-    assert "--gradient pathwise" in warnings[0]  # the critic's run names the other gradient
+    assert ("--gradient pathwise" in warnings[0]) is names_pathwise
+    assert "another --seed" in warnings[0]
 
 
 def test_learn_records_the_step_rule_and_a_resume_keeps_it(tmp_path, capsys):

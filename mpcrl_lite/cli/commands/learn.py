@@ -319,7 +319,7 @@ def _learn(args, out, system, mpc_config, learning, prices) -> int:
         "skipped_steps": int(sum(history.skipped_steps)),
         "wall_time_s": float(sum(history.wall_time_s)),
     })))
-    _warn_if_not_improved(history)
+    _warn_if_not_improved(history, decentralized=args.decentralized)
     share = history.failed_solve_share()
     if share > MAX_FAILED_SOLVE_SHARE:
         raise UsageError(
@@ -330,16 +330,19 @@ def _learn(args, out, system, mpc_config, learning, prices) -> int:
     return 0
 
 
-def _warn_if_not_improved(history) -> None:
+def _warn_if_not_improved(history, decentralized: bool = False) -> None:
     """One line on stderr when the last evaluation is no better than the first (the run's
     starting theta, on the same draws): the run has learned nothing usable
-    (:meth:`History.improvement <mpcrl_lite.learning.history.History.improvement>`)."""
+    (:meth:`History.improvement <mpcrl_lite.learning.history.History.improvement>`). The
+    hint names the pathwise gradient only where it could replace the run's critic (a
+    centralized policy-gradient run)."""
     verdict = history.improvement()
     if verdict is None or verdict["improved_on_start"]:
         return
+    critic = (history.learning.gradient == "critic" and history.learning.learner == "dpg"
+              and not decentralized)
     hint = ("another --seed, or --gradient pathwise (an extension that needs the model)"
-            if history.learning.gradient == "critic" and history.learning.learner == "dpg"
-            else "another --seed")
+            if critic else "another --seed")
     print(f"mpcrl_lite learn: warning: after {history.months} months J_eval is "
           f"{verdict['J_eval_last']:.1f} NOK/day, no lower than the starting theta's "
           f"{verdict['J_eval_start']:.1f} on the same evaluation draws: this run learned "
