@@ -126,6 +126,9 @@ def test_study_command_checks_its_arguments(tmp_path, capsys):
     assert main(["study", "--seeds", "1", "--months", "1", "--out", str(tmp_path / "s"),
                  "--threshold", "2", "--workers", "0", "--quiet"]) == 2
     assert "threshold=2" in capsys.readouterr().err
+    assert main(["study", "--seeds", "1", "--months", "1", "--out", str(tmp_path / "s"),
+                 "--step-size", "-1", "--workers", "0", "--quiet"]) == 2
+    assert "step_size=-1.0: expected a value in [0, inf)" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["study", "--seeds", "0", "--months", "1", "--out", str(tmp_path / "s")])
     assert not (tmp_path / "s").exists()
