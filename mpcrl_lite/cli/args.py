@@ -113,10 +113,26 @@ def out_dir(text: str) -> Path:
 SYSTEM, MPC_DEFAULTS, LEARNING = SystemConfig(), MPCConfig(), LearningConfig()
 
 
-def add_step_rule(p: argparse.ArgumentParser, kept: str = "") -> None:
-    """``--step-warmup``, ``--step-decay`` and ``--average-months``: how the update's step
-    changes over the months (``LearningConfig``'s fields of the same names; ``kept`` ends
-    each help, e.g. what a resume does with them)."""
+def add_update_options(p: argparse.ArgumentParser, kept: str = "") -> None:
+    """How each update moves theta, shared by ``learn`` and ``study`` (``LearningConfig``'s
+    fields of the same names; ``kept`` ends each help, e.g. what a resume does with them):
+    ``--scale-to-prices`` / ``--no-scale-to-prices``, ``--step-limit``, and how the step
+    changes over the months, ``--step-warmup``, ``--step-decay``, ``--average-months``."""
+    scale = p.add_mutually_exclusive_group()
+    scale.add_argument("--scale-to-prices", action="store_const", const=True, default=None,
+                       help="Adam's scales of the cost parts follow the month's price level "
+                            "(its mean buying price over the shipped month's; "
+                            "LearningConfig.scale_to_prices); the default with --prices, so "
+                            "this flag matters for the shipped month with another price scale"
+                            f"{kept}")
+    scale.add_argument("--no-scale-to-prices", dest="scale_to_prices", action="store_const",
+                       const=False,
+                       help="keep the shipped month's scales (times the price scale) with "
+                            f"--prices too, as runs did before the option{kept}")
+    p.add_argument("--step-limit", type=finite_float, default=None,
+                   help="the largest move of a theta entry per update, in units of its typical "
+                        "magnitude (LearningConfig.step_limit; default 0: no limit; 5 keeps "
+                        f"--learner q from running away{kept})")
     p.add_argument("--step-warmup", type=nonneg_int, default=None, metavar="MONTHS",
                    help="months of a linear warm-up of the step size (default "
                         f"{LEARNING.step_warmup}: none; LearningConfig.step_warmup{kept})")

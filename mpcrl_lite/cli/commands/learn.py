@@ -71,22 +71,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="reset the update's momentum of entries the projection holds at a "
                         "bound (LearningConfig.reset_momentum_at_bounds; a resumed run keeps "
                         "its own)")
-    scale = p.add_mutually_exclusive_group()
-    scale.add_argument("--scale-to-prices", action="store_const", const=True, default=None,
-                       help="Adam's scales of the cost parts follow the month's price level "
-                            "(its mean buying price over the shipped month's; "
-                            "LearningConfig.scale_to_prices); the default with --prices, so "
-                            "this flag matters for the shipped month with another price scale "
-                            "(a resumed run keeps its own)")
-    scale.add_argument("--no-scale-to-prices", dest="scale_to_prices", action="store_const",
-                       const=False,
-                       help="keep the shipped month's scales (times the price scale) with "
-                            "--prices too, as runs did before the option")
-    p.add_argument("--step-limit", type=_a.finite_float, default=None,
-                   help="the largest move of a theta entry per update, in units of its typical "
-                        "magnitude (LearningConfig.step_limit; default 0: no limit; 5 keeps "
-                        "--learner q from running away; a resumed run keeps its own)")
-    _a.add_step_rule(p, "; a resumed run keeps its own")
+    _a.add_update_options(p, "; a resumed run keeps its own")
     p.add_argument("--learner", choices=LEARNERS, default=None,
                    help="dpg: the paper's policy gradient (default); q: LSTD Q-learning with the "
                         "MPC as the action-value function (a resumed run keeps its own)")
@@ -319,7 +304,7 @@ def _learn(args, out, system, mpc_config, learning, prices) -> int:
         "skipped_steps": int(sum(history.skipped_steps)),
         "wall_time_s": float(sum(history.wall_time_s)),
     })))
-    _warn_if_not_improved(history, decentralized=args.decentralized)
+    _warn_if_not_improved(history)
     share = history.failed_solve_share()
     if share > MAX_FAILED_SOLVE_SHARE:
         raise UsageError(
@@ -330,17 +315,17 @@ def _learn(args, out, system, mpc_config, learning, prices) -> int:
     return 0
 
 
-def _warn_if_not_improved(history, decentralized: bool = False) -> None:
+def _warn_if_not_improved(history) -> None:
     """One line on stderr when the last evaluation is no better than the first (the run's
     starting theta, on the same draws): the run has learned nothing usable
     (:meth:`History.improvement <mpcrl_lite.learning.history.History.improvement>`). The
     hint names the pathwise gradient only where it could replace the run's critic (a
-    centralized policy-gradient run)."""
+    policy-gradient run; the decentralized learner records no evaluations, so it gets no
+    verdict)."""
     verdict = history.improvement()
     if verdict is None or verdict["improved_on_start"]:
         return
-    critic = (history.learning.gradient == "critic" and history.learning.learner == "dpg"
-              and not decentralized)
+    critic = history.learning.gradient == "critic" and history.learning.learner == "dpg"
     hint = ("another --seed, or --gradient pathwise (an extension that needs the model)"
             if critic else "another --seed")
     print(f"mpcrl_lite learn: warning: after {history.months} months J_eval is "

@@ -59,7 +59,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--exploration-std", type=_a.finite_float, default=None,
                    help=f"every run's exploration in MW (default {_a.LEARNING.exploration_std}; "
                         "the critic's)")
-    _a.add_step_rule(p, "; every run")
+    _a.add_update_options(p, "; every run")
     p.add_argument("--learner", choices=LEARNERS, default=None,
                    help="dpg (the policy gradient, default) or q (LSTD Q-learning)")
     p.add_argument("--hessian", choices=HESSIANS, default=None,
@@ -76,18 +76,6 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--reset-momentum-at-bounds", action="store_true",
                    help="every run resets the update's momentum of entries the projection "
                         "holds at a bound (LearningConfig.reset_momentum_at_bounds)")
-    scale = p.add_mutually_exclusive_group()
-    scale.add_argument("--scale-to-prices", action="store_const", const=True, default=None,
-                       help="every run sets Adam's scales of the cost parts by its month's "
-                            "price level (LearningConfig.scale_to_prices; the default with "
-                            "--prices)")
-    scale.add_argument("--no-scale-to-prices", dest="scale_to_prices", action="store_const",
-                       const=False, help="every run keeps the shipped month's scales, also "
-                                         "with --prices")
-    p.add_argument("--step-limit", type=_a.finite_float, default=None,
-                   help="every run's largest move of a theta entry per update, in units of its "
-                        "typical magnitude (LearningConfig.step_limit; default 0: no limit; 5 "
-                        "keeps --learner q from running away)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
@@ -110,26 +98,14 @@ def run(args: argparse.Namespace) -> int:
         base["system.N"], base["mpc.forecast"] = system["N"], mpc["forecast"]
     if args.hessian is not None and args.learner != "q":
         raise UsageError(f"--hessian {args.hessian} needs --learner q")
-    if args.learner is not None:
-        base["learning.learner"] = args.learner
-    if args.hessian is not None:
-        base["learning.hessian"] = args.hessian
-    if args.value_features is not None:
-        base["learning.value_features"] = args.value_features
-    if args.gradient is not None:
-        base["learning.gradient"] = args.gradient
-    if args.reset_momentum_at_bounds:
-        base["learning.reset_momentum_at_bounds"] = True
-    if args.scale_to_prices is not None:
-        base["learning.scale_to_prices"] = args.scale_to_prices
-    if args.step_limit is not None:
-        base["learning.step_limit"] = args.step_limit
-    for field in ("step_size", "optimizer", "exploration_std", "step_warmup", "step_decay",
-                  "average_months"):
+    # every learning option given reaches each run's LearningConfig as it is named
+    for field in ("learner", "hessian", "value_features", "gradient", "scale_to_prices",
+                  "step_limit", "step_size", "optimizer", "exploration_std", "step_warmup",
+                  "step_decay", "average_months", "terminal_scale"):
         if getattr(args, field) is not None:
             base[f"learning.{field}"] = getattr(args, field)
-    if args.terminal_scale is not None:
-        base["learning.terminal_scale"] = args.terminal_scale
+    if args.reset_momentum_at_bounds:  # a switch: False is "not given"
+        base["learning.reset_momentum_at_bounds"] = True
     prices = _a.month_prices(args, _a.SYSTEM, args.days)  # checked before any work
     if prices is not None:
         base.update(_a.price_base(args))
