@@ -324,19 +324,36 @@ def _study(name: str) -> tuple[dict, Any]:
     return _summary(name), pd.read_csv(STUDIES / name / "study.csv")
 
 
-def test_the_prose_on_unseen_months_is_the_stored_studies():
-    """The paragraphs after README's tables of the October and December studies."""
+#: the pathwise studies of October and December 2020 with the month's step scales (the
+#: default for a price file), and of July 2020 (run with that default)
+OCT_DEC_PATHWISE = ("oct2020_rest_of_day_pathwise_scaled_7000",
+                    "oct2020_day_end_pathwise_scaled_7000", "oct2020_paper_pathwise_scaled_7000",
+                    "dec2020_rest_of_day_pathwise_scaled_8000",
+                    "dec2020_day_end_pathwise_scaled_8000", "dec2020_paper_pathwise_scaled_8000")
+JULY_PATHWISE = ("jul2020_rest_of_day_pathwise_9000", "jul2020_day_end_pathwise_9000",
+                 "jul2020_paper_pathwise_9000")
+
+
+def _closed_and_late(studies: dict) -> tuple[int, str]:
+    """The least share of the gap any run of ``studies`` (name -> (summary, table)) closes, in
+    whole per cent rounded down, and the largest late loss, in per cent rounded up to 0.1, as
+    README quotes them."""
     import math
 
-    text = " ".join(README.split())
-    pathwise = ["oct2020_rest_of_day_pathwise_scaled_7000", "oct2020_day_end_pathwise_scaled_7000",
-                "oct2020_paper_pathwise_scaled_7000", "dec2020_rest_of_day_pathwise_scaled_8000",
-                "dec2020_day_end_pathwise_scaled_8000", "dec2020_paper_pathwise_scaled_8000"]
-    studies = {name: _study(name) for name in pathwise}
     closed = min(float(table["gap_closed"].min()) for _, table in studies.values())
-    late = max(max(study["late_regression_share"].values()) for study, _ in studies.values())
-    assert f"pathwise run closes at least {math.floor(100 * closed)} % of the gap" in text
-    assert f"none loses more than {math.ceil(1000 * late) / 10:.1f} % of it" in text
+    late = max(max(v for v in study["late_regression_share"].values() if v is not None)
+               for study, _ in studies.values())
+    return math.floor(100 * closed), f"{math.ceil(1000 * late) / 10:.1f}"
+
+
+def test_the_prose_on_unseen_months_is_the_stored_studies():
+    """The paragraphs after README's tables of the October and December studies."""
+    text = " ".join(README.split())
+    pathwise = list(OCT_DEC_PATHWISE)
+    studies = {name: _study(name) for name in pathwise}
+    closed, late = _closed_and_late(studies)
+    assert f"pathwise run closes at least {closed} % of the gap" in text
+    assert f"none loses more than {late} % of it" in text
     kind = [study["class_split"]["J_class"] - study["class_split"]["J_class_eval"]["mean"]
             for study, _ in studies.values()]
     assert min(kind) > 0
@@ -396,11 +413,8 @@ def test_the_prose_on_unseen_months_is_the_stored_studies():
 
 def test_the_prose_on_july_is_the_stored_studies():
     """The paragraph on the third month, July 2020, run with today's defaults."""
-    import math
-
     text = " ".join(README.split())
-    pathwise = ["jul2020_rest_of_day_pathwise_9000", "jul2020_day_end_pathwise_9000",
-                "jul2020_paper_pathwise_9000"]
+    pathwise = list(JULY_PATHWISE)
     studies = {name: _study(name) for name in pathwise}
     best, table = studies[pathwise[0]]
     gap = {name: study["class_split"]["learner_gap_paired_median"]
@@ -410,18 +424,13 @@ def test_the_prose_on_july_is_the_stored_studies():
             "all 20 seeds close 95 % of the gap)") in text
     assert (f"the paired gap is {gap[pathwise[1]]:.1f} in the day-end class and "
             f"{gap[pathwise[2]]:.1f} in the paper's") in text
-    earlier = ["oct2020_rest_of_day_pathwise_scaled_7000", "oct2020_day_end_pathwise_scaled_7000",
-               "oct2020_paper_pathwise_scaled_7000", "dec2020_rest_of_day_pathwise_scaled_8000",
-               "dec2020_day_end_pathwise_scaled_8000", "dec2020_paper_pathwise_scaled_8000"]
     within = sum(_summary(n)["class_split"]["learner_gap_paired_median"] <= 10
-                 for n in earlier + pathwise)
+                 for n in OCT_DEC_PATHWISE + JULY_PATHWISE)
     assert within == 7
     assert "10 NOK/day or less in seven of the nine class-months of the three months" in text
-    closed = min(float(t["gap_closed"].min()) for _, t in studies.values())
-    late = max(max(v for v in s["late_regression_share"].values() if v is not None)
-               for s, _ in studies.values())
-    assert (f"Every pathwise run closes at least {math.floor(100 * closed)} % of the gap and "
-            f"none loses more than {math.ceil(1000 * late) / 10:.1f} % of it") in text
+    closed, late = _closed_and_late(studies)
+    assert (f"Every pathwise run closes at least {closed} % of the gap and "
+            f"none loses more than {late} % of it") in text
     critic, critic_table = _study("jul2020_paper_critic_9000")
     assert critic["no_improvement_seeds"] == [] and critic["done"] == 20
     assert (critic_table["J_eval_final"] < critic_table["J_eval_nominal"]).all()
@@ -564,9 +573,8 @@ def test_the_benchmarks_prose_on_unseen_months_is_the_stored_one():
 
 
 def test_notebook_09_quotes_the_paired_gaps_of_unseen_months():
-    names = [name for name in BENCH_UNSEEN_ROWS.values() if "pathwise" in name and "scaled" in name]
-    names += [name for name in UNSEEN if name.startswith("jul2020") and "pathwise" in name]
-    gaps = [_study(name)[0]["class_split"]["learner_gap_paired_median"] for name in names]
+    gaps = [_study(name)[0]["class_split"]["learner_gap_paired_median"]
+            for name in OCT_DEC_PATHWISE + JULY_PATHWISE]
     notebook = " ".join(NOTEBOOK_09.split())
     assert len(gaps) == 9 and sum(g <= 10 for g in gaps) == 7
     assert "On three months on which nothing was chosen, October, December and July 2020" in notebook
