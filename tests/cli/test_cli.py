@@ -89,11 +89,12 @@ def test_learn_records_the_step_rule_and_a_resume_keeps_it(tmp_path, capsys):
               "--eval-draws", "1"]
     assert main([*common, "--months", "2", "--step-warmup", "3", "--step-decay", "5",
                  "--average-months", "2"]) == 0
-    learning = json.loads((out / "summary.json").read_text())  # the run's own files
-    stored = json.loads((out / "history.json").read_text())["learning"]
+    summary = json.loads((out / "summary.json").read_text())
+    history = json.loads((out / "history.json").read_text())  # the run's own record
+    stored = history["learning"]
     assert (stored["step_warmup"], stored["step_decay"], stored["average_months"]) == (3, 5, 2)
-    assert learning["months"] == 2
-    info = json.loads((out / "history.json").read_text())["update_info"]
+    assert summary["months"] == 2
+    info = history["update_info"]
     # update t: 0.02 * min(1, t / 3) / (1 + (t - 1) / 5)
     assert [i["step_size"] for i in info] == pytest.approx([0.02 / 3, 0.02 * 2 / 3 / 1.2])
     # a resume keeps the rule without the flags, and refuses another one in one line
