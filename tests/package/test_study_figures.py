@@ -443,6 +443,28 @@ def test_the_prose_on_july_is_the_stored_studies():
         assert config["learning"]["scale_to_prices"] is None  # the default: on for a file
 
 
+def test_the_unseen_months_price_figures_are_those_of_the_export():
+    """The mean buying prices and price levels README quotes for October, December and July
+    2020 (NO3), read from Nord Pool's export as the studies read it."""
+    if not NORD_POOL_2020.exists():
+        pytest.skip(f"needs {NORD_POOL_2020} (Nord Pool's export; not in the project)")
+    from mpcrl_lite.cli import inputs
+    from mpcrl_lite.config import SystemConfig
+    from mpcrl_lite.learning.dpg import price_level
+
+    text = " ".join(README.split())
+    month = {m: inputs.month_prices(NORD_POOL_2020, "NO3", m, SystemConfig(), None)
+             for m in ("2020-10", "2020-12", "2020-07")}
+    mean = {m: float(p.buy.mean()) for m, p in month.items()}
+    level = {m: price_level(p) for m, p in month.items()}
+    assert (f"mean prices {mean['2020-10']:.0f} and {mean['2020-12']:.0f} NOK/MWh "
+            "against 56") in text
+    assert (f"({level['2020-10']:.2f} and {level['2020-12']:.2f} here, {level['2020-07']:.2f} "
+            "in July") in text
+    assert (f"mean buying price {mean['2020-07']:.1f} NOK/MWh (price level "
+            f"{level['2020-07']:.2f},") in text
+
+
 def test_the_critic_on_october_is_the_stored_studies():
     """The seeds that never leave the nominal theta, and what the momentum reset changes, with
     the shipped month's step scales and with the month's own."""
