@@ -16,7 +16,15 @@ import mpcrl_lite.studies.tune as tune_module
 from mpcrl_lite.cli.main import main
 from mpcrl_lite.config import LearningConfig, MPCConfig, SystemConfig
 from mpcrl_lite.sim.candidates import candidate_noise, evaluate_candidates
-from mpcrl_lite.studies.tune import SCALES, SEARCH_PARTS, SEARCH_TOL, Space, TuneSettings, tune
+from mpcrl_lite.studies.tune import (
+    SCALES,
+    SEARCH_PARTS,
+    SEARCH_TOL,
+    SEARCH_TOL_MAX,
+    Space,
+    TuneSettings,
+    tune,
+)
 from mpcrl_lite.system.prices import Prices
 from mpcrl_lite.theta import Theta
 
@@ -147,11 +155,12 @@ def test_real_closed_loop_and_workers(tmp_path):
     assert one["J_nominal_heldout"]["mean"] == pytest.approx(J[1].mean(), rel=1e-12)
     train = evaluate_candidates([best], SMALL, None, small_prices(), 0, 1)
     assert one["J_best"] == pytest.approx(train[0].mean(), rel=1e-12)
-    # the search's own figure: its solves stop at search_tol (1e-6), at most about 3e-4
-    # NOK/day off
+    # the search's own figure: its solves stop at search_tol (SEARCH_TOL), which moves a J by
+    # well under 1e-3 of it (0.13 NOK/day of about 270 on the paper's system, 0.2 of 365 here)
     assert one["J_best_search"] == min(r["J_min"] for r in one["log"])
-    assert one["J_best_search"] == pytest.approx(one["J_best"], rel=0, abs=1e-2)
-    assert one["search_mpc"]["polish"] is False and one["search_mpc"]["tol"] == 1e-6
+    assert one["J_best_search"] == pytest.approx(one["J_best"], rel=1e-3)
+    assert one["J_best_search"] != one["J_best"]  # the search's figure is not the exact one
+    assert one["search_mpc"]["polish"] is False and one["search_mpc"]["tol"] == SEARCH_TOL
     assert one["mpc"]["polish"] is True and one["mpc"]["tol"] == MPCConfig().tol
     assert (tmp_path / "one" / "tune.png").stat().st_size > 0
     saved = json.loads((tmp_path / "one" / "tune.json").read_text())
@@ -166,7 +175,7 @@ def test_the_search_solves_loosely_and_the_judgement_exactly(quadratic, tmp_path
          mpc_config=given, prices=small_prices(), progress=False, figure=False)
     *search, held, best = quadratic.configs
     assert held == given and best == given
-    assert {c for c in search} == {given.replace(polish=False, tol=1e-6)}
+    assert {c for c in search} == {given.replace(polish=False, tol=SEARCH_TOL)}
     quadratic.configs.clear()
     exact = tune(tmp_path / "exact", TuneSettings(evals=20, draws=2, heldout_draws=2,
                                                   search_tol=None),
@@ -174,9 +183,10 @@ def test_the_search_solves_loosely_and_the_judgement_exactly(quadratic, tmp_path
                  figure=False)
     assert set(quadratic.configs) == {given} and len(quadratic.calls) > 0
     assert exact["J_best"] == exact["J_best_search"]
-    for bad in (0.0, 1e-3, float("nan")):
+    for bad in (0.0, 2 * SEARCH_TOL_MAX, float("nan")):
         with pytest.raises(ValueError, match="search_tol"):
             TuneSettings(search_tol=bad)
+    assert TuneSettings(search_tol=SEARCH_TOL_MAX).search_config(given).tol == SEARCH_TOL_MAX
 
 
 def test_cli_tune(tmp_path, capsys):
@@ -188,7 +198,7 @@ def test_cli_tune(tmp_path, capsys):
     assert printed["evals"] == 4
     saved = json.loads((out / "tune.json").read_text())
     assert saved["settings"]["tied"] is True and saved["forecast"] == "paper"
-    assert saved["settings"]["search_tol"] == 1e-6
+    assert saved["settings"]["search_tol"] == SEARCH_TOL
     exact = tmp_path / "exact"
     assert main(["tune", "--out", str(exact), "--draws", "1", "--heldout-draws", "2", "--days",
                  "1", "--quiet", "--popsize", "4", "--evals", "4", "--exact-search"]) == 0
