@@ -16,7 +16,7 @@ HELP = "best theta of the policy class (derivative-free search)"
 
 def add_parser(sub) -> argparse.ArgumentParser:
     """The ``tune`` options."""
-    from ...studies.tune import TuneSettings
+    from ...studies.tune import SEARCH_TOL_MAX, TuneSettings
 
     d = TuneSettings()
     p = sub.add_parser(NAME, help=HELP)
@@ -37,7 +37,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     exact = p.add_mutually_exclusive_group()
     exact.add_argument("--search-tol", type=float, default=d.search_tol,
                        help="KKT tolerance of the search's MPC solves, without polishing "
-                            f"(default {d.search_tol:g}; the result is judged with exact solves)")
+                            f"(default {d.search_tol:g}, at most {SEARCH_TOL_MAX:g}; the result is "
+                            "judged with exact solves)")
     exact.add_argument("--exact-search", dest="search_tol", action="store_const", const=None,
                        help="solve the search's MPCs as exactly as the judgement's")
     p.add_argument("--days", type=_a.positive_int, default=None,
