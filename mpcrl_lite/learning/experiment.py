@@ -265,7 +265,9 @@ class Experiment(Learner):
             self._pending.clear()  # a run stopped here evaluates them when resumed
             self._stop_worker(wait=False)
             raise
-        self._stop_worker()  # idle: every evaluation was collected
+        # idle (every evaluation was collected): its process ends on its own, about 0.25 s
+        # that the run need not wait for
+        self._stop_worker(wait=False)
 
     def collect_evaluations(self, wait: bool = False) -> None:
         """Record the evaluations that came back from the worker, in the order of the months
