@@ -283,6 +283,16 @@ def profile_parameters(profile: str) -> dict[str, dict[str, Any]]:
     return data
 
 
+#: How long a finished notebook's kernel may take to exit before it is terminated (half of it)
+#: and killed (jupyter_client's ``KernelManager.shutdown_wait_time``, default 5 s). At exit,
+#: ipykernel signals every child process of its process group and waits for it to end; the
+#: resource tracker that multiprocessing starts beside a spawned worker (the evaluation worker
+#: of :class:`~mpcrl_lite.learning.experiment.Experiment`) ignores those signals, so a
+#: notebook that evaluated in a worker kept its kernel for half of that time, 2.5 s, after
+#: its last cell. Every output is in hand when the kernel is asked to shut down.
+KERNEL_SHUTDOWN_WAIT_S = 1.0
+
+
 def _kernel_options(socket_dir: str) -> dict[str, Any]:
     """papermill/nbclient options for a local kernel: IPC sockets inside ``socket_dir`` (where
     the platform has them), the :data:`KERNEL_EXTENSIONS`, and the kernel's own log silenced
@@ -296,9 +306,10 @@ def _kernel_options(socket_dir: str) -> dict[str, Any]:
         "extra_arguments": [*(f"--IPKernelApp.extensions={name}" for name in KERNEL_EXTENSIONS),
                             "--IPKernelApp.log_level=CRITICAL"],
     }
+    manager: dict[str, Any] = {"shutdown_wait_time": KERNEL_SHUTDOWN_WAIT_S}
     if os.name == "posix":
-        options["config"] = Config(
-            {"KernelManager": {"transport": "ipc", "ip": os.path.join(socket_dir, "kernel")}})
+        manager.update(transport="ipc", ip=os.path.join(socket_dir, "kernel"))
+    options["config"] = Config({"KernelManager": manager})
     return options
 
 

@@ -84,3 +84,36 @@ def test_the_kernels_own_log_stays_off_stderr(tmp_path, capfd):
     done = execute_notebook(path, tmp_path / "out.ipynb", cwd=tmp_path)
     assert done.cells[0].outputs[0]["text"].strip() == "ran"
     assert "KeyboardInterrupt caught in kernel" not in capfd.readouterr().err
+
+
+def test_a_child_that_ignores_sigterm_does_not_hold_the_finished_kernel(tmp_path):
+    """At exit ipykernel signals the children of its process group and waits for them; the
+    resource tracker beside a spawned worker ignores the signals. The report's kernel manager
+    (``KERNEL_SHUTDOWN_WAIT_S``) then ends the finished kernel after half of its wait instead
+    of jupyter_client's 2.5 s. The child here ignores SIGTERM as the tracker does and ends once
+    its parent, the kernel, is gone."""
+    from datetime import datetime
+
+    import nbformat
+
+    from mpcrl_lite.publish.report import KERNEL_SHUTDOWN_WAIT_S, execute_notebook
+
+    assert KERNEL_SHUTDOWN_WAIT_S / 2 < 2.5  # below jupyter_client's default (5 s) / 2
+    child = ("import os, signal, time\n"
+             "signal.signal(signal.SIGTERM, signal.SIG_IGN)\n"
+             "parent = os.getppid()\n"
+             "while os.getppid() == parent:\n"
+             "    time.sleep(0.05)\n")
+    nb = nbformat.v4.new_notebook()
+    nb.cells = [nbformat.v4.new_code_cell(
+        f"import subprocess, sys\nkid = subprocess.Popen([sys.executable, '-c', {child!r}])\n"
+        "print(kid.poll())")]
+    path = tmp_path / "child.ipynb"
+    nbformat.write(nb, path)
+    done = execute_notebook(path, tmp_path / "out.ipynb", cwd=tmp_path)
+    assert done.cells[0].outputs[0]["text"].strip() == "None"  # the child was alive
+    stamp = lambda s: datetime.fromisoformat(s.rstrip("Z"))
+    tail = (stamp(done.metadata.papermill.end_time)
+            - stamp(done.cells[0].metadata.papermill.end_time)).total_seconds()
+    # jupyter_client's default would keep the kernel at least 2.5 s here
+    assert tail < 2.0, tail
