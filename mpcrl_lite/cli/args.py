@@ -356,6 +356,20 @@ def budget(what: str, n: int, days: int, runs: int = 1, sensitivities: bool = Fa
         raise UsageError(str(err)) from None
 
 
+def learning_budget(what: str, system: SystemConfig, learning: Any) -> None:
+    """:func:`budget` of a learning run with its evaluations (``learning``: its
+    ``LearningConfig``): the estimate the library checks before it builds anything
+    (:func:`mpcrl_lite.learning.learner.resolve_setup`), refused here in one line."""
+    from .._util.budget import check_estimate, learning_estimate
+
+    try:
+        check_estimate(what, learning_estimate(
+            system.n, learning.days_per_month, learning.months, learning.eval_draws,
+            learning.eval_every, system.N))
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+
+
 def prepare_out(args: argparse.Namespace, outputs: tuple[str, ...]) -> Path:
     """--out checked (writable, no finished results unless --force) before any work."""
     from . import inputs as cli_inputs

@@ -629,3 +629,33 @@ def test_learn_resume_with_other_prices_is_refused_in_one_line(export, tmp_path,
         assert (out / "checkpoint.json").read_bytes() == before
     code, err = run_cli([*base, "--months", "2", "--resume"], capsys)
     assert code == 0, err
+
+
+def test_learn_on_a_price_file_keeps_its_evaluation_draws(export, tmp_path, capsys):
+    """``--eval-draws`` holds with ``--prices`` (the month's days re-make the configs)."""
+    out = tmp_path / "run"
+    code, err = run_cli(["learn", "--prices", export, "--area", "Tr.heim", "--month", "2021-02",
+                         "--days", "2", "--months", "1", "--eval-draws", "2", "--no-figures",
+                         "--out", out, "--quiet"], capsys)
+    assert code == 0, err
+    history = json.loads((out / "history.json").read_text())
+    assert history["learning"]["eval_draws"] == 2
+    assert history["learning"]["days_per_month"] == 2
+
+
+def test_learn_refuses_an_evaluation_batch_beyond_the_memory_in_one_line(monkeypatch, tmp_path,
+                                                                         capsys):
+    """A month that fits but whose evaluation batch (``eval_draws`` months at once) does not:
+    refused before any work, in one line, as the library would refuse it."""
+    from mpcrl_lite._util import budget
+
+    days = 20_000
+    month = budget.learning_estimate(3, days, 1).memory  # a learning month alone
+    batch = budget.learning_estimate(3, days, 1, eval_draws=10, eval_every=5).memory
+    assert batch > 2 * month
+    monkeypatch.setattr(budget, "available_memory", lambda: 1.5 * month)
+    code, err = run_cli(["learn", "--months", "1", "--days", str(days), "--out",
+                         tmp_path / "run"], capsys)
+    assert code == 2 and len(err) == 1, err
+    assert "--eval-draws 10" in err[0] and "GiB of memory" in err[0]
+    assert not (tmp_path / "run").exists()

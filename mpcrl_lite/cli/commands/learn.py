@@ -216,11 +216,11 @@ def run(args: argparse.Namespace) -> int:
     if prices is not None:  # the month's days
         system, mpc_config, learning = _a.configs(
             args, months=args.months, days_per_month=prices.days, step_size=args.step_size,
-            optimizer=args.optimizer, exploration_std=args.exploration_std, **kept,
+            optimizer=args.optimizer, exploration_std=args.exploration_std,
+            eval_draws=eval_draws, **kept,
         )
-    _a.budget(f"--months {args.months} --days {learning.days_per_month} --n {system.n}",
-            system.n, learning.days_per_month, runs=args.months, sensitivities=True,
-            horizon=system.N)
+    _a.learning_budget(f"--months {args.months} --days {learning.days_per_month} --n {system.n} "
+                       f"--eval-draws {learning.eval_draws}", system, learning)
     if args.adopt and not args.resume:
         raise UsageError("--adopt without --resume: --adopt continues a run written before "
                          "the manifest format; expected --resume --adopt")
