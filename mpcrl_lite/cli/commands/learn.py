@@ -207,18 +207,16 @@ def run(args: argparse.Namespace) -> int:
         args.forecast = _run_forecast(Path(args.out))  # and its MPC's forecast
         if args.system is None:  # and its policy class (horizon and forecast)
             args.policy_class = _run_policy_class(Path(args.out))
-    system, mpc_config, learning = _a.configs(
-        args, months=args.months, days_per_month=args.days, step_size=args.step_size,
-        optimizer=args.optimizer, exploration_std=args.exploration_std,
-        eval_draws=eval_draws, **kept,
-    )
+    # every learning option once: a price file's month only changes the days
+    learning_options = dict(months=args.months, step_size=args.step_size,
+                            optimizer=args.optimizer, exploration_std=args.exploration_std,
+                            eval_draws=eval_draws, **kept)
+    system, mpc_config, learning = _a.configs(args, days_per_month=args.days,
+                                              **learning_options)
     prices = _a.month_prices(args, system, args.days)
     if prices is not None:  # the month's days
-        system, mpc_config, learning = _a.configs(
-            args, months=args.months, days_per_month=prices.days, step_size=args.step_size,
-            optimizer=args.optimizer, exploration_std=args.exploration_std,
-            eval_draws=eval_draws, **kept,
-        )
+        system, mpc_config, learning = _a.configs(args, days_per_month=prices.days,
+                                                  **learning_options)
     _a.learning_budget(f"--months {args.months} --days {learning.days_per_month} --n {system.n} "
                        f"--eval-draws {learning.eval_draws}", system, learning)
     if args.adopt and not args.resume:
