@@ -82,6 +82,51 @@ def test_local_data_is_the_mpcs_qp(local):
     np.testing.assert_allclose((qp.Et(w) * x).sum(1), (w * Ex).sum(1), rtol=1e-13)
 
 
+@pytest.mark.parametrize("system", [
+    TIGHT, SystemConfig(n=2, gamma=0.9, omega=(3.0, 7.0), omega_f=(20.0, 40.0), N=7),
+], ids=["default", "gamma-omega-N"])
+def test_written_out_local_data_is_casadis_bit_for_bit(system):
+    # LocalQP.data writes the QP data out in numpy; CasADi's map of MPC.qp_function is the
+    # reference (the same numbers, not only close ones: the coordination's rounds see them)
+    mpc = MPC(local_system(system))
+    qp = LocalQP(mpc, system.battery("U_bar"))
+    rng = np.random.default_rng(7)
+    for scale in (1e-3, 1.0, 1e3):
+        P = rng.normal(size=(2 * system.n, mpc.np)) * scale * 10.0 ** rng.integers(
+            -2, 3, (2 * system.n, mpc.np))
+        for name, new, ref in zip(("Hd", "q", "A", "e"), qp.data(P), qp.data_reference(P)):
+            assert new.shape == ref.shape, name
+            np.testing.assert_array_equal(new, ref, err_msg=name)
+    with pytest.raises(ValueError, match=r"P has shape \(3,\); expected \(B, np="):
+        qp.data(np.zeros(3))
+
+
+def test_local_data_that_leaves_the_formulation_is_refused(monkeypatch):
+    written_out = LocalQP.data
+
+    def off(self, P):
+        Hd, q, A, e = written_out(self, P)
+        return Hd, q, A, e + 1e-9
+
+    monkeypatch.setattr(LocalQP, "data", off)
+    with pytest.raises(RuntimeError, match="LocalQP.data's e differs from MPC.qp_function's"):
+        LocalQP(MPC(local_system(TIGHT)))
+
+
+def test_feasible_soc_is_the_dense_solve_of_the_dynamics(local):
+    # the running sum of the dynamics gives the numbers of a dense solve with A's soc block
+    mpc, qp = local
+    rng = np.random.default_rng(5)
+    P = rng.normal(size=(50, mpc.np)) * 10.0 ** rng.integers(-2, 3, (50, mpc.np))
+    _, _, A, e = qp.data(P)
+    x = qp.feasible(A, e, rng.normal(size=(50, mpc.nx)) * 3.0)
+    rest = np.ones(mpc.nx, bool)
+    rest[qp.isoc] = False
+    rhs = e - np.einsum("bri,bi->br", A[:, :, rest], x[:, rest])
+    soc = np.linalg.solve(A[:, :, qp.isoc], rhs[..., None])[..., 0]
+    np.testing.assert_array_equal(x[:, qp.isoc], soc)
+
+
 def test_feasible_start_is_strictly_inside(local):
     mpc, qp = local
     rng = np.random.default_rng(1)
