@@ -63,15 +63,20 @@ def learning_step(months: int = 2, warmup: int = 1, warm_start: bool = True) -> 
     problems start from the solver's default point instead of the shifted previous plan).
     """
     import numpy as np
+    from threadpoolctl import threadpool_limits
 
     from mpcrl_lite.config import MPCConfig
     from mpcrl_lite.learning.experiment import Experiment
+    from mpcrl_lite.learning.learner import BLAS_THREADS
     from mpcrl_lite.sim.closed_loop import run_month
 
     exp = Experiment(mpc_config=MPCConfig(warm_start=warm_start))
     H, D = exp.system.hours_per_day, exp.learning.days_per_month
     steps = H * D
     month_s, update_s, month_cpu, update_cpu = [], [], [], []
+    # one BLAS thread, as in every learning month (``run`` and ``run_one_month``): OpenBLAS's
+    # threads, spinning after each LSTD product, would take the cores from the kernel's
+    limit = threadpool_limits(limits=BLAS_THREADS)
     for m in range(warmup + months):
         rng = np.random.default_rng(m)
         t0, c0 = time.perf_counter(), time.process_time()
@@ -87,6 +92,7 @@ def learning_step(months: int = 2, warmup: int = 1, warm_start: bool = True) -> 
             month_cpu.append(c1 - c0)
             update_cpu.append(c2 - c1)
         ok = float(np.mean(record.solver_ok & record.sens_ok))
+    limit.restore_original_limits()
     run_ms = 1e3 * median(month_s) / steps
     upd_ms = 1e3 * median(update_s) / steps
     return {

@@ -17,8 +17,38 @@ import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from typing import ParamSpec, TypeVar
 
-__all__ = ["auto_threads", "run_blocks"]
+_P = ParamSpec("_P")
+_R = TypeVar("_R")
+
+__all__ = ["BLAS_THREADS", "auto_threads", "one_blas_thread", "run_blocks"]
+
+#: Threads the BLAS/LAPACK libraries may use while a learning month runs (see
+#: :mod:`mpcrl_lite.learning.learner`, "One thread of linear algebra"): one, so that results
+#: do not depend on the machine's cores.
+BLAS_THREADS = 1
+
+
+def one_blas_thread(fn: Callable[_P, _R]) -> Callable[_P, _R]:
+    """``fn`` run with the BLAS/LAPACK libraries limited to :data:`BLAS_THREADS` threads
+    (``threadpoolctl``; ~0.1 ms a call, the previous limits restored after it).
+
+    A learner's ``run_one_month`` is wrapped in it, so that a month called on its own (in a
+    notebook, a benchmark) gives the numbers and the speed of a month of ``run``: with
+    OpenBLAS's own threads, which wait spinning after each product, beside the compiled
+    kernel's threads on two cores, a month of the paper's run took 2.5x the wall time
+    (113 ms against 45 ms) and its LSTD products could depend on the core count.
+    """
+
+    @functools.wraps(fn)
+    def limited(*args: _P.args, **kwargs: _P.kwargs) -> _R:
+        from threadpoolctl import threadpool_limits  # loaded with the first month
+
+        with threadpool_limits(limits=BLAS_THREADS):
+            return fn(*args, **kwargs)
+
+    return limited
 
 
 def auto_threads() -> int:

@@ -59,6 +59,7 @@ from typing import Any
 import numpy as np
 
 from .._util.jsonio import plain
+from .._util.threads import one_blas_thread
 from .._util.validate import check_int
 from ..config import CoordinationConfig, LearningConfig, MPCConfig, SystemConfig
 from ..learning.checkpoint import parse_theta
@@ -305,6 +306,7 @@ class DecentralizedExperiment(Learner):
             infos.append(info)
         return grads, int(np.count_nonzero(any_skipped)), infos
 
+    @one_blas_thread
     def run_one_month(self) -> MonthRecord:
         """Simulate one month with the current parameters and update every battery."""
         t0 = time.perf_counter()

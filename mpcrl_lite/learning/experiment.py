@@ -50,6 +50,7 @@ from typing import Any
 import numpy as np
 
 from .._util.jsonio import plain
+from .._util.threads import one_blas_thread
 from ..config import LearningConfig, MPCConfig, SystemConfig
 from ..mpc.backends.registry import make_solver
 from ..mpc.formulation import MPC
@@ -308,6 +309,7 @@ class Experiment(Learner):
                 self.history.append_evaluation(month, self.evaluate(theta),
                                                draws=self.learning.eval_draws)
 
+    @one_blas_thread
     def run_one_month(self) -> MonthRecord:
         """Simulate one month with the current theta and update it (and evaluate the
         month's theta when :meth:`evaluation_due`)."""

@@ -11,7 +11,8 @@ each and resumes from one (:mod:`mpcrl_lite.learning.checkpoint`); the update of
 One thread of linear algebra
 ----------------------------
 The month loop runs with the BLAS/LAPACK libraries limited to one thread
-(``threadpoolctl``). The matrices of a month are small (tens to hundreds of rows), where
+(``threadpoolctl``), and so does every learner's ``run_one_month`` called on its own
+(:func:`mpcrl_lite._util.threads.one_blas_thread`). The matrices of a month are small (tens to hundreds of rows), where
 threads cost more than they bring, and a multi-threaded BLAS may sum in another order on a
 machine with another number of cores or in a worker process that limits its threads (Dask
 does): with one thread, a run gives the same numbers to the last bit in a notebook, under
@@ -36,6 +37,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from .._util.budget import check_memory, learning_estimate
+from .._util.threads import BLAS_THREADS
 from ..config import LearningConfig, MPCConfig, SystemConfig, check_grid_bound
 from ..sim.record import MonthRecord
 from ..system.forecast import forecast_of, forecast_prices
@@ -62,9 +64,6 @@ log = logging.getLogger(__name__)
 #: is reported: its learning signal comes from too few hours to be trusted.
 MAX_FAILED_SOLVE_SHARE = 0.5
 
-#: Threads the BLAS/LAPACK libraries may use inside the month loop (see the module
-#: docstring): one, so that results do not depend on the machine's cores.
-BLAS_THREADS = 1
 
 
 def resolve_setup(

@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from .._util.threads import one_blas_thread
 from ..mpc.value import MPCValue
 from ..sim.closed_loop import run_month
 from ..sim.record import MonthRecord
@@ -68,6 +69,7 @@ class QLearningExperiment(Experiment):
         """As for DPG, without the policy sensitivities (Q-learning does not use them)."""
         return {**super().month_options(recording), "sensitivities": False}
 
+    @one_blas_thread
     def run_one_month(self) -> MonthRecord:
         t0 = time.perf_counter()
         theta_used = self.begin_month()

@@ -94,6 +94,47 @@ def test_month_loop_uses_one_blas_thread_and_any_outer_limit_gives_the_same_run(
     assert h1.theta_final == h2.theta_final
 
 
+@pytest.mark.parametrize("kind", ["dpg", "q", "decentralized"])
+def test_a_month_on_its_own_uses_one_blas_thread_and_learns_what_run_learns(kind):
+    # run_one_month called on its own (a notebook, a benchmark) limits BLAS as run does: the
+    # same numbers as the month loop, with OpenBLAS's spinning threads kept off the kernel's
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    from mpcrl_lite.decentralized.learner import DecentralizedExperiment
+    from mpcrl_lite.learning.learner import BLAS_THREADS
+    from mpcrl_lite.learning.q_experiment import QLearningExperiment
+
+    def make():
+        learning = LearningConfig(days_per_month=3, months=2, seed=7, eval_every=0)
+        if kind == "q":
+            return QLearningExperiment(system=SMALL, learning=learning)
+        if kind == "decentralized":
+            return DecentralizedExperiment(SMALL, learning=learning)
+        return Experiment(system=SMALL, learning=learning)
+
+    seen: list[int] = []
+    exp = make()
+    update = exp.learning_step
+
+    def watched(*args, **kwargs):
+        seen.extend(pool["num_threads"] for pool in threadpool_info()
+                    if pool["user_api"] == "blas")
+        return update(*args, **kwargs)
+
+    exp.learning_step = watched
+    def blas_threads():
+        return {pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"}
+
+    with threadpool_limits(limits=2, user_api="blas"):
+        for _ in range(2):
+            exp.run_one_month()
+        assert blas_threads() == {2}  # the caller's limit is back after each month
+    assert seen and set(seen) == {BLAS_THREADS}
+    ran = make().run(progress=False)
+    assert exp.history.J == ran.J
+    assert exp.history.theta == ran.theta
+
+
 def test_resume_reproduces_uninterrupted_run(tmp_path):
     full = small_experiment(months=4).run(progress=False)
     # interrupted after two months, then resumed by a fresh process-like object
