@@ -49,7 +49,6 @@ from .dpg import scales_follow_prices
 from .history import History
 
 __all__ = [
-    "BLAS_THREADS",
     "MAX_FAILED_SOLVE_SHARE",
     "Learner",
     "close_month",
