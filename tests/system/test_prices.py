@@ -500,6 +500,11 @@ def malformed_exports(draw):
         # Two opposite edits of one line keep its cell count with shifted values: no reader
         # can see that, so the fuzz makes at most one such edit.
         mutations = [m for m in mutations if m not in ("drop_cell", "add_cell")][:2] + ["add_cell"]
+    if "truncate" in mutations and "add_cell" in mutations:
+        # A cut that takes the last cell off the line with the added cell is the same pair of
+        # opposite edits (its cell count kept, its values shifted: seen with the cut after
+        # "4 0" of a line ";;2 000,5;3 000,5;4 000,5;5 000,5" with the empty cell added).
+        mutations = [m for m in mutations if m != "add_cell"]
     area_col = 2 + areas.index("Tr.heim")
     cut = bad_byte = None
     for m in mutations:
