@@ -419,6 +419,8 @@ def test_sensitivity_reports_unusable_solutions_and_mixed_thetas(prices):
     assert np.all(sens.grad[1] == 0.0)
     tight = KernelSolver(mpc, MPCConfig(kkt_cond_max=1.0 + 1e-9)).sensitivity(sols[0])
     assert not tight.ok.any() and all("ill-conditioned" in r for r in tight.reason)
+    assert np.all(tight.grad == 0.0) and np.all(tight.grad_soc0 == 0.0)
+    assert sens.reason[0] == "" and len(tight.reason) == len(sols[0].success)
 
 
 def test_formulation_mismatch_raises_at_the_first_solve():

@@ -422,22 +422,23 @@ class KernelSolver(StartSettings, BackendBase):
                 success, self._opts(), self._ubar, self._stagew, self.n, self.N, self._method,
                 self.structured_adjoint, grad, dsoc, cond, back, code)
         self._run("sensitivity_rows", args, days)
-        ok = np.zeros(days, dtype=bool)
-        reasons = []
-        for d in range(days):
+        # the rows' verdicts at once (a decentralized hour has days x batteries of them);
+        # only the rows that are not ok get a reason
+        formed = code == K.SENS_OK
+        ill = formed & ((back > _BACKWARD_ERROR_MAX) | (cond > self.config.kkt_cond_max))
+        grad[ill] = 0.0
+        dsoc[ill] = 0.0
+        ok = formed & ~ill
+        reasons = [""] * days
+        for d in np.flatnonzero(~ok).tolist():
             c = int(code[d])
             if c == K.SENS_SKIPPED:
-                reasons.append(f"solver failed: {solution.status[d]}")
+                reasons[d] = f"solver failed: {solution.status[d]}"
             elif c == K.SENS_NOT_INTERIOR:
-                reasons.append("solution not strictly interior (S > 0 and mu > 0 violated)")
+                reasons[d] = "solution not strictly interior (S > 0 and mu > 0 violated)"
             elif c == K.SENS_SINGULAR:
-                reasons.append("singular KKT matrix")
-            elif back[d] > _BACKWARD_ERROR_MAX or cond[d] > self.config.kkt_cond_max:
-                reasons.append(f"ill-conditioned KKT matrix (cond ~ {cond[d]:.2e})")
-                grad[d] = 0.0
-                dsoc[d] = 0.0
+                reasons[d] = "singular KKT matrix"
             else:
-                reasons.append("")
-                ok[d] = True
+                reasons[d] = f"ill-conditioned KKT matrix (cond ~ {cond[d]:.2e})"
         return Sensitivity(grad, ok, cond, tuple(reasons),
                            None if self.structured_adjoint else dsoc)
