@@ -34,8 +34,9 @@ def one_blas_thread(fn: Callable[_P, _R]) -> Callable[_P, _R]:
     """``fn`` run with the BLAS/LAPACK libraries limited to :data:`BLAS_THREADS` threads
     (``threadpoolctl``; ~0.1 ms a call, the previous limits restored after it).
 
-    A learner's ``run_one_month`` is wrapped in it, so that a month called on its own (in a
-    notebook, a benchmark) gives the numbers and the speed of a month of ``run``: with
+    A learner's ``run_one_month`` and ``learning_step`` are wrapped in it, so that a month or
+    an update called on its own (in a notebook, a benchmark) gives the numbers and the speed
+    of one in ``run``: with
     OpenBLAS's own threads, which wait spinning after each product, beside the compiled
     kernel's threads on two cores, a month of the paper's run took 2.5x the wall time
     (113 ms against 45 ms) and its LSTD products could depend on the core count.

@@ -283,6 +283,7 @@ class DecentralizedExperiment(Learner):
         return {**super().configs(), "coordination": self.coordination}
 
     # -- one learning step ----------------------------------------------------------------
+    @one_blas_thread
     def learning_step(
         self, record: MonthRecord, extra: DecentralizedMonth
     ) -> tuple[list[np.ndarray], int, list[dict[str, Any]]]:

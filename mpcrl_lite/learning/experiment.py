@@ -133,6 +133,7 @@ class Experiment(Learner):
         self._pending: list[tuple[int, Theta, Future]] = []
 
     # -- one learning step ----------------------------------------------------------------
+    @one_blas_thread
     def learning_step(self, record: MonthRecord) -> tuple[np.ndarray, int, dict[str, Any]]:
         """LSTD + policy gradient from a month (:func:`mpcrl_lite.learning.step.lstd_policy_gradient`
         on all batteries and the stage cost); returns ``(grad, skipped, info)``.

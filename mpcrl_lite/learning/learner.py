@@ -11,8 +11,8 @@ each and resumes from one (:mod:`mpcrl_lite.learning.checkpoint`); the update of
 One thread of linear algebra
 ----------------------------
 The month loop runs with the BLAS/LAPACK libraries limited to one thread
-(``threadpoolctl``), and so does every learner's ``run_one_month`` called on its own
-(:func:`mpcrl_lite._util.threads.one_blas_thread`). The matrices of a month are small (tens
+(``threadpoolctl``), and so do every learner's ``run_one_month`` and ``learning_step``
+called on their own (:func:`mpcrl_lite._util.threads.one_blas_thread`). The matrices of a month are small (tens
 to hundreds of rows), where threads cost more than they bring, and a multi-threaded BLAS may
 sum in another order on a machine with another number of cores or in a worker process that
 limits its threads (Dask does): with one thread, a run gives the same numbers to the last

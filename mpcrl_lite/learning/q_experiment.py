@@ -83,6 +83,7 @@ class QLearningExperiment(Experiment):
         self._theta_month = theta_used
         return super().end_month(record, theta_used, sim_time, evaluation)
 
+    @one_blas_thread
     def learning_step(self, record: MonthRecord) -> tuple[np.ndarray, int, dict[str, Any]]:
         """TD errors, gradient and Hessian of the month (see the module docstring); returns
         ``(grad, skipped, info)`` and gives the Hessian to the updater."""

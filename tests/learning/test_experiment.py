@@ -135,6 +135,30 @@ def test_a_month_on_its_own_uses_one_blas_thread_and_learns_what_run_learns(kind
     assert exp.history.theta == ran.theta
 
 
+def test_a_learning_step_on_its_own_uses_one_blas_thread(monkeypatch):
+    # notebook 04 takes the month's update in the open: Experiment.learning_step limits BLAS
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    import mpcrl_lite.learning.experiment as experiment_module
+
+    exp = small_experiment(months=1)
+    record = run_month(exp.theta, exp.solver, exp.prices, exp.system, np.random.default_rng(0),
+                       exploration_std=0.2, sensitivities=True)
+    seen: list[int] = []
+    fit = experiment_module.lstd_policy_gradient
+
+    def watched(*args, **kwargs):
+        seen.extend(pool["num_threads"] for pool in threadpool_info()
+                    if pool["user_api"] == "blas")
+        return fit(*args, **kwargs)
+
+    monkeypatch.setattr(experiment_module, "lstd_policy_gradient", watched)
+    with threadpool_limits(limits=2, user_api="blas"):
+        grad, _, _ = exp.learning_step(record)
+    assert seen and set(seen) == {1}
+    assert np.all(np.isfinite(grad))
+
+
 def test_resume_reproduces_uninterrupted_run(tmp_path):
     full = small_experiment(months=4).run(progress=False)
     # interrupted after two months, then resumed by a fresh process-like object

@@ -9,6 +9,7 @@ import json
 import numpy as np
 import pytest
 from conftest import run_cli
+from threadpoolctl import threadpool_limits
 
 from mpcrl_lite.classroom.explorers import value_fit
 from mpcrl_lite.cli.main import main
@@ -16,6 +17,7 @@ from mpcrl_lite.config import LearningConfig, MPCConfig, SystemConfig
 from mpcrl_lite.learning.dpg import policy_gradient
 from mpcrl_lite.learning.experiment import Experiment
 from mpcrl_lite.learning.history import History
+from mpcrl_lite.learning.learner import BLAS_THREADS
 from mpcrl_lite.learning.lstd import (
     compatible_features,
     lstd_q,
@@ -54,8 +56,11 @@ def test_the_learning_step_fits_the_price_features(record):
     phi = np.concatenate([per_hour, record.soc * left[..., :1], record.soc * left[..., 1:]], -1)
     psi = compatible_features(record.grad_pi, record.a, record.policy)
     done = np.broadcast_to((np.arange(H) == H - 1)[:, None], use.shape)
-    fit = lstd_q(phi[:-1][use], psi[use], record.stage_cost[use], phi[1:][use], SMALL.gamma,
-                 done=done[use], ridge=learning.ridge)
+    # with one BLAS thread, as every learning step (its LSTD system is ill-conditioned enough
+    # that another thread count moves the gradient by ~5e-7 of itself)
+    with threadpool_limits(limits=BLAS_THREADS):
+        fit = lstd_q(phi[:-1][use], psi[use], record.stage_cost[use], phi[1:][use],
+                     SMALL.gamma, done=done[use], ridge=learning.ridge)
     np.testing.assert_allclose(grad, policy_gradient(record.grad_pi[use], fit.w), rtol=1e-9,
                                atol=1e-12 * np.abs(grad).max())
     assert skipped == int(use.size - use.sum())
