@@ -108,6 +108,33 @@ def test_the_learner_gaps_quoted_in_prose_are_the_stored_ones():
         in notebook
 
 
+@pytest.mark.parametrize(("name", "label"), [
+    ("rest_of_day_pathwise_6000", "The rest of the day"),
+    ("day_end_pathwise_6000", "The day-end forecast"),
+])
+def test_the_labelled_classes_on_the_second_fresh_seeds_are_the_stored_ones(name, label):
+    """README's paragraph on the labelled classes judged on the seeds 6000-6019: medians,
+    IQRs, the learner gaps, the late loss and the least share of the gap any seed closed."""
+    text = " ".join(README.split())
+    study, table = _study(name)
+    split = study["class_split"]
+    seeds = sorted(int(s) for s in split["learner_gap"])
+    assert (seeds[0], seeds[-1], len(seeds)) == (6000, 6019, 20)
+    low, high = study["J_eval_final_iqr"]
+    held, pair = split["learner_gap_iqr"], split["learner_gap_paired_iqr"]
+    late = study["largest_late_regression"]
+    share = study["late_regression_share"][str(late["seed"])]
+    gap = study["J_nominal"] - study["J_target"]
+    closed = min((study["J_nominal"] - float(j)) / gap for j in table["J_eval_final"])
+    assert (f"{label}: median final J {study['J_eval_final_median']:.1f} ({low:.1f} to "
+            f"{high:.1f}), median regret {study['regret_median']:.1f}; learner gap "
+            f"{split['learner_gap_median']:.1f} (IQR {held[0]:.1f} to {held[1]:.1f}), paired "
+            f"{split['learner_gap_paired_median']:.1f} ({pair[0]:.1f} to {pair[1]:.1f}); the "
+            f"largest late loss {100 * share:.1f} % of the gap") in text
+    assert f"closed at least {100 * closed:.1f} %" in text
+    assert closed >= 0.95  # the target: every seed closes 95 % of the gap
+
+
 def test_the_paired_gap_and_the_second_fresh_judgement_are_the_stored_ones():
     """The paragraph after README's results table: the class's best on both sets of draws and
     the paper class on the seeds 6000-6019."""
@@ -192,7 +219,9 @@ CLASS_BEST = {"paper_pathwise_5000": "data/class_best_paper",
               "paper_pathwise_6000": "data/class_best_paper",
               "paper_critic_5000": "data/class_best_paper",
               "day_end_pathwise_5000": "data/class_best_day_end",
+              "day_end_pathwise_6000": "data/class_best_day_end",
               "rest_of_day_pathwise_5000": "data/class_best_rest_of_day",
+              "rest_of_day_pathwise_6000": "data/class_best_rest_of_day",
               "rest_of_day_pathwise_scale100_5000": "data/class_best_rest_of_day",
               "rest_of_day_critic_4000": "data/class_best_rest_of_day",
               **{name: f"benchmarks/studies/{best}" for name, best in UNSEEN.items()}}
