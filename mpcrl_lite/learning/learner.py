@@ -12,12 +12,12 @@ One thread of linear algebra
 ----------------------------
 The month loop runs with the BLAS/LAPACK libraries limited to one thread
 (``threadpoolctl``), and so do every learner's ``run_one_month`` and ``learning_step``
-called on their own (:func:`mpcrl_lite._util.threads.one_blas_thread`). The matrices of a month are small (tens
-to hundreds of rows), where threads cost more than they bring, and a multi-threaded BLAS may
-sum in another order on a machine with another number of cores or in a worker process that
-limits its threads (Dask does): with one thread, a run gives the same numbers to the last
-bit in a notebook, under ``learn``, in a sweep's worker and on any machine with the same
-libraries.
+called on their own (:func:`mpcrl_lite._util.threads.one_blas_thread`). The matrices of a
+month are small (tens to hundreds of rows), where threads cost more than they bring, and a
+multi-threaded BLAS may sum in another order on a machine with another number of cores or in
+a worker process that limits its threads (Dask does): with one thread, a run gives the same
+numbers to the last bit in a notebook, under ``learn``, in a sweep's worker and on any
+machine with the same libraries.
 
 Failed solves
 -------------
@@ -63,7 +63,6 @@ log = logging.getLogger(__name__)
 #: A month (and, for the ``learn`` command, a run) with a larger share of failed MPC solves
 #: is reported: its learning signal comes from too few hours to be trusted.
 MAX_FAILED_SOLVE_SHARE = 0.5
-
 
 
 def resolve_setup(
