@@ -76,23 +76,22 @@ def learning_step(months: int = 2, warmup: int = 1, warm_start: bool = True) -> 
     month_s, update_s, month_cpu, update_cpu = [], [], [], []
     # one BLAS thread, as in every learning month (``run`` and ``run_one_month``): OpenBLAS's
     # threads, spinning after each LSTD product, would take the cores from the kernel's
-    limit = threadpool_limits(limits=BLAS_THREADS)
-    for m in range(warmup + months):
-        rng = np.random.default_rng(m)
-        t0, c0 = time.perf_counter(), time.process_time()
-        record = run_month(exp.theta, exp.solver, exp.prices, exp.system, rng,
-                           exploration_std=exp.learning.exploration_std, sensitivities=True)
-        t1, c1 = time.perf_counter(), time.process_time()
-        grad, _, _ = exp.learning_step(record)
-        exp.theta = exp.updater.step(exp.theta, grad)
-        t2, c2 = time.perf_counter(), time.process_time()
-        if m >= warmup:
-            month_s.append(t1 - t0)
-            update_s.append(t2 - t1)
-            month_cpu.append(c1 - c0)
-            update_cpu.append(c2 - c1)
-        ok = float(np.mean(record.solver_ok & record.sens_ok))
-    limit.restore_original_limits()
+    with threadpool_limits(limits=BLAS_THREADS):
+        for m in range(warmup + months):
+            rng = np.random.default_rng(m)
+            t0, c0 = time.perf_counter(), time.process_time()
+            record = run_month(exp.theta, exp.solver, exp.prices, exp.system, rng,
+                               exploration_std=exp.learning.exploration_std, sensitivities=True)
+            t1, c1 = time.perf_counter(), time.process_time()
+            grad, _, _ = exp.learning_step(record)
+            exp.theta = exp.updater.step(exp.theta, grad)
+            t2, c2 = time.perf_counter(), time.process_time()
+            if m >= warmup:
+                month_s.append(t1 - t0)
+                update_s.append(t2 - t1)
+                month_cpu.append(c1 - c0)
+                update_cpu.append(c2 - c1)
+            ok = float(np.mean(record.solver_ok & record.sens_ok))
     run_ms = 1e3 * median(month_s) / steps
     upd_ms = 1e3 * median(update_s) / steps
     return {

@@ -30,24 +30,35 @@ __all__ = ["BLAS_THREADS", "auto_threads", "one_blas_thread", "run_blocks"]
 BLAS_THREADS = 1
 
 
+#: how deep the calling thread is in functions wrapped by :func:`one_blas_thread`
+_limited = threading.local()
+
+
 def one_blas_thread(fn: Callable[_P, _R]) -> Callable[_P, _R]:
     """``fn`` run with the BLAS/LAPACK libraries limited to :data:`BLAS_THREADS` threads
     (``threadpoolctl``; ~0.1 ms a call, the previous limits restored after it).
 
     A learner's ``run_one_month`` and ``learning_step`` are wrapped in it, so that a month or
     an update called on its own (in a notebook, a benchmark) gives the numbers and the speed
-    of one in ``run``: with
-    OpenBLAS's own threads, which wait spinning after each product, beside the compiled
-    kernel's threads on two cores, a month of the paper's run took 2.5x the wall time
-    (113 ms against 45 ms) and its LSTD products could depend on the core count.
+    of one in ``run``: with OpenBLAS's own threads, which wait spinning after each product,
+    beside the compiled kernel's threads on two cores, a month of the paper's run took 2.5x
+    the wall time (113 ms against 45 ms) and its LSTD products could depend on the core
+    count. A wrapped function called inside another (the month's update inside its month)
+    runs under the outer limit, which is not set again.
     """
 
     @functools.wraps(fn)
     def limited(*args: _P.args, **kwargs: _P.kwargs) -> _R:
+        if getattr(_limited, "depth", 0):
+            return fn(*args, **kwargs)
         from threadpoolctl import threadpool_limits  # loaded with the first month
 
-        with threadpool_limits(limits=BLAS_THREADS):
-            return fn(*args, **kwargs)
+        _limited.depth = 1
+        try:
+            with threadpool_limits(limits=BLAS_THREADS):
+                return fn(*args, **kwargs)
+        finally:
+            _limited.depth = 0
 
     return limited
 
