@@ -146,6 +146,16 @@ def add_update_options(p: argparse.ArgumentParser, kept: str = "") -> None:
                         f"LearningConfig.average_months{kept})")
 
 
+def add_critic_months(p: argparse.ArgumentParser, kept: str = "") -> None:
+    """``--critic-months K`` (``LearningConfig.critic_months``), shared by ``learn`` and
+    ``study``."""
+    p.add_argument("--critic-months", type=int_at_least(1), default=None, metavar="K",
+                   help="fit the critic of each update on the samples of the last K months "
+                        f"(default {LEARNING.critic_months}: the month alone, the paper's rule; "
+                        "4 lowered the paper class's learner gap on fresh seeds; "
+                        f"LearningConfig.critic_months{kept})")
+
+
 def add_system_file(p: argparse.ArgumentParser) -> None:
     """``--system FILE.yaml``: the fields of SystemConfig from a YAML file."""
     p.add_argument("--system", type=Path, default=None, metavar="FILE.yaml",

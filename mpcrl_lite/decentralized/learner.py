@@ -250,6 +250,9 @@ class DecentralizedExperiment(Learner):
         if self.learning.gradient != "critic":
             raise ValueError(f"learning.gradient={self.learning.gradient!r}: the decentralized "
                              "learners use their critics; expected 'critic'")
+        if self.learning.critic_months != 1:
+            raise ValueError(f"learning.critic_months={self.learning.critic_months!r}: each "
+                             "decentralized learner fits its critic on its own month; expected 1")
         self.coordination = coordination or CoordinationConfig()
         self.thetas = split_theta(theta0)
         self.callbacks = list(callbacks)

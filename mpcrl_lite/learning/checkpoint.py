@@ -133,6 +133,17 @@ class Checkpointing:
         function is called."""
         raise NotImplementedError
 
+    def extra_files(self) -> dict[str, bytes]:
+        """Files of the learner's state besides ``checkpoint.json`` (named in
+        :data:`~mpcrl_lite.learning.rundir.RUN_FILES`), committed with every checkpoint;
+        none here."""
+        return {}
+
+    def restore_extra_files(self, files: dict[str, bytes], directory: Path) -> Any:
+        """Check the files of :meth:`extra_files` read from a checkpoint (raising
+        :class:`RunDirError`) and return a function that applies them; nothing here."""
+        return lambda: None
+
     def configs(self) -> dict[str, Any]:
         """The configuration objects a checkpoint must match, by key."""
         return {"system": self.system, "mpc": self.mpc_config, "learning": self.learning}
@@ -185,12 +196,13 @@ class Checkpointing:
                 and previous[1] is history and rundir.HISTORY_JSON in previous[2]["files"] \
                 and rundir.manifest_of(directory) == previous[2]:
             files = {rundir.HISTORY_NPZ: history.npz_bytes(compress=False),
-                     rundir.CHECKPOINT: checkpoint}
+                     rundir.CHECKPOINT: checkpoint, **self.extra_files()}
             common.update(previous=previous[2], keep=[rundir.HISTORY_JSON],
                           append={rundir.JOURNAL: history.journal_record(previous[3])})
         else:
             files = history.to_files()
             files[rundir.CHECKPOINT] = checkpoint
+            files.update(self.extra_files())
         lengths = history.series_lengths()
         if background:
             self._pending_commit = (rundir.commit_soon(directory, files, **common), history,
@@ -227,8 +239,9 @@ class Checkpointing:
                 f"{directory / rundir.HISTORY_JSON} is missing next to {rundir.CHECKPOINT} "
                 f"(an incomplete or damaged run); {RECOVER}")
         run = rundir.read(directory, [rundir.HISTORY_JSON, rundir.HISTORY_NPZ, rundir.CHECKPOINT,
-                                      rundir.JOURNAL],
-                          optional=[rundir.HISTORY_NPZ, rundir.CHECKPOINT, rundir.JOURNAL])
+                                      rundir.JOURNAL, rundir.CRITIC],
+                          optional=[rundir.HISTORY_NPZ, rundir.CHECKPOINT, rundir.JOURNAL,
+                                    rundir.CRITIC])
         if run.kind == "history" or rundir.CHECKPOINT not in run.files:
             raise RunDirError(
                 f"{directory} holds a History without {rundir.CHECKPOINT}: it cannot be "
@@ -272,12 +285,14 @@ class Checkpointing:
             raise RunDirError(f"{where}: 'rng' is not a {type(self.rng.bit_generator).__name__} "
                               f"state ({err}); {RECOVER}") from None
         apply = self.restore_learner_state(state, where)
+        apply_files = self.restore_extra_files(run.files, directory)
         # everything verified: from here on nothing can fail half-way
         if run.manifest is not None:
             rundir.read(directory, list(run.manifest["files"]), repair=True)
         self.history = history
         self.rng.bit_generator.state = rng.bit_generator.state
         apply()
+        apply_files()
 
     def _check_kind(self, kind: str | None, directory: Path, source: str) -> None:
         if kind is not None and kind != self.KIND:

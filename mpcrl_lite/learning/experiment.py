@@ -13,7 +13,8 @@ Every month (paper, Section IV):
 2. LSTD fits the compatible action-value function on the month's transitions
    (:func:`mpcrl_lite.learning.lstd.lstd_q`); each day is an episode, so the last hour of a day does
    not bootstrap (the next day restarts at ``soc0``). The value baseline uses
-   :func:`value_baseline_features` (``LearningConfig.value_features``);
+   :func:`value_baseline_features` (``LearningConfig.value_features``) (with ``LearningConfig.critic_months > 1``, on
+   the transitions of that many months, :mod:`mpcrl_lite.learning.critic_samples`);
 3. the policy gradient ``mean(grad pi grad pi^T w)`` moves theta
    (:class:`mpcrl_lite.learning.dpg.DPGUpdater`);
 4. every ``LearningConfig.eval_every`` months the parameters of the month are evaluated:
@@ -39,12 +40,14 @@ them.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import dataclasses
 import logging
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -59,7 +62,9 @@ from ..sim.exploration import exploration_center
 from ..sim.record import MonthRecord
 from ..system.prices import Prices
 from ..theta import Theta
+from . import rundir
 from .checkpoint import parse_theta
+from .critic_samples import CriticSamples
 from .dpg import DPGUpdater
 from .eval_worker import EvaluationWorker, worth_a_worker
 from .history import History
@@ -128,6 +133,9 @@ class Experiment(Learner):
         self._pathwise: tuple[MonthRecord, PathwiseGradient] | None = None
         self.history = History(self.system, self.mpc_config, self.learning, backend=self.solver.name)
         self.history.prices_origin = dict(getattr(self.prices, "origin", {}) or {})
+        # the critic's samples of the months before the last (LearningConfig.critic_months)
+        self._critic_memory: collections.deque[CriticSamples] = collections.deque(
+            maxlen=self.learning.critic_months - 1)
         # evaluations out in the worker process: (month, theta, future), oldest first
         self._worker: EvaluationWorker | None = None
         self._pending: list[tuple[int, Theta, Future]] = []
@@ -142,7 +150,12 @@ class Experiment(Learner):
         derivative of the month's discounted cost in theta on the month's noise
         (:func:`mpcrl_lite.learning.pathwise.pathwise_policy_gradient` at the current theta,
         the one the month was simulated with); a day with a failed solve is left out
-        (``skipped`` counts its hours)."""
+        (``skipped`` counts its hours).
+
+        With ``LearningConfig.critic_months = K > 1`` the critic is fitted on this month's
+        samples and those of the ``K - 1`` months before it (:mod:`mpcrl_lite.learning.critic_samples`;
+        each call adds its month to the ones kept, and ``info['critic_months']`` says how many
+        the fit used)."""
         if self.learning.gradient == "pathwise":
             pending, self._pathwise = self._pathwise, None
             if pending is not None and pending[0] is record:  # recorded as the month ran
@@ -158,10 +171,19 @@ class Experiment(Learner):
         skipped = int(use.size - np.count_nonzero(use))
         # the critic's compatible features are a minus the exploration's centre (zero mean)
         center = exploration_center(record.policy, self.system, self.learning.exploration_margin)
+        month = CriticSamples(record.soc, record.a, center, record.grad_pi, record.stage_cost,
+                              use, record.buy)
+        months = [month]
+        if self.learning.critic_months > 1:  # with the months before, oldest first
+            months = [*self._critic_memory, month]
+            self._critic_memory.append(month)
+        samples = CriticSamples.join(months) if len(months) > 1 else month
         grad, info = lstd_policy_gradient(
-            record.soc, record.a, center, record.grad_pi, record.stage_cost, use,
-            self.learning, self.system.gamma, record.buy,
+            samples.soc, samples.a, samples.center, samples.grad_pi, samples.cost, samples.use,
+            self.learning, self.system.gamma, samples.buy,
         )
+        if self.learning.critic_months > 1:
+            info["critic_months"] = len(months)
         if use.any():
             self.updater.observe(record.grad_pi[use])  # the metric of the natural gradient
         return grad, skipped, info
@@ -371,6 +393,32 @@ class Experiment(Learner):
         return record
 
     # -- checkpoints ----------------------------------------------------------------------
+    def extra_files(self) -> dict[str, bytes]:
+        """``critic.npz``, the critic's samples of the months its next fit uses besides its
+        own (``LearningConfig.critic_months > 1`` only)."""
+        if self.learning.critic_months == 1:
+            return {}
+        return {rundir.CRITIC: CriticSamples.to_npz(list(self._critic_memory))}
+
+    def restore_extra_files(self, files: dict[str, bytes], directory: Path) -> Callable[[], None]:
+        """Check ``critic.npz`` of a run whose critic is fitted on several months and return
+        its application (nothing for a one-month critic)."""
+        if self.learning.critic_months == 1:
+            return lambda: None
+        where = directory / rundir.CRITIC
+        if rundir.CRITIC not in files:
+            raise RunDirError(f"{where} is missing: a run with critic_months="
+                              f"{self.learning.critic_months} keeps its critic's earlier months "
+                              f"there; {rundir.RECOVER}")
+        months = CriticSamples.from_npz(files[rundir.CRITIC], str(where), self.system.n,
+                                        self.learning.critic_months - 1)
+
+        def apply() -> None:
+            self._critic_memory.clear()
+            self._critic_memory.extend(months)
+
+        return apply
+
     def learner_state(self) -> dict[str, Any]:
         """theta and the optimizer's state (part of ``checkpoint.json``)."""
         return {"theta": self.theta.to_vector().tolist(), "updater": self.updater.state_dict()}

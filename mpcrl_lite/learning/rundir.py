@@ -8,6 +8,8 @@ A run directory ``D`` holds, once a month has been committed::
     D/checkpoint.json   what a learner needs to continue (theta, optimizer and RNG state)
     D/history.jsonl     while a run is going on: the months since history.json, one JSON
                         line per commit (the History's journal, see below)
+    D/critic.npz        with ``LearningConfig.critic_months > 1`` only: the critic's samples
+                        of the earlier months its next fit uses
     D/summary.json      written by the ``learn`` command at the end (derived, not committed)
 
 :meth:`History.save <mpcrl_lite.learning.history.History.save>` writes the same format without
@@ -100,7 +102,7 @@ from . import durable
 from .durable import RunWriteError
 from .outdir import RunDirError, RunDirMissing
 
-__all__ = ["APPENDABLE", "CHECKPOINT", "FORMAT", "FORMATS", "FORMAT_APPEND", "HISTORY_JSON",
+__all__ = ["APPENDABLE", "CHECKPOINT", "CRITIC", "FORMAT", "FORMATS", "FORMAT_APPEND", "HISTORY_JSON",
            "HISTORY_NPZ", "JOURNAL", "KINDS", "MANIFEST", "RECOVER", "STAGING", "SUMMARY",
            "Contents", "Run", "clear", "commit", "commit_soon", "config_sha256", "inspect",
            "manifest_of", "read"]
@@ -115,6 +117,9 @@ HISTORY_NPZ = "history.npz"
 CHECKPOINT = "checkpoint.json"
 #: The History's journal: the months since ``history.json``, appended (one line a commit).
 JOURNAL = "history.jsonl"
+#: The critic's samples of the months before the last one, for a critic fitted on several
+#: months (``LearningConfig.critic_months > 1``; written anew with every commit).
+CRITIC = "critic.npz"
 #: The files a commit may append to instead of writing them anew.
 APPENDABLE = (JOURNAL,)
 SUMMARY = "summary.json"
@@ -123,7 +128,7 @@ STAGING = ".run"
 #: What a run directory holds: a learner's run or a History on its own.
 KINDS = ("history", "centralized", "decentralized", "q-learning")
 #: The files a run directory may hold under their visible names.
-RUN_FILES = (HISTORY_JSON, HISTORY_NPZ, CHECKPOINT, JOURNAL)
+RUN_FILES = (HISTORY_JSON, HISTORY_NPZ, CHECKPOINT, JOURNAL, CRITIC)
 #: How to recover from a directory that does not verify (appended to the error messages).
 RECOVER = "restore the directory from a backup, or start over in it with --force (force=True)"
 

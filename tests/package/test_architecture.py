@@ -52,7 +52,7 @@ SUBLAYERS: dict[str, list[set[str]]] = {
                      {"batch", "ipopt", "kernel"}, {"registry"}],
     "sim": [{"record", "exploration_kernel"}, {"exploration"}, {"closed_loop"}, {"candidates", "env"}],
     "learning": [{"lstd", "update_rules", "durable", "rollout_gradient", "pathwise",
-                  "eval_worker"}, {"outdir"}, {"rundir"}, {"dpg", "history"},
+                  "eval_worker"}, {"outdir"}, {"rundir"}, {"dpg", "history", "critic_samples"},
                  {"step", "checkpoint", "qlearning"}, {"learner"}, {"experiment"},
                  {"q_experiment"}],
     "decentralized": [{"local_qp", "coordination_kernel"}, {"coordination"}, {"learner"}],

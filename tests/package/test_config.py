@@ -92,6 +92,8 @@ BAD = [
     (LearningConfig, "step_decay", 2.5, "an integer >= 0, got float"),
     (LearningConfig, "max_policy_change", 0.0, "a value in (0, inf)"),
     (LearningConfig, "average_months", -2, "an integer >= 0"),
+    (LearningConfig, "critic_months", 0, "an integer >= 1"),
+    (LearningConfig, "critic_months", 25, "a value in [1, 24]"),
     (LearningConfig, "keep_well_posed", None, "True or False"),
     (LearningConfig, "alpha_min", 0.0, "a value in (0, inf)"),
     (LearningConfig, "seed", -1, "an integer >= 0"),

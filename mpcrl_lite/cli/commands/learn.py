@@ -71,6 +71,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="reset the update's momentum of entries the projection holds at a "
                         "bound (LearningConfig.reset_momentum_at_bounds; a resumed run keeps "
                         "its own)")
+    _a.add_critic_months(p, "; a resumed run keeps its own")
     _a.add_update_options(p, "; a resumed run keeps its own")
     p.add_argument("--learner", choices=LEARNERS, default=None,
                    help="dpg: the paper's policy gradient (default); q: LSTD Q-learning with the "
@@ -123,7 +124,7 @@ _RUN_FIELDS = ("exploration_bounds", "exploration_margin", "ridge", "value_featu
                "terminal_scale", "reset_momentum_at_bounds", "scale_to_prices", "step_limit",
                "learn_constants", "grad_clip", "tie_agents", "natural_damping", "step_warmup",
                "step_decay", "max_policy_change", "average_months", "keep_well_posed",
-               "alpha_min")
+               "alpha_min", "critic_months")
 
 
 def _run_learning(out: Path) -> dict[str, Any]:
@@ -188,7 +189,8 @@ def run(args: argparse.Namespace) -> int:
                         ("--reset-momentum-at-bounds", "reset_momentum_at_bounds"),
                         ("--scale-to-prices", "scale_to_prices"),
                         ("--step-limit", "step_limit"), ("--step-warmup", "step_warmup"),
-                        ("--step-decay", "step_decay"), ("--average-months", "average_months")):
+                        ("--step-decay", "step_decay"), ("--average-months", "average_months"),
+                        ("--critic-months", "critic_months")):
         value = getattr(args, field)
         if value is None:
             continue
@@ -199,6 +201,10 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"{named} with --resume: the run in {args.out} learns with "
                              f"{kept[field]!r}; expected that or no {flag}")
         kept[field] = value
+    if args.decentralized and args.critic_months not in (None, 1):
+        raise UsageError(f"--critic-months {args.critic_months} with --decentralized: each "
+                         "decentralized learner fits its critic on its own month; expected "
+                         "--critic-months 1 or no --decentralized")
     if args.decentralized and args.gradient not in (None, "critic"):
         raise UsageError(f"--gradient {args.gradient} with --decentralized: the "
                          "decentralized learners use their critics; expected --gradient "

@@ -73,6 +73,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--terminal-scale", type=_a.finite_float, default=None,
                    help="Adam's typical magnitude of the terminal weights of every run "
                         "(see learn --help)")
+    _a.add_critic_months(p)
     p.add_argument("--reset-momentum-at-bounds", action="store_true",
                    help="every run resets the update's momentum of entries the projection "
                         "holds at a bound (LearningConfig.reset_momentum_at_bounds)")
@@ -101,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     # every learning option given reaches each run's LearningConfig as it is named
     for field in ("learner", "hessian", "value_features", "gradient", "scale_to_prices",
                   "step_limit", "step_size", "optimizer", "exploration_std", "step_warmup",
-                  "step_decay", "average_months", "terminal_scale"):
+                  "step_decay", "average_months", "terminal_scale", "critic_months"):
         if getattr(args, field) is not None:
             base[f"learning.{field}"] = getattr(args, field)
     if args.reset_momentum_at_bounds:  # a switch: False is "not given"
