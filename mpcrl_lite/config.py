@@ -923,7 +923,9 @@ class LearningConfig(_Config):
     class (``benchmarks/README.md``): 4 months lowered the learner's gap to its class's best
     on 20 seeds nothing was chosen on (5000-5019: median final J_eval -233.6 against -224.7,
     worst -195.7 against -151.9, better on 14 of 20), and 8 months raised it (the older
-    months' samples were taken by a policy the updates have moved away from). A run keeps the
+    months' samples were taken by a policy the updates have moved away from). In the
+    rest-of-day class (5000-5019) 4 months lowered the median gap from 15.1 to 10.7 but not
+    the worst seeds, one of which lost 9.4 % of the nominal -> J* gap late. A run keeps the
     earlier months' samples in its checkpoint (``critic.npz``), so a resumed run learns as an
     uninterrupted one. ``to_dict`` leaves out 1 (files read as before the field)."""
 

@@ -34,6 +34,12 @@ FRESH_ROWS = {
     "4 months, 5000-5019": ("paper_critic_months4_5000", "paper_critic_5000"),
     "one month (default), 6000-6019": ("paper_critic_6000", None),
     "4 months, 6000-6019": ("paper_critic_months4_6000", "paper_critic_6000"),
+    "rest of the day: one month (default), 4000-4009": ("rest_of_day_critic_4000", None),
+    "rest of the day: 4 months, 4000-4009": ("rest_of_day_critic_months4_4000",
+                                             "rest_of_day_critic_4000"),
+    "rest of the day: one month (default), 5000-5019": ("rest_of_day_critic_5000", None),
+    "rest of the day: 4 months, 5000-5019": ("rest_of_day_critic_months4_5000",
+                                             "rest_of_day_critic_5000"),
 }
 
 
@@ -81,12 +87,15 @@ def fresh_row(label: str) -> str:
     worst = study["worst_seed"]
     against = "" if base is None else "{:+.1f}, {} / {}".format(
         *_against(STUDIES / name, STUDIES / base))
+    late = study["largest_late_regression"]
+    share = 100 * study["late_regression_share"][str(late["seed"])]
     return (f"| {label} | {study['J_eval_final_median']:.1f} ({low:.1f} to {high:.1f}) | "
             f"{worst['J_eval_final']:.1f} ({worst['seed']}) | "
             f"{round(study['fraction_converged'] * seeds)} / {seeds} | "
             f"{study['regret_median']:.1f} | {split['learner_gap_median']:.1f} ({glow:.1f} to "
             f"{ghigh:.1f}) | {split['learner_gap_paired_median']:.1f} ({plow:.1f} to "
-            f"{phigh:.1f}), {split['learner_gap_paired_worst']['value']:.1f} | {against} |")
+            f"{phigh:.1f}), {split['learner_gap_paired_worst']['value']:.1f} | "
+            f"{share:.1f} % ({late['seed']}) | {against} |")
 
 
 def _bench_row(label: str) -> str:
@@ -125,6 +134,8 @@ def test_the_screens_ran_what_their_rows_say():
     for name, _ in FRESH_ROWS.values():
         stored = json.loads(next((STUDIES / name).glob("config_seed*.json")).read_text())
         assert stored["learning"].get("critic_months", 1) == (4 if "months4" in name else 1)
+        assert stored["mpc"].get("forecast", "paper") == (
+            "until_midnight" if name.startswith("rest_of_day") else "paper")
 
 
 def test_config_and_readme_quote_the_fresh_seeds():

@@ -227,6 +227,9 @@ CLASS_BEST = {"paper_pathwise_5000": "data/class_best_paper",
               "rest_of_day_pathwise_6000": "data/class_best_rest_of_day",
               "rest_of_day_pathwise_scale100_5000": "data/class_best_rest_of_day",
               "rest_of_day_critic_4000": "data/class_best_rest_of_day",
+              "rest_of_day_critic_5000": "data/class_best_rest_of_day",
+              "rest_of_day_critic_months4_4000": "data/class_best_rest_of_day",
+              "rest_of_day_critic_months4_5000": "data/class_best_rest_of_day",
               **{name: f"benchmarks/studies/{best}" for name, best in UNSEEN.items()}}
 #: where the October 2020 studies read their prices: Nord Pool's export, which its terms keep
 #: out of the project (``../shared/data/README.md``)
