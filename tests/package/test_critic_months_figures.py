@@ -27,6 +27,8 @@ SCREEN_ROWS = {
     "fitted on the last 8 months": "months8",
     "4 months, terminal scale 1000": "months4_terminal1000",
     "4 months, terminal scale 3000": "months4_terminal3000",
+    "4 months, terminal scale 1000, step warm-up 5 months": "months4_terminal1000_warmup5",
+    "4 months, terminal scale 3000, step warm-up 5 months": "months4_terminal3000_warmup5",
 }
 #: the fresh-seed table: row label -> (stored study, the default's study on the same seeds)
 FRESH_ROWS = {
@@ -34,6 +36,10 @@ FRESH_ROWS = {
     "4 months, 5000-5019": ("paper_critic_months4_5000", "paper_critic_5000"),
     "one month (default), 6000-6019": ("paper_critic_6000", None),
     "4 months, 6000-6019": ("paper_critic_months4_6000", "paper_critic_6000"),
+    "4 months, terminal scale 1000, warm-up 5, 5000-5019": ("paper_critic_months4_t1000_w5_5000",
+                                                            "paper_critic_5000"),
+    "4 months, terminal scale 1000, warm-up 5, 6000-6019": ("paper_critic_months4_t1000_w5_6000",
+                                                            "paper_critic_6000"),
     "rest of the day: one month (default), 4000-4009": ("rest_of_day_critic_4000", None),
     "rest of the day: 4 months, 4000-4009": ("rest_of_day_critic_months4_4000",
                                              "rest_of_day_critic_4000"),
@@ -125,8 +131,13 @@ def test_the_screens_ran_what_their_rows_say():
     for folder, months in (("months4", 4), ("months8", 8), ("months4_terminal1000", 4),
                            ("months4_terminal3000", 4)):
         assert config(folder)["learning"]["critic_months"] == months
-    for folder, scale in (("months4_terminal1000", 1000.0), ("months4_terminal3000", 3000.0)):
+    for folder, scale, warmup in (("months4_terminal1000", 1000.0, 0),
+                                  ("months4_terminal3000", 3000.0, 0),
+                                  ("months4_terminal1000_warmup5", 1000.0, 5),
+                                  ("months4_terminal3000_warmup5", 3000.0, 5)):
         assert config(folder)["learning"]["terminal_scale"] == scale
+        assert config(folder)["learning"]["step_warmup"] == warmup
+        assert config(folder)["learning"]["critic_months"] == 4
     for folder in ("tau0.03", "tau0.3"):
         tuned = json.loads((SCREEN / f"class_best_{folder}" / "tune.json").read_text())
         assert tuned["J_heldout"]["mean"] == pytest.approx(
@@ -134,6 +145,9 @@ def test_the_screens_ran_what_their_rows_say():
     for name, _ in FRESH_ROWS.values():
         stored = json.loads(next((STUDIES / name).glob("config_seed*.json")).read_text())
         assert stored["learning"].get("critic_months", 1) == (4 if "months4" in name else 1)
+        wide = "t1000_w5" in name
+        assert stored["learning"].get("terminal_scale", 100.0) == (1000.0 if wide else 100.0)
+        assert stored["learning"]["step_warmup"] == (5 if wide else 0)
         assert stored["mpc"].get("forecast", "paper") == (
             "until_midnight" if name.startswith("rest_of_day") else "paper")
 
@@ -151,3 +165,21 @@ def test_config_and_readme_quote_the_fresh_seeds():
     source = (ROOT / "mpcrl_lite" / "config.py").read_text()
     assert " ".join(quoted.split()) in " ".join(source.replace('"""', " ").split())
     assert quoted in " ".join(README.split())
+
+
+def test_readme_quotes_the_closest_model_free_setting():
+    gaps = {seeds: (_summary(STUDIES / f"paper_critic_months4_t1000_w5_{seeds}"),
+                    _summary(STUDIES / ("paper_critic_5000" if seeds == 5000
+                                        else "paper_critic_6000")))
+            for seeds in (5000, 6000)}
+    better = [_against(STUDIES / f"paper_critic_months4_t1000_w5_{seeds}",
+                       STUDIES / ("paper_critic_5000" if seeds == 5000
+                                  else "paper_critic_6000"))[1] for seeds in (5000, 6000)]
+    (new5, old5), (new6, old6) = gaps[5000], gaps[6000]
+    quoted = (f"a learner gap of {new5['class_split']['learner_gap_median']:.1f} and "
+              f"{new6['class_split']['learner_gap_median']:.1f} NOK/day on 5000-5019 and "
+              f"6000-6019, against {old5['class_split']['learner_gap_median']:.1f} and "
+              f"{old6['class_split']['learner_gap_median']:.1f} with the defaults, lower on "
+              f"{better[0]} and {better[1]} of 20 seeds")
+    assert quoted in " ".join(README.split())
+
