@@ -40,6 +40,12 @@ FRESH_ROWS = {
                                                             "paper_critic_5000"),
     "4 months, terminal scale 1000, warm-up 5, 6000-6019": ("paper_critic_months4_t1000_w5_6000",
                                                             "paper_critic_6000"),
+    "October 2020, one month (default), 7000-7019": ("oct2020_paper_critic_scaled_7000", None),
+    "October 2020, 4 months, terminal scale 1000, warm-up 5, 7000-7019": (
+        "oct2020_paper_critic_months4_t1000_w5_7000", "oct2020_paper_critic_scaled_7000"),
+    "July 2020, one month (default), 9000-9019": ("jul2020_paper_critic_9000", None),
+    "July 2020, 4 months, terminal scale 1000, warm-up 5, 9000-9019": (
+        "jul2020_paper_critic_months4_t1000_w5_9000", "jul2020_paper_critic_9000"),
     "rest of the day: one month (default), 4000-4009": ("rest_of_day_critic_4000", None),
     "rest of the day: 4 months, 4000-4009": ("rest_of_day_critic_months4_4000",
                                              "rest_of_day_critic_4000"),
@@ -147,7 +153,7 @@ def test_the_screens_ran_what_their_rows_say():
         assert stored["learning"].get("critic_months", 1) == (4 if "months4" in name else 1)
         wide = "t1000_w5" in name
         assert stored["learning"].get("terminal_scale", 100.0) == (1000.0 if wide else 100.0)
-        assert stored["learning"]["step_warmup"] == (5 if wide else 0)
+        assert stored["learning"].get("step_warmup", 0) == (5 if wide else 0)
         assert stored["mpc"].get("forecast", "paper") == (
             "until_midnight" if name.startswith("rest_of_day") else "paper")
 
