@@ -43,6 +43,9 @@ FRESH_ROWS = {
     "October 2020, one month (default), 7000-7019": ("oct2020_paper_critic_scaled_7000", None),
     "October 2020, 4 months, terminal scale 1000, warm-up 5, 7000-7019": (
         "oct2020_paper_critic_months4_t1000_w5_7000", "oct2020_paper_critic_scaled_7000"),
+    "December 2020, one month (default), 8000-8019": ("dec2020_paper_critic_8000", None),
+    "December 2020, 4 months, terminal scale 1000, warm-up 5, 8000-8019": (
+        "dec2020_paper_critic_months4_t1000_w5_8000", "dec2020_paper_critic_8000"),
     "July 2020, one month (default), 9000-9019": ("jul2020_paper_critic_9000", None),
     "July 2020, 4 months, terminal scale 1000, warm-up 5, 9000-9019": (
         "jul2020_paper_critic_months4_t1000_w5_9000", "jul2020_paper_critic_9000"),
