@@ -103,10 +103,7 @@ class CriticSamples:
                       f"integer in [0, {max_months}]")
         months = []
         for i in range(int(count)):
-            try:
-                month = cls(**{f.name: arrays.get(f"{i}_{f.name}") for f in fields(cls)})
-            except TypeError as err:  # pragma: no cover - every field is given
-                raise bad(str(err)) from None
+            month = cls(**{f.name: arrays.get(f"{i}_{f.name}") for f in fields(cls)})
             months.append(month)
             problem = month._shape_problem(n)
             if problem:
