@@ -10,11 +10,11 @@ import statistics
 from pathlib import Path
 
 import pytest
+from bench_readme import bench_row
 
 ROOT = Path(__file__).resolve().parents[2]
 STUDIES = ROOT / "benchmarks" / "studies"
 SCREEN = STUDIES / "critic_screen_1000"
-BENCH = (ROOT / "benchmarks" / "README.md").read_text()
 README = (ROOT / "README.md").read_text()
 
 #: benchmarks/README.md's screen table (seeds 1000-1009): row label -> folder of SCREEN
@@ -113,20 +113,14 @@ def fresh_row(label: str) -> str:
             f"{share:.1f} % ({late['seed']}) | {against} |")
 
 
-def _bench_row(label: str) -> str:
-    rows = [line for line in BENCH.splitlines() if line.startswith(f"| {label} |")]
-    assert len(rows) == 1, f"benchmarks/README.md has {len(rows)} rows {label!r}"
-    return rows[0]
-
-
 @pytest.mark.parametrize("label", list(SCREEN_ROWS))
 def test_the_screen_table_is_the_stored_one(label):
-    assert _bench_row(label) == screen_row(label)
+    assert bench_row(label) == screen_row(label)
 
 
 @pytest.mark.parametrize("label", list(FRESH_ROWS))
 def test_the_fresh_seed_table_is_the_stored_one(label):
-    assert _bench_row(label) == fresh_row(label)
+    assert bench_row(label) == fresh_row(label)
 
 
 def test_the_screens_ran_what_their_rows_say():

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from bench_readme import bench_row
 
 ROOT = Path(__file__).resolve().parents[2]
 README = (ROOT / "README.md").read_text()
@@ -162,14 +163,6 @@ def test_the_paired_gap_and_the_second_fresh_judgement_are_the_stored_ones():
            f"{100 * share:.1f} % of the gap." in text
 
 
-def _bench_row(label: str) -> str:
-    """The one row of a table in benchmarks/README.md whose first cell is ``label``."""
-    text = (ROOT / "benchmarks" / "README.md").read_text()
-    rows = [line for line in text.splitlines() if line.startswith(f"| {label} |")]
-    assert len(rows) == 1, f"benchmarks/README.md has {len(rows)} rows {label!r}"
-    return rows[0]
-
-
 #: benchmarks/README.md's table of the paired learner gaps: row label -> stored study
 PAIRED_ROWS = {
     "paper, pathwise, 5000-5019": "paper_pathwise_5000",
@@ -183,7 +176,7 @@ PAIRED_ROWS = {
 
 @pytest.mark.parametrize("label", sorted(PAIRED_ROWS))
 def test_the_benchmarks_table_of_paired_gaps_is_the_stored_one(label):
-    row = _bench_row(label)
+    row = bench_row(label)
     split = _summary(PAIRED_ROWS[label])["class_split"]
     held = f"{split['learner_gap_median']:.1f} ({split['learner_gap_worst']['value']:.1f})"
     paired = (f"{split['learner_gap_paired_median']:.1f} "
@@ -582,7 +575,7 @@ BENCH_UNSEEN_ROWS = {
 
 @pytest.mark.parametrize("label", sorted(BENCH_UNSEEN_ROWS))
 def test_the_benchmarks_table_of_unseen_months_is_the_stored_one(label):
-    row = _bench_row(label)
+    row = bench_row(label)
     study, _ = _study(BENCH_UNSEEN_ROWS[label])
     split = study["class_split"]
     low, high = study["J_eval_final_iqr"]
@@ -717,7 +710,7 @@ def test_the_q_step_limit_table_is_the_stored_studies(key):
     assert config["learner"] == "q" and config.get("step_limit", 0.0) == (
         0.0 if limit == "none" else float(limit))
     n = len(final)
-    assert _bench_row(seeds + " | " + limit) == (
+    assert bench_row(seeds + " | " + limit) == (
         f"| {seeds} | {limit} | {sum(c is not None for c in collapsed)} of {n} | "
         f"{int((final <= -150).sum())} of {n} | {int((final > 266.3).sum())} of {n} | "
         f"{final.median():.1f} |")
