@@ -186,3 +186,50 @@ def test_readme_quotes_the_closest_model_free_setting():
               f"{better[0]} and {better[1]} of 20 seeds")
     assert quoted in " ".join(README.split())
 
+
+
+def _stuck(name: str) -> int:
+    """Seeds of a stored study that end at the nominal MPC's level (final J_eval > +1000)."""
+    return sum(j > 1000.0 for j in _finals(STUDIES / name).values())
+
+
+def test_readme_quotes_the_rest_of_day_class_and_the_unseen_months():
+    text = " ".join(README.split())
+    bench = " ".join((ROOT / "benchmarks" / "README.md").read_text().split())
+    # the rest-of-day class, 5000-5019
+    base, mine = "rest_of_day_critic_5000", "rest_of_day_critic_months4_5000"
+    worse = {s: d for s, d in ((s, _finals(STUDIES / mine)[s] - j)
+                               for s, j in _finals(STUDIES / base).items()) if d > 20.0}
+    low, high = min(worse.values()), max(worse.values())
+    words = {3: "three", 4: "four", 5: "five"}[len(worse)]
+    study = _summary(STUDIES / mine)
+    late = study["largest_late_regression"]
+    share = 100 * study["late_regression_share"][str(late["seed"])]
+    assert (f"its median falls from "
+            f"{_summary(STUDIES / base)['class_split']['learner_gap_median']:.1f} to "
+            f"{study['class_split']['learner_gap_median']:.1f} NOK/day, but {words} seeds end "
+            f"{low:.1f} to {high:.1f} NOK/day worse and one loses {share:.1f} % of the gap "
+            "late") in text
+    assert (f"{words.capitalize()} seeds end {low:.1f} to {high:.1f} NOK/day higher than with "
+            f"one month ({', '.join(sorted(worse))}).") in bench
+    # the 4-month critic on 6000-6019
+    _, better, seeds = _against(STUDIES / "paper_critic_months4_6000",
+                                STUDIES / "paper_critic_6000")
+    assert f"on 6000-6019 better on {better} of {seeds}." in text
+    # July, October and December 2020 with the closest setting
+    new = "paper_critic_months4_t1000_w5"
+    july = _summary(STUDIES / f"jul2020_{new}_9000")["class_split"]
+    july0 = _summary(STUDIES / "jul2020_paper_critic_9000")["class_split"]
+    _, better, seeds = _against(STUDIES / f"jul2020_{new}_9000",
+                                STUDIES / "jul2020_paper_critic_9000")
+    assert better == seeds == 20
+    assert (f"On July 2020's prices its paired gap is {july['learner_gap_paired_median']:.1f} "
+            f"against the default's {july0['learner_gap_paired_median']:.1f}, lower on all 20 "
+            "seeds") in text
+    count = {3: "three", 5: "five", 8: "8", 14: "14"}
+    oct_new, oct_old = _stuck(f"oct2020_{new}_7000"), _stuck("oct2020_paper_critic_scaled_7000")
+    assert (f"{count[oct_new]} seeds never leave the nominal MPC's level, against "
+            f"{count[oct_old]} with the defaults") in text
+    dec_new, dec_old = _stuck(f"dec2020_{new}_8000"), _stuck("dec2020_paper_critic_8000")
+    assert (f"the default critic leaves {count[dec_old]} of 20 seeds at that level, this "
+            f"setting {count[dec_new]}.") in text
