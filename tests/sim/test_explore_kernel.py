@@ -154,3 +154,19 @@ def test_bad_input_is_named():
     e[1, 2] = np.nan
     with pytest.raises(ValueError, match="e has non-finite entries"):
         bounded_exploration(pi, e, system)
+
+
+def test_the_rows_sort_orders_as_numpy_does():
+    """The kernels' insertion sort of a row's kinks gives numpy's sorted values, with ties,
+    zeros of both signs and the lengths the kernels sort (n + 2 and 2 n, up to n = 20)."""
+    from mpcrl_lite.sim.exploration_kernel import _sort_small
+
+    rng = np.random.default_rng(7)
+    for size in [1, 2, 3, 5, 7, 10, 22, 40]:
+        for _ in range(200):
+            row = rng.choice([-1.0, -0.0, 0.0, 0.25, 1.0], size) if rng.random() < 0.5 \
+                else rng.uniform(-2.0, 2.0, size)
+            got = row.copy()
+            _sort_small(got)
+            np.testing.assert_array_equal(got, np.sort(row))
+            assert np.all(np.diff(got) >= 0.0)
