@@ -210,7 +210,8 @@ UNSEEN = {"oct2020_paper_pathwise_7000": "oct2020_class_best_paper",
           "oct2020_paper_critic_months4_t1000_w5_7000": "oct2020_class_best_paper",
           "jul2020_paper_critic_months4_t1000_w5_9000": "jul2020_class_best_paper",
           "dec2020_paper_critic_8000": "dec2020_class_best_paper",
-          "dec2020_paper_critic_months4_t1000_w5_8000": "dec2020_class_best_paper"}
+          "dec2020_paper_critic_months4_t1000_w5_8000": "dec2020_class_best_paper",
+          "dec2020_paper_critic_reset_8000": "dec2020_class_best_paper"}
 #: stored study -> the tune result its class split was made against
 CLASS_BEST = {"paper_pathwise_5000": "data/class_best_paper",
               "paper_pathwise_6000": "data/class_best_paper",
