@@ -233,3 +233,8 @@ def test_readme_quotes_the_rest_of_day_class_and_the_unseen_months():
     dec_new, dec_old = _stuck(f"dec2020_{new}_8000"), _stuck("dec2020_paper_critic_8000")
     assert (f"the default critic leaves {count[dec_old]} of 20 seeds at that level, this "
             f"setting {count[dec_new]}.") in text
+    # the momentum reset on December 2020
+    dec_reset = _stuck("dec2020_paper_critic_reset_8000")
+    assert (f"on December 2020's it leaves {dec_reset} of 20 seeds at that level, against "
+            f"{dec_old} without it") in text
+    assert (f"**{dec_reset} of 20 stay above +1000 NOK/day**") in bench
