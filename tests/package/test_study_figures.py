@@ -161,6 +161,23 @@ def test_the_paired_gap_and_the_second_fresh_judgement_are_the_stored_ones():
     share = study["late_regression_share"][str(late["seed"])]
     assert f"It lost {late['value']:.1f} NOK/day after its best evaluation, which is " \
            f"{100 * share:.1f} % of the gap." in text
+    # the third set of seeds
+    study = _summary("paper_pathwise_11000")
+    third = study["class_split"]
+    seeds = sorted(int(s) for s in third["learner_gap"])
+    assert (seeds[0], seeds[-1], len(seeds)) == (11000, 11019, 20)
+    held, pair = third["learner_gap_iqr"], third["learner_gap_paired_iqr"]
+    assert (f"learner gap median {third['learner_gap_median']:.1f} (IQR {held[0]:.1f} to "
+            f"{held[1]:.1f}), paired {third['learner_gap_paired_median']:.1f} ({pair[0]:.1f} "
+            f"to {pair[1]:.1f}); all {round(20 * study['fraction_converged'])} seeds close 90 % "
+            "of the gap") in text
+    worst, worst_paired = third["learner_gap_worst"], third["learner_gap_paired_worst"]
+    late = study["largest_late_regression"]
+    assert worst["seed"] == worst_paired["seed"] == late["seed"]
+    share = study["late_regression_share"][str(late["seed"])]
+    assert (f"the worst seed, {worst['seed']}, has a gap of {worst['value']:.1f}, or "
+            f"{worst_paired['value']:.1f} paired, and lost {late['value']:.1f} NOK/day after its "
+            f"best evaluation ({100 * share:.1f} % of the gap)") in text
 
 
 #: benchmarks/README.md's table of the paired learner gaps: row label -> stored study
@@ -215,6 +232,7 @@ UNSEEN = {"oct2020_paper_pathwise_7000": "oct2020_class_best_paper",
 #: stored study -> the tune result its class split was made against
 CLASS_BEST = {"paper_pathwise_5000": "data/class_best_paper",
               "paper_pathwise_6000": "data/class_best_paper",
+              "paper_pathwise_11000": "data/class_best_paper",
               "paper_critic_5000": "data/class_best_paper",
               "paper_critic_6000": "data/class_best_paper",
               "paper_critic_months4_5000": "data/class_best_paper",
