@@ -51,8 +51,9 @@ def _sort_small(a):
     """``a.sort()`` for the few finite entries of one row, in place (insertion sort: numba's
     ``sort`` took about 0.27 us on 5 entries, this about 3 ns, and a row sorted 8 to 12
     times). Equal values may only differ in the order of a ``-0.0`` and a ``+0.0``, which
-    changes no result: every sorted entry the callers use ends in a clip to ``[0, upper]``
-    or ``[0, 1]``, which maps both zeros to ``+0.0``."""
+    changes no result: :func:`_largest_step` clips its entries to ``[0, 1]`` before the sort
+    (so it has no ``-0.0``), and every use of a sorted entry in :func:`_capped_simplex` ends
+    in a clip to ``[0, upper]``, which maps both zeros to ``+0.0``."""
     for i in range(1, a.shape[0]):
         v = a[i]
         j = i - 1
