@@ -140,20 +140,26 @@ def test_the_labelled_classes_on_more_fresh_seeds_are_the_stored_ones(name, labe
     assert closed >= 0.95  # the target: every seed closes 95 % of the gap
 
 
+def _fresh_split(name: str, start: int) -> tuple[dict, dict, list, list]:
+    """A stored study of the 20 seeds from ``start``: its summary, its class split and the
+    IQRs of the held-out and the paired learner gaps."""
+    study = _summary(name)
+    split = study["class_split"]
+    seeds = sorted(int(s) for s in split["learner_gap"])
+    assert (seeds[0], seeds[-1], len(seeds)) == (start, start + 19, 20)
+    return study, split, split["learner_gap_iqr"], split["learner_gap_paired_iqr"]
+
+
 def test_the_paired_gap_and_the_second_fresh_judgement_are_the_stored_ones():
     """The paragraph after README's results table: the class's best on both sets of draws and
-    the paper class on the seeds 6000-6019."""
+    the paper class on the seeds 6000-6019 and 11000-11019."""
     text = " ".join(README.split())
     first = _summary("paper_pathwise_5000")
     split = first["class_split"]
     assert f"held-out draws it has J = {split['J_class']:.1f}" in text
     assert f"it has {split['J_class_eval']['mean']:.1f}." in text
     assert split["J_class_eval"]["draws"] == 10 and first["eval_draws"] == 10
-    study = _summary("paper_pathwise_6000")
-    second = study["class_split"]
-    seeds = sorted(int(s) for s in second["learner_gap"])
-    assert (seeds[0], seeds[-1], len(seeds)) == (6000, 6019, 20)
-    held, pair = second["learner_gap_iqr"], second["learner_gap_paired_iqr"]
+    study, second, held, pair = _fresh_split("paper_pathwise_6000", 6000)
     assert (f"Learner gap: median {second['learner_gap_median']:.1f} (IQR {held[0]:.1f} to "
             f"{held[1]:.1f}); paired: {second['learner_gap_paired_median']:.1f} ({pair[0]:.1f} "
             f"to {pair[1]:.1f})") in text
@@ -166,11 +172,7 @@ def test_the_paired_gap_and_the_second_fresh_judgement_are_the_stored_ones():
     assert f"It lost {late['value']:.1f} NOK/day after its best evaluation, which is " \
            f"{100 * share:.1f} % of the gap." in text
     # the third set of seeds
-    study = _summary("paper_pathwise_11000")
-    third = study["class_split"]
-    seeds = sorted(int(s) for s in third["learner_gap"])
-    assert (seeds[0], seeds[-1], len(seeds)) == (11000, 11019, 20)
-    held, pair = third["learner_gap_iqr"], third["learner_gap_paired_iqr"]
+    study, third, held, pair = _fresh_split("paper_pathwise_11000", 11000)
     assert (f"learner gap median {third['learner_gap_median']:.1f} (IQR {held[0]:.1f} to "
             f"{held[1]:.1f}), paired {third['learner_gap_paired_median']:.1f} ({pair[0]:.1f} "
             f"to {pair[1]:.1f}); all {round(20 * study['fraction_converged'])} seeds close 90 % "
