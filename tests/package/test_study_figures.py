@@ -234,7 +234,10 @@ UNSEEN = {"oct2020_paper_pathwise_7000": "oct2020_class_best_paper",
           "jul2020_paper_critic_months4_t1000_w5_9000": "jul2020_class_best_paper",
           "dec2020_paper_critic_8000": "dec2020_class_best_paper",
           "dec2020_paper_critic_months4_t1000_w5_8000": "dec2020_class_best_paper",
-          "dec2020_paper_critic_reset_8000": "dec2020_class_best_paper"}
+          "dec2020_paper_critic_reset_8000": "dec2020_class_best_paper",
+          "sep2020_rest_of_day_pathwise_12000": "sep2020_class_best_rest_of_day",
+          "sep2020_day_end_pathwise_12000": "sep2020_class_best_day_end",
+          "sep2020_paper_pathwise_12000": "sep2020_class_best_paper"}
 #: stored study -> the tune result its class split was made against
 CLASS_BEST = {"paper_pathwise_5000": "data/class_best_paper",
               "paper_pathwise_6000": "data/class_best_paper",
@@ -354,6 +357,9 @@ UNSEEN_ROWS = {
     "July 2020: the day-end forecast, pathwise": "jul2020_day_end_pathwise_9000",
     "July 2020: the paper's MPC, pathwise": "jul2020_paper_pathwise_9000",
     "July 2020: the paper's MPC, critic (default)": "jul2020_paper_critic_9000",
+    "September 2020: the rest of the day, pathwise": "sep2020_rest_of_day_pathwise_12000",
+    "September 2020: the day-end forecast, pathwise": "sep2020_day_end_pathwise_12000",
+    "September 2020: the paper's MPC, pathwise": "sep2020_paper_pathwise_12000",
     "December 2020: the rest of the day, pathwise, shipped month's scales":
         "dec2020_rest_of_day_pathwise_8000",
     "December 2020: the day-end forecast, pathwise, shipped month's scales":
@@ -393,6 +399,8 @@ OCT_DEC_PATHWISE = ("oct2020_rest_of_day_pathwise_scaled_7000",
                     "dec2020_day_end_pathwise_scaled_8000", "dec2020_paper_pathwise_scaled_8000")
 JULY_PATHWISE = ("jul2020_rest_of_day_pathwise_9000", "jul2020_day_end_pathwise_9000",
                  "jul2020_paper_pathwise_9000")
+SEPTEMBER_PATHWISE = ("sep2020_rest_of_day_pathwise_12000", "sep2020_day_end_pathwise_12000",
+                      "sep2020_paper_pathwise_12000")
 
 
 def _closed_and_late(studies: dict) -> tuple[int, str]:
@@ -657,12 +665,13 @@ def test_the_benchmarks_prose_on_unseen_months_is_the_stored_one():
 
 def test_notebook_09_quotes_the_paired_gaps_of_unseen_months():
     gaps = [_study(name)[0]["class_split"]["learner_gap_paired_median"]
-            for name in OCT_DEC_PATHWISE + JULY_PATHWISE]
+            for name in OCT_DEC_PATHWISE + JULY_PATHWISE + SEPTEMBER_PATHWISE]
     notebook = " ".join(NOTEBOOK_09.split())
-    assert len(gaps) == 9 and sum(g <= 10 for g in gaps) == 7
-    assert "On three months on which nothing was chosen, October, December and July 2020" in notebook
+    assert len(gaps) == 12 and sum(g <= 10 for g in gaps) == 8
+    assert ("On four months on which nothing was chosen, October, December, July and September "
+            "2020") in notebook
     assert (f"pathwise gaps are between {round(min(gaps)) + 0:d} and {round(max(gaps)):d} "
-            "NOK/day over the classes, 10 or less in seven of the nine") in notebook
+            "NOK/day over the classes, 10 or less in eight of the twelve") in notebook
     assert min(gaps) > -0.5 and max(gaps) > 10
 
 
@@ -763,3 +772,35 @@ def test_readme_quotes_the_q_step_limit_studies():
     assert (f"with `--step-limit 5` none did, and {good} of 30 ended at -150 NOK/day or better, "
             f"against {good_without} without; but {worse} ended worse than idling (up to "
             f"+{worst:.0f}, against {worse_without} without)") in text
+
+
+def test_the_prose_on_the_fourth_month_is_the_stored_studies():
+    """README's paragraph on September 2020: the best labelled class's targets, the learner
+    gaps of the other two, the count of class-months within 10 NOK/day over the four months
+    and the least share of the gap a September run closed."""
+    import math
+
+    text = " ".join(README.split())
+    studies = {name: _study(name) for name in SEPTEMBER_PATHWISE}
+    rest, table = studies["sep2020_rest_of_day_pathwise_12000"]
+    closed = float(table["gap_closed"].min())
+    late = max(v for v in rest["late_regression_share"].values() if v is not None)
+    assert closed >= 0.95 and late <= 0.05 and rest["regret_median"] <= 30.0
+    assert (f"median regret {rest['regret_median']:.1f}, every seed closes at least "
+            f"{math.floor(1000 * closed) / 10:.1f} % of the gap, none loses more than "
+            f"{math.ceil(1000 * late) / 10:.1f} % of it after its best evaluation, paired learner "
+            f"gap {rest['class_split']['learner_gap_paired_median']:.1f}") in text
+    day_end = studies["sep2020_day_end_pathwise_12000"][0]["class_split"]
+    paper = studies["sep2020_paper_pathwise_12000"][0]["class_split"]
+    assert (f"{day_end['learner_gap_paired_median']:.1f} paired "
+            f"({day_end['learner_gap_median']:.1f} held out) in the day-end class and "
+            f"{paper['learner_gap_paired_median']:.1f} paired ({paper['learner_gap_median']:.1f} "
+            "held out) in the paper's") in text
+    months = (*OCT_DEC_PATHWISE, *JULY_PATHWISE, *SEPTEMBER_PATHWISE)
+    within = sum(_gap(name, "learner_gap_paired_median") <= 10.0 for name in months)
+    words = {8: "eight", 9: "nine", 10: "ten", 11: "eleven", 12: "twelve"}
+    assert (f"the paired gap is 10 NOK/day or less in {words[within]} of the "
+            f"{words[len(months)]} class-months") in text
+    least = min(float(t["gap_closed"].min()) for _, t in studies.values())
+    assert (f"Every pathwise run of September closes at least {math.floor(100 * least)} % of "
+            "the gap") in text
