@@ -90,6 +90,13 @@ def screen_row(label: str) -> str:
             f"{diff:+.1f}, {better} / {seeds} |")
 
 
+def _late_loss(study: dict) -> tuple[dict, float]:
+    """A stored study's largest loss after a seed's best evaluation (``seed``, ``value``) and
+    that loss as a percentage of the nominal -> J* gap."""
+    late = study["largest_late_regression"]
+    return late, 100 * study["late_regression_share"][str(late["seed"])]
+
+
 def fresh_row(label: str) -> str:
     """The row of the fresh-seed table, as the stored files give it."""
     name, base = FRESH_ROWS[label]
@@ -102,8 +109,7 @@ def fresh_row(label: str) -> str:
     worst = study["worst_seed"]
     against = "" if base is None else "{:+.1f}, {} / {}".format(
         *_against(STUDIES / name, STUDIES / base))
-    late = study["largest_late_regression"]
-    share = 100 * study["late_regression_share"][str(late["seed"])]
+    late, share = _late_loss(study)
     return (f"| {label} | {study['J_eval_final_median']:.1f} ({low:.1f} to {high:.1f}) | "
             f"{worst['J_eval_final']:.1f} ({worst['seed']}) | "
             f"{round(study['fraction_converged'] * seeds)} / {seeds} | "
@@ -203,8 +209,7 @@ def test_readme_quotes_the_rest_of_day_class_and_the_unseen_months():
     low, high = min(worse.values()), max(worse.values())
     words = {3: "three", 4: "four", 5: "five"}[len(worse)]
     study = _summary(STUDIES / mine)
-    late = study["largest_late_regression"]
-    share = 100 * study["late_regression_share"][str(late["seed"])]
+    _, share = _late_loss(study)
     assert (f"its median falls from "
             f"{_summary(STUDIES / base)['class_split']['learner_gap_median']:.1f} to "
             f"{study['class_split']['learner_gap_median']:.1f} NOK/day, but {words} seeds end "
