@@ -698,11 +698,14 @@ PRICE_FEATURES_MIN_DAYS = 25
 EXPLORATION_BOUNDS = ("symmetric", "radial", "project")
 #: What runs did before a field of :class:`LearningConfig` existed: a saved config without
 #: the field reads back with this value (:meth:`LearningConfig.from_dict`), so a resumed run
-#: goes on as it started.
+#: goes on as it started. ``terminal_scale`` is also what :meth:`LearningConfig.to_dict`
+#: leaves out (at 100, whatever the gradient), so a pathwise run with the critic's scale reads
+#: back as it ran, not with the pathwise default.
 EARLIER_BEHAVIOUR: dict[str, Any] = {
     "eval_draws": 1,
     "exploration_bounds": "project",
     "scale_to_prices": False,
+    "terminal_scale": TERMINAL_SCALE,
     "tie_agents": False,
     "value_features": "hour*paper",
 }

@@ -298,6 +298,15 @@ def test_the_terminal_scale_follows_the_gradient_unless_given():
     assert given.replace(gradient="pathwise").terminal_scale == 500.0
     assert "terminal_scale" not in LearningConfig().to_dict()
     assert LearningConfig.from_dict(given.to_dict()) == given
+    # a pathwise config with the critic's scale is written without the field (the value of
+    # configs from before it) and must read back with 100, not with the pathwise default
+    slow = LearningConfig(gradient="pathwise", terminal_scale=TERMINAL_SCALE)
+    assert "terminal_scale" not in slow.to_dict()
+    assert LearningConfig.from_dict(slow.to_dict()).terminal_scale == TERMINAL_SCALE
+    assert LearningConfig.from_dict(slow.to_dict()) == slow
+    wide = LearningConfig(gradient="pathwise")
+    assert wide.to_dict()["terminal_scale"] == PATHWISE_TERMINAL_SCALE
+    assert LearningConfig.from_dict(wide.to_dict()) == wide
     with pytest.raises(ValueError, match="terminal_scale"):
         LearningConfig(terminal_scale=0.0)
     # Adam's scale of the terminal weights, and of nothing else
