@@ -17,7 +17,14 @@ median, and the median of the final evaluations, beside the class's best on the 
 ``python benchmarks/from_class_best.py --gradient critic --seeds 13010-13015
 [--tune data/class_best_paper/tune.json] [--months 100] [--late 45] [--out FILE]``
 
-A measurement, not a package option: the package's learners always start at theta0.
+``--config RUN_CONFIG.json`` takes the system, MPC, learning settings and price file of a stored
+study's run instead (e.g. ``benchmarks/studies/sep2020_day_end_pathwise_12000/config_seed12000.json``;
+its seed is replaced by each of ``--seeds``, its gradient by ``--gradient``): with a class's
+best from another month, that asks whether a start in the right basin carries over.
+
+A measurement: ``learn --theta0`` and ``study --theta0`` start runs at a stored theta too
+(``LearningConfig.theta0``); this script keeps each seed's evaluations and their late medians
+in one file.
 """
 
 from __future__ import annotations
@@ -33,6 +40,7 @@ import numpy as np
 
 from mpcrl_lite.config import POLICY_CLASSES, LearningConfig, policy_class_configs
 from mpcrl_lite.learning.experiment import Experiment
+from mpcrl_lite.studies.sweep.grid import SweepRun
 from mpcrl_lite.theta import Theta
 
 
@@ -46,10 +54,17 @@ def seed_range(text: str) -> list[int]:
     return [int(x) for x in text.split(",")]
 
 
-def run_seed(seed: int, gradient: str, theta: Theta, months: int, policy_class: str) -> dict:
-    system, mpc = policy_class_configs(policy_class)
-    exp = Experiment(system=system, mpc_config=mpc,
-                     learning=LearningConfig(seed=seed, gradient=gradient), theta0=theta)
+def run_seed(seed: int, gradient: str, theta: Theta, months: int, policy_class: str,
+             config: Path | None = None) -> dict:
+    if config is None:
+        system, mpc = policy_class_configs(policy_class)
+        learning, prices = LearningConfig(seed=seed, gradient=gradient), None
+    else:  # a stored run's settings (its prices read from its file)
+        run = SweepRun.from_config(json.loads(config.read_text()))
+        system, mpc, prices = run.system, run.mpc, run.file_month()
+        learning = run.learning.replace(seed=seed, gradient=gradient)
+    exp = Experiment(system=system, mpc_config=mpc, learning=learning, prices=prices,
+                     theta0=theta)
     exp.eval_worker = False  # one process per seed, the evaluations in it
     t0, c0 = time.perf_counter(), time.process_time()
     history = exp.run(months=months, progress=False)
@@ -82,6 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--policy-class", choices=tuple(POLICY_CLASSES), default="paper")
     parser.add_argument("--months", type=int, default=100)
     parser.add_argument("--late", type=int, default=45)
+    parser.add_argument("--config", type=Path, help="a stored run's config.json to run with")
     parser.add_argument("--out", type=Path)
     args = parser.parse_args(argv)
     theta = Theta.from_dict(json.loads(args.tune.read_text())["theta_best"])
@@ -90,12 +106,13 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     out = args.out.open("w") if args.out else None
     for seed in args.seeds:
-        row = run_seed(seed, args.gradient, theta, args.months, args.policy_class)
+        row = run_seed(seed, args.gradient, theta, args.months, args.policy_class, args.config)
         rows.append(row)
         for stream in (sys.stdout, out):
             if stream is not None:
                 print(json.dumps(row), file=stream, flush=True)
-    line = json.dumps({**summary(rows, args.late, args.months), "tune": str(args.tune)})
+    line = json.dumps({**summary(rows, args.late, args.months), "tune": str(args.tune),
+                       **({"config": str(args.config)} if args.config else {})})
     for stream in (sys.stdout, out):
         if stream is not None:
             print(line, file=stream, flush=True)

@@ -931,9 +931,31 @@ class LearningConfig(_Config):
     the worst seeds, one of which lost 9.4 % of the nominal -> J* gap late. A run keeps the
     earlier months' samples in its checkpoint (``critic.npz``), so a resumed run learns as an
     uninterrupted one. ``to_dict`` leaves out 1 (files read as before the field)."""
+    theta0: tuple[float, ...] | None = None
+    """Where the learning starts: ``None`` (the default) is the nominal model's theta
+    (:meth:`mpcrl_lite.theta.Theta.nominal`, the paper's start); otherwise a theta's entries in
+    the order of :meth:`~mpcrl_lite.theta.Theta.to_vector` (``10 n`` finite numbers), e.g. a
+    class's best found by ``tune`` on another month or the end of an earlier run (``learn/study
+    --theta0 SOURCE``, :func:`mpcrl_lite.cli.inputs.read_theta`). Started at November's
+    class's best, the pathwise learner on September 2020 ended a median -0.1 (day end) and
+    1.8 (paper) NOK/day from September's own class best on the same draws, where from the
+    nominal start it ended 11.3 and 13.5 above (README, "Months never used to choose
+    anything"). The length is checked against ``SystemConfig.n`` when a learner is built;
+    ``to_dict`` leaves out ``None`` (files read as before the field)."""
 
     def __post_init__(self) -> None:
         set_ = self._set
+        if self.theta0 is not None:
+            try:
+                start = tuple(float(x) for x in self.theta0)
+            except (TypeError, ValueError):
+                raise ValueError(f"theta0={self.theta0!r}: expected None or a sequence of "
+                                 "numbers (a theta's entries, Theta.to_vector)") from None
+            if not start or not all(math.isfinite(x) for x in start):
+                raise ValueError(f"theta0={self.theta0!r}: expected None or a theta's 10 n "
+                                 f"finite entries (Theta.to_vector); {len(start)} entries, "
+                                 "not all finite")
+            set_("theta0", start)
         set_("step_size", check_real("step_size", self.step_size, 0.0))
         set_("months", check_int("months", self.months, 1))
         set_("days_per_month", check_int("days_per_month", self.days_per_month, 1))
@@ -1028,6 +1050,8 @@ class LearningConfig(_Config):
             out.pop("step_limit")
         if self.critic_months == 1:
             out.pop("critic_months")
+        if self.theta0 is None:
+            out.pop("theta0")
         if self.learner == "dpg" and self.hessian == "approx" and self.newton_step == 0.3:
             for key in ("learner", "hessian", "newton_step"):
                 out.pop(key)

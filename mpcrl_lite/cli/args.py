@@ -156,6 +156,15 @@ def add_critic_months(p: argparse.ArgumentParser, kept: str = "") -> None:
                         f"LearningConfig.critic_months{kept})")
 
 
+def add_theta0(p: argparse.ArgumentParser, kept: str = "") -> None:
+    """``--theta0 SOURCE`` (``LearningConfig.theta0``), shared by ``learn`` and ``study``."""
+    p.add_argument("--theta0", default=None, metavar="SOURCE",
+                   help="start the learning from this theta instead of the nominal one: a "
+                        "tune directory or its tune.json (the best theta found), a learn run "
+                        "directory (its last theta) or a JSON file of theta's parts "
+                        f"(LearningConfig.theta0{kept})")
+
+
 def add_system_file(p: argparse.ArgumentParser) -> None:
     """``--system FILE.yaml``: the fields of SystemConfig from a YAML file."""
     p.add_argument("--system", type=Path, default=None, metavar="FILE.yaml",

@@ -12,6 +12,7 @@ from here) refuse work beyond the machine's memory or the time limit.
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import warnings
@@ -29,6 +30,7 @@ from .._util.budget import (  # noqa: F401 (importable from here)
     estimate,
 )
 from ..config import PRICE_UNIT, SystemConfig
+from ..learning.history import History
 from ..learning.outdir import RunDirError, check_output_dir
 from ..learning.rundir import inspect
 from ..studies.sweep.grid import load_yaml
@@ -36,6 +38,7 @@ from ..system.price_files.load import load_prices
 from ..system.price_files.month import parse_month
 from ..system.price_files.series import PriceFileWarning
 from ..system.prices import Prices
+from ..theta import Theta
 
 # check_budget, estimate, Budget, available_memory and TIME_LIMIT_S/_ENV live in
 # mpcrl_lite._util.budget and stay importable from here.
@@ -43,6 +46,7 @@ __all__ = [
     "month_prices",
     "prepare_out",
     "read_system_file",
+    "read_theta",
     "refuse_finished",
 ]
 
@@ -120,6 +124,65 @@ def month_prices(path: str | os.PathLike, area: str | None, month: str, system: 
 
 
 # -- a system file ------------------------------------------------------------------------
+# -- a theta to start from --------------------------------------------------------------
+def read_theta(source: str | os.PathLike, n: int) -> tuple[Theta, str]:
+    """The theta of ``source`` for ``n`` batteries, and what it is (for messages).
+
+    ``source`` is one of: a ``tune`` result (its directory or its ``tune.json``:
+    ``theta_best``); a run directory of ``learn`` (the theta after its last update); a JSON
+    file of a theta's parts (``{"alpha": [...], ..., "T3": [...]}``, as
+    :meth:`~mpcrl_lite.theta.Theta.to_dict` writes and ``summary.json``'s ``theta_final``
+    holds), or any JSON object with such a dict under ``theta_best`` or ``theta_final``.
+    Anything else, a theta for another ``n`` or one with entries that are not finite is a
+    ``ValueError`` naming the source and what was expected.
+    """
+    path = Path(source)
+    expected = ("expected a tune directory or tune.json, a learn run directory, or a JSON "
+                "file of theta's parts")
+    if not path.exists():
+        raise ValueError(f"--theta0 {source}: no such file or directory; {expected}")
+    if path.is_dir():
+        if (path / "tune.json").is_file():
+            theta, what = _theta_of_json(path / "tune.json", source, expected)
+        else:
+            try:
+                history = History.load(path)
+            except Exception as err:  # noqa: BLE001 (any unreadable run is the same error)
+                raise ValueError(_one_line(f"--theta0 {source}: a directory with neither "
+                                           f"tune.json nor a readable run ({err}); "
+                                           f"{expected}")) from None
+            if not history.theta_final:
+                raise ValueError(f"--theta0 {source}: the run has no months; {expected}")
+            theta, what = history.final_theta(), f"the last theta of the run in {source}"
+    else:
+        theta, what = _theta_of_json(path, source, expected)
+    if theta.n != n:
+        raise ValueError(f"--theta0 {source}: a theta for n={theta.n} batteries; expected "
+                         f"n={n}")
+    return theta, what
+
+
+def _theta_of_json(path: Path, source: str | os.PathLike, expected: str) -> tuple[Theta, str]:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(_one_line(f"--theta0 {source}: not a readable JSON file ({err}); "
+                                   f"{expected}")) from None
+    if not isinstance(data, dict):
+        raise ValueError(f"--theta0 {source}: a JSON {type(data).__name__}; {expected}")  # noqa: TRY004
+    for key, what in (("theta_best", "the best theta of the search in"),
+                      ("theta_final", "the last theta of")):
+        if isinstance(data.get(key), dict):
+            data, label = data[key], f"{what} {source}"
+            break
+    else:
+        label = f"the theta in {source}"
+    try:
+        return Theta.from_dict(data), label
+    except (ValueError, TypeError) as err:
+        raise ValueError(_one_line(f"--theta0 {source}: {err}; {expected}")) from None
+
+
 def _yaml_where(err: yaml.YAMLError) -> str:
     mark = getattr(err, "problem_mark", None)
     problem = getattr(err, "problem", None)

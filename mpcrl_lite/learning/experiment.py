@@ -101,7 +101,8 @@ class Experiment(Learner):
         ``mpc_config.forecast`` (:func:`mpcrl_lite.system.forecast.forecast_prices`), kept as
         :attr:`prices`.
     theta0
-        Initial parameters (default :meth:`Theta.nominal`).
+        Initial parameters (default ``learning.theta0`` where set, else
+        :meth:`Theta.nominal`; both given must agree).
     callbacks
         Called after every month as ``callback(month, history, experiment)``.
     """

@@ -73,8 +73,9 @@ def resolve_setup(
     theta0: Theta | None,
 ) -> tuple[SystemConfig, MPCConfig, LearningConfig, Prices, Theta]:
     """Defaults and consistency checks shared by every learner: the paper's configs, the
-    shipped month cut to ``days_per_month`` days, theta0 = the nominal model; prices with
-    another number of days or a theta0 for another ``n`` are errors.
+    shipped month cut to ``days_per_month`` days, theta0 = ``learning.theta0`` where set, else
+    the nominal model; prices with another number of days, a theta0 for another ``n`` or one
+    that differs from ``learning.theta0`` are errors.
 
     The prices returned are those the MPC sees (:func:`mpcrl_lite.system.forecast.forecast_prices`
     of ``MPCConfig.forecast``); prices given already as
@@ -102,6 +103,16 @@ def resolve_setup(
     if learning.scale_to_prices is None:  # recorded as it was resolved
         learning = learning.replace(scale_to_prices=scales_follow_prices(learning, prices))
     prices = forecast_prices(prices, mpc_config)
+    if learning.theta0 is not None:  # the start the config names (LearningConfig.theta0)
+        size = len(learning.theta0)
+        if size != Theta.nominal(system).size:
+            raise ValueError(f"learning.theta0 has {size} entries; expected 10 n = "
+                             f"{10 * system.n} for n={system.n} (Theta.to_vector)")
+        start = Theta.from_vector(np.asarray(learning.theta0), system.n)
+        if theta0 is not None and not np.array_equal(theta0.to_vector(), start.to_vector()):
+            raise ValueError("theta0 differs from learning.theta0: expected one start (pass "
+                             "either, or the same theta to both)")
+        theta0 = start
     theta0 = theta0 or Theta.nominal(system)
     if theta0.n != system.n:
         raise ValueError(f"theta0 has n={theta0.n}; expected n={system.n}")

@@ -120,7 +120,9 @@ def gap_closed(J_final: float, J_nominal: float, J_target: float) -> float:
 def seed_row(history: History) -> dict[str, Any]:
     """The figures of one run that do not depend on the other seeds.
 
-    ``J_eval_nominal`` is the evaluation of month 0 (the nominal theta), ``J_eval_final``
+    ``J_eval_nominal`` is the evaluation of month 0 (the nominal theta; for runs started at
+    ``LearningConfig.theta0`` :func:`run_study` moves it to ``J_eval_start`` and puts the
+    nominal theta's J on the same draws in its place), ``J_eval_final``
     the last evaluation (with its confidence interval over the draws), ``J_eval_best`` the
     lowest evaluation and ``best_month`` its month (from 0), ``late_regression`` =
     ``J_eval_final - J_eval_best`` >= 0 (how much the final parameters lost against the best
@@ -167,7 +169,7 @@ def summarize(
     the limit), ``late_collapse_count`` and ``no_late_collapse`` (True when that count is 0
     and some seed finished); ``no_improvement_seeds`` and ``no_improvement_count``: the
     seeds whose final J_eval is no lower than their J_eval at month 0 (on the same draws:
-    they learned nothing usable). Statistics are over the finished seeds with an evaluation; NaN
+    they learned nothing usable; ``J_eval_start`` where the table has it). Statistics are over the finished seeds with an evaluation; NaN
     (``null``) when there is none.
     """
     if isinstance(threshold, bool) or not (isinstance(threshold, (int, float))
@@ -206,7 +208,9 @@ def summarize(
     largest = regress.idxmax() if len(regress) else None
     collapsed = [int(s) for s in good.loc[good["late_collapse"], "seed"]]
     # the runs that end no better than they started (the same evaluation draws)
-    still = [int(s) for s in good.loc[good["J_eval_final"] >= good["J_eval_nominal"], "seed"]]
+    # (runs started at learning.theta0 are judged against that start, J_eval_start)
+    start = "J_eval_start" if "J_eval_start" in good else "J_eval_nominal"
+    still = [int(s) for s in good.loc[good["J_eval_final"] >= good[start], "seed"]]
     summary = {
         "seeds": [int(s) for s in table["seed"]],
         "done": int(ok.sum()),
@@ -530,8 +534,18 @@ def run_study(
                 histories[seed] = history
                 row.update(seed_row(history))
             rows.append(row)
+        start = run.learning.theta0
+        if start is not None:  # the runs start at learning.theta0, and month 0 evaluates
+            # that start: the nominal MPC is evaluated on the same draws for the gap
+            nominal = class_on_run_draws(run, Theta.nominal(run.system))
+            for row in rows:
+                if "J_eval_nominal" in row:
+                    row["J_eval_start"] = row["J_eval_nominal"]
+                    row["J_eval_nominal"] = math.nan if nominal is None else nominal["mean"]
         seed_table, summary = summarize(pd.DataFrame(rows), J_star, threshold,
                                         J_star_method=method or "given", J_star_note=note)
+        if start is not None:
+            summary["theta0"] = [float(x) for x in start]
         if tuned is not None:
             on_runs, failure = None, None
             try:  # after every run: a failure here must not cost the summary
@@ -544,7 +558,8 @@ def run_study(
             summary["class_split"]["source"] = str(class_best)
             if failure is not None:
                 summary["class_split"]["J_class_eval_error"] = failure
-        seed_table = seed_table.reindex(columns=list(SEED_COLUMNS))
+        seed_table = seed_table.reindex(columns=list(SEED_COLUMNS)
+                                        + (["J_eval_start"] if start is not None else []))
         curves = curves_table(histories)
         seed_table.to_csv(out / "study.csv", index=False)
         curves.to_csv(out / "study_curves.csv", index=False)

@@ -94,6 +94,8 @@ BAD = [
     (LearningConfig, "average_months", -2, "an integer >= 0"),
     (LearningConfig, "critic_months", 0, "an integer >= 1"),
     (LearningConfig, "critic_months", 25, "a value in [1, 24]"),
+    (LearningConfig, "theta0", (0.1, float("nan")), "None or a theta's 10 n finite entries"),
+    (LearningConfig, "theta0", "nominal", "None or a sequence of numbers"),
     (LearningConfig, "keep_well_posed", None, "True or False"),
     (LearningConfig, "alpha_min", 0.0, "a value in (0, inf)"),
     (LearningConfig, "seed", -1, "an integer >= 0"),

@@ -72,6 +72,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                         "bound (LearningConfig.reset_momentum_at_bounds; a resumed run keeps "
                         "its own)")
     _a.add_critic_months(p, "; a resumed run keeps its own")
+    _a.add_theta0(p, "; a resumed run keeps its own")
     _a.add_update_options(p, "; a resumed run keeps its own")
     p.add_argument("--learner", choices=LEARNERS, default=None,
                    help="dpg: the paper's policy gradient (default); q: LSTD Q-learning with the "
@@ -124,7 +125,7 @@ _RUN_FIELDS = ("exploration_bounds", "exploration_margin", "ridge", "value_featu
                "terminal_scale", "reset_momentum_at_bounds", "scale_to_prices", "step_limit",
                "learn_constants", "grad_clip", "tie_agents", "natural_damping", "step_warmup",
                "step_decay", "max_policy_change", "average_months", "keep_well_posed",
-               "alpha_min", "critic_months")
+               "alpha_min", "critic_months", "theta0")
 
 
 def _run_learning(out: Path) -> dict[str, Any]:
@@ -223,6 +224,20 @@ def run(args: argparse.Namespace) -> int:
     if prices is not None:  # the month's days
         system, mpc_config, learning = _a.configs(args, days_per_month=prices.days,
                                                   **learning_options)
+    if args.theta0 is not None:  # read and checked before any work
+        from ..inputs import read_theta
+
+        try:
+            theta, what = read_theta(args.theta0, system.n)
+        except ValueError as err:
+            raise UsageError(str(err)) from None
+        start = tuple(float(x) for x in theta.to_vector())
+        if args.resume and kept.get("theta0", start) != start:
+            raise UsageError(f"--theta0 {args.theta0} with --resume: the run in {args.out} "
+                             "started from another theta; expected the same or no --theta0")
+        learning = learning.replace(theta0=start)
+        if not args.quiet:
+            print(f"mpcrl_lite learn: starting from {what}", file=sys.stderr)
     _a.learning_budget(f"--months {args.months} --days {learning.days_per_month} --n {system.n} "
                        f"--eval-draws {learning.eval_draws}", system, learning)
     if args.adopt and not args.resume:
@@ -281,6 +296,11 @@ def _learn(args, out, system, mpc_config, learning, prices) -> int:
         raise UsageError(str(err)) from None
     summary = {**history.summary(), "forecast": history.mpc.forecast,
                "policy_class": history.policy_class}
+    if history.learning.theta0 is not None:  # where the run started (--theta0)
+        from ...theta import Theta
+
+        summary["theta0"] = Theta.from_vector(list(history.learning.theta0),
+                                              history.system.n).to_dict()
     try:
         durable.write_json(out / rundir.SUMMARY, summary)
     except OSError as err:

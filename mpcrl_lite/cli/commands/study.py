@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 from ...config import GRADIENTS, HESSIANS, LEARNERS, OPTIMIZERS, VALUE_FEATURES
@@ -74,6 +75,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
                    help="Adam's typical magnitude of the terminal weights of every run "
                         "(see learn --help)")
     _a.add_critic_months(p)
+    _a.add_theta0(p, "; every run")
     p.add_argument("--reset-momentum-at-bounds", action="store_true",
                    help="every run resets the update's momentum of entries the projection "
                         "holds at a bound (LearningConfig.reset_momentum_at_bounds)")
@@ -107,6 +109,17 @@ def run(args: argparse.Namespace) -> int:
             base[f"learning.{field}"] = getattr(args, field)
     if args.reset_momentum_at_bounds:  # a switch: False is "not given"
         base["learning.reset_momentum_at_bounds"] = True
+    if args.theta0 is not None:  # read and checked before any work
+        from ..inputs import read_theta
+
+        n = int(base.get("system.n", _a.SYSTEM.n))
+        try:
+            theta, what = read_theta(args.theta0, n)
+        except ValueError as err:
+            raise UsageError(str(err)) from None
+        base["learning.theta0"] = [float(x) for x in theta.to_vector()]
+        if not args.quiet:
+            print(f"mpcrl_lite study: every run starts from {what}", file=sys.stderr)
     prices = _a.month_prices(args, _a.SYSTEM, args.days)  # checked before any work
     if prices is not None:
         base.update(_a.price_base(args))
