@@ -12,6 +12,8 @@ from typing import Any
 import pytest
 from bench_readme import bench_row
 
+from mpcrl_lite.theta import Theta
+
 ROOT = Path(__file__).resolve().parents[2]
 README = (ROOT / "README.md").read_text()
 NOTEBOOK_09 = " ".join(
@@ -237,7 +239,9 @@ UNSEEN = {"oct2020_paper_pathwise_7000": "oct2020_class_best_paper",
           "dec2020_paper_critic_reset_8000": "dec2020_class_best_paper",
           "sep2020_rest_of_day_pathwise_12000": "sep2020_class_best_rest_of_day",
           "sep2020_day_end_pathwise_12000": "sep2020_class_best_day_end",
-          "sep2020_paper_pathwise_12000": "sep2020_class_best_paper"}
+          "sep2020_paper_pathwise_12000": "sep2020_class_best_paper",
+          **{f"sep2020_{c}_pathwise_from_nov_12000": f"sep2020_class_best_{c}"
+             for c in ("rest_of_day", "day_end", "paper")}}
 #: stored study -> the tune result its class split was made against
 CLASS_BEST = {"paper_pathwise_5000": "data/class_best_paper",
               "paper_pathwise_6000": "data/class_best_paper",
@@ -364,6 +368,12 @@ UNSEEN_ROWS = {
     "September 2020: the rest of the day, pathwise": "sep2020_rest_of_day_pathwise_12000",
     "September 2020: the day-end forecast, pathwise": "sep2020_day_end_pathwise_12000",
     "September 2020: the paper's MPC, pathwise": "sep2020_paper_pathwise_12000",
+    "September 2020: the rest of the day, pathwise, from November's class best":
+        "sep2020_rest_of_day_pathwise_from_nov_12000",
+    "September 2020: the day-end forecast, pathwise, from November's class best":
+        "sep2020_day_end_pathwise_from_nov_12000",
+    "September 2020: the paper's MPC, pathwise, from November's class best":
+        "sep2020_paper_pathwise_from_nov_12000",
     "December 2020: the rest of the day, pathwise, shipped month's scales":
         "dec2020_rest_of_day_pathwise_8000",
     "December 2020: the day-end forecast, pathwise, shipped month's scales":
@@ -677,6 +687,11 @@ def test_notebook_09_quotes_the_paired_gaps_of_unseen_months():
     assert (f"pathwise gaps are between {round(min(gaps)) + 0:d} and {round(max(gaps)):d} "
             "NOK/day over the classes, 10 or less in eight of the twelve") in notebook
     assert min(gaps) > -0.5 and max(gaps) > 10
+    started = [_summary(FROM_NOVEMBER[c][1])["class_split"]["learner_gap_paired_median"]
+               for c in ("day_end", "paper", "rest_of_day")]
+    assert ("started at November's class best instead of the nominal $\\theta$ "
+            "(`learn --theta0`), the paired gaps of the three classes are "
+            f"{started[0]:.1f}, {started[1]:.1f} and {started[2]:.1f} NOK/day") in notebook
 
 
 def test_the_segments_are_of_the_stored_studies_and_quoted():
@@ -808,3 +823,59 @@ def test_the_prose_on_the_fourth_month_is_the_stored_studies():
     least = min(float(t["gap_closed"].min()) for _, t in studies.values())
     assert (f"Every pathwise run of September closes at least {math.floor(100 * least)} % of "
             "the gap") in text
+
+
+#: September 2020 from the nominal start and from November's class best, per class
+FROM_NOVEMBER = {c: (f"sep2020_{c}_pathwise_12000", f"sep2020_{c}_pathwise_from_nov_12000")
+                 for c in ("day_end", "paper", "rest_of_day")}
+
+
+def test_the_november_start_on_september_is_the_stored_studies():
+    """README's paragraph "Starting from another month's best": every figure from the stored
+    summaries, and the runs did start at November's class best."""
+    text = " ".join(README.split())
+    gaps, better, studies = {}, {}, {}
+    for c, (nominal_name, name) in FROM_NOVEMBER.items():
+        nominal, study = _summary(nominal_name), _study(name)
+        studies[name] = study
+        summary = study[0]
+        best = json.loads((ROOT / f"data/class_best_{c}/tune.json").read_text())["theta_best"]
+        start = Theta.from_dict(best).to_vector()
+        assert summary["theta0"] == [float(x) for x in start]
+        config = _config(name)
+        assert config["learning"]["theta0"] == [float(x) for x in start]
+        assert config["prices"]["month"] == "2020-09"
+        # the start was not chosen on September: the search behind it ran on the shipped month
+        searched = json.loads((ROOT / f"data/class_best_{c}/tune.json").read_text())["prices"]
+        assert "November 2020" in searched and "2020-09" not in searched
+        mine, theirs = (s["class_split"]["learner_gap_paired"] for s in (summary, nominal))
+        gaps[c] = (summary["class_split"]["learner_gap_paired_median"],
+                   nominal["class_split"]["learner_gap_paired_median"])
+        better[c] = sum(mine[k] < theirs[k] for k in mine)
+        # the gap still counts from the nominal MPC: the same J_nominal as the nominal start's
+        assert summary["J_nominal"] == pytest.approx(nominal["J_nominal"], rel=1e-12)
+    assert max(g for g, _ in gaps.values()) <= 10  # "within 10 NOK/day ... in all three"
+    assert (f"paired learner gap {gaps['day_end'][0]:.1f} in the day-end class "
+            f"({gaps['day_end'][1]:.1f} from the nominal start, lower on {better['day_end']} of "
+            f"20 seeds), {gaps['paper'][0]:.1f} in the paper's ({gaps['paper'][1]:.1f}, lower "
+            f"on {better['paper']} of 20) and {gaps['rest_of_day'][0]:.1f} in the rest of the "
+            f"day ({gaps['rest_of_day'][1]:.1f})") in text
+    day_end, _ = studies[FROM_NOVEMBER["day_end"][1]]
+    assert (f"The day-end regret falls from "
+            f"{_summary(FROM_NOVEMBER['day_end'][0])['regret_median']:.1f} to "
+            f"{day_end['regret_median']:.1f}") in text
+    paper, paper_table = studies[FROM_NOVEMBER["paper"][1]]
+    starts = paper_table["J_eval_start"].unique()
+    assert len(starts) == 1  # every seed starts at the same theta on the same draws
+    ahead = starts[0] - paper["class_split"]["J_class_eval"]["mean"]
+    assert (f"November's best already starts {ahead:.1f} NOK/day above September's on the "
+            f"runs' draws, and {paper['no_improvement_count']} of the 20 runs end no better "
+            "than that start") in text
+    closed, late = _closed_and_late(studies)
+    assert f"Every run closes at least {closed} % of the gap from the nominal theta to J*" in text
+    assert f"none loses more than {late} % of it after its best evaluation" in text
+    rest, _ = studies[FROM_NOVEMBER["rest_of_day"][1]]
+    worst = rest["class_split"]["learner_gap_paired_worst"]
+    assert rest["largest_late_regression"]["seed"] == worst["seed"]
+    assert (f"(rest of the day, seed {worst['seed']}: its final evaluation is "
+            f"{worst['value']:.1f} above the class's best)") in text
