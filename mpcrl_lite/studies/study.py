@@ -169,8 +169,8 @@ def summarize(
     the limit), ``late_collapse_count`` and ``no_late_collapse`` (True when that count is 0
     and some seed finished); ``no_improvement_seeds`` and ``no_improvement_count``: the
     seeds whose final J_eval is no lower than their J_eval at month 0 (on the same draws:
-    they learned nothing usable; ``J_eval_start`` where the table has it). Statistics are over the finished seeds with an evaluation; NaN
-    (``null``) when there is none.
+    they learned nothing usable; ``J_eval_start`` where the table has it). Statistics are
+    over the finished seeds with an evaluation; NaN (``null``) when there is none.
     """
     if isinstance(threshold, bool) or not (isinstance(threshold, (int, float))
                                            and 0 < threshold <= 1):
@@ -537,7 +537,13 @@ def run_study(
         start = run.learning.theta0
         if start is not None:  # the runs start at learning.theta0, and month 0 evaluates
             # that start: the nominal MPC is evaluated on the same draws for the gap
-            nominal = class_on_run_draws(run, Theta.nominal(run.system))
+            nominal, nominal_error = None, None
+            try:  # after every run: a failure here must not cost the summary
+                nominal = class_on_run_draws(run, Theta.nominal(run.system))
+            except Exception as err:  # noqa: BLE001 (recorded in the summary and logged)
+                nominal_error = f"{type(err).__name__}: {err}"
+                log.warning("study: the nominal theta on the runs' draws failed (%s); the gap "
+                            "closed is left out", nominal_error)
             for row in rows:
                 if "J_eval_nominal" in row:
                     row["J_eval_start"] = row["J_eval_nominal"]
@@ -546,6 +552,8 @@ def run_study(
                                         J_star_method=method or "given", J_star_note=note)
         if start is not None:
             summary["theta0"] = [float(x) for x in start]
+            if nominal_error is not None:
+                summary["J_nominal_error"] = nominal_error
         if tuned is not None:
             on_runs, failure = None, None
             try:  # after every run: a failure here must not cost the summary

@@ -159,3 +159,24 @@ def test_study_starts_every_run_there_and_keeps_the_nominal_for_the_gap(tmp_path
     summary = json.loads((tmp_path / "best" / "study.json").read_text())
     assert summary["theta0"] == [float(x) for x in _best().to_vector()]
     assert "J_eval_start" not in nominal.columns
+
+
+def test_a_failed_nominal_evaluation_keeps_the_studys_summary(tmp_path, capsys, monkeypatch):
+    """The nominal theta is evaluated after every run; a failure there is recorded, not
+    raised (the runs' results stay)."""
+    from mpcrl_lite.studies import study
+
+    def fail(run, theta):
+        raise RuntimeError("solver exploded")
+
+    monkeypatch.setattr(study, "class_on_run_draws", fail)
+    out = tmp_path / "best"
+    status, _, err = run_cli(["study", "--seeds", "1", "--months", "1", "--days", "2",
+                              "--eval-draws", "1", "--target", "best_seen", "--quiet",
+                              "--workers", "1", "--out", str(out), "--theta0", str(BEST)],
+                             capsys)
+    assert status == 0, err
+    summary = json.loads((out / "study.json").read_text())
+    assert summary["J_nominal_error"] == "RuntimeError: solver exploded"
+    table = pd.read_csv(out / "study.csv")
+    assert table["J_eval_nominal"].isna().all() and table["J_eval_start"].notna().all()
