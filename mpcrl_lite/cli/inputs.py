@@ -1,5 +1,5 @@
-"""What the command line checks before any work: prices from a price file, the size of
-the work against the machine, and the output directory.
+"""What the command line checks before any work: prices from a price file, a theta to start
+from, the size of the work against the machine, and the output directory.
 
 Every check raises a ``ValueError`` whose message is one line naming the bad value and what
 was expected; :mod:`mpcrl_lite.cli.main` prints it and exits with status 2.
