@@ -241,7 +241,10 @@ UNSEEN = {"oct2020_paper_pathwise_7000": "oct2020_class_best_paper",
           "sep2020_day_end_pathwise_12000": "sep2020_class_best_day_end",
           "sep2020_paper_pathwise_12000": "sep2020_class_best_paper",
           **{f"sep2020_{c}_pathwise_from_nov_12000": f"sep2020_class_best_{c}"
-             for c in ("rest_of_day", "day_end", "paper")}}
+             for c in ("rest_of_day", "day_end", "paper")},
+          "dec2020_day_end_pathwise_from_nov_8000": "dec2020_class_best_day_end",
+          "dec2020_paper_pathwise_from_nov_8000": "dec2020_class_best_paper",
+          "dec2020_paper_critic_from_nov_8000": "dec2020_class_best_paper"}
 #: stored study -> the tune result its class split was made against
 CLASS_BEST = {"paper_pathwise_5000": "data/class_best_paper",
               "paper_pathwise_6000": "data/class_best_paper",
@@ -374,6 +377,12 @@ UNSEEN_ROWS = {
         "sep2020_day_end_pathwise_from_nov_12000",
     "September 2020: the paper's MPC, pathwise, from November's class best":
         "sep2020_paper_pathwise_from_nov_12000",
+    "December 2020: the day-end forecast, pathwise, from November's class best":
+        "dec2020_day_end_pathwise_from_nov_8000",
+    "December 2020: the paper's MPC, pathwise, from November's class best":
+        "dec2020_paper_pathwise_from_nov_8000",
+    "December 2020: the paper's MPC, critic (default), from November's class best":
+        "dec2020_paper_critic_from_nov_8000",
     "December 2020: the rest of the day, pathwise, shipped month's scales":
         "dec2020_rest_of_day_pathwise_8000",
     "December 2020: the day-end forecast, pathwise, shipped month's scales":
@@ -879,3 +888,56 @@ def test_the_november_start_on_september_is_the_stored_studies():
     assert rest["largest_late_regression"]["seed"] == worst["seed"]
     assert (f"(rest of the day, seed {worst['seed']}: its final evaluation is "
             f"{worst['value']:.1f} above the class's best)") in text
+
+
+#: December 2020 from November's class best: stored study -> (the nominal start's, class)
+DECEMBER_FROM_NOVEMBER = {
+    "dec2020_day_end_pathwise_from_nov_8000": ("dec2020_day_end_pathwise_scaled_8000", "day_end"),
+    "dec2020_paper_pathwise_from_nov_8000": ("dec2020_paper_pathwise_scaled_8000", "paper"),
+    "dec2020_paper_critic_from_nov_8000": ("dec2020_paper_critic_8000", "paper"),
+}
+
+
+def test_the_november_start_on_december_is_the_stored_studies():
+    text = " ".join(README.split())
+    quoted = {}
+    for name, (nominal_name, c) in DECEMBER_FROM_NOVEMBER.items():
+        summary, table = _study(name)
+        nominal = _summary(nominal_name)
+        best = json.loads((ROOT / f"data/class_best_{c}/tune.json").read_text())["theta_best"]
+        assert summary["theta0"] == [float(x) for x in Theta.from_dict(best).to_vector()]
+        assert _config(name)["prices"]["month"] == "2020-12"
+        assert _config(name)["learning"].get("gradient", "critic") == \
+            _config(nominal_name)["learning"].get("gradient", "critic")
+        mine, theirs = (s["class_split"]["learner_gap_paired"] for s in (summary, nominal))
+        quoted[name] = (summary["class_split"]["learner_gap_paired_median"],
+                        nominal["class_split"]["learner_gap_paired_median"],
+                        sum(mine[k] < theirs[k] for k in mine), summary, table)
+    day_end, paper, critic = (quoted[n] for n in DECEMBER_FROM_NOVEMBER)
+    assert (f"paired learner gap {day_end[0]:.1f} in the day-end class ({day_end[1]:.1f} from "
+            f"the nominal start, lower on {day_end[2]} of 20 seeds) and {paper[0]:.1f} in the "
+            f"paper's ({paper[1]:.1f}, lower on {paper[2]} of 20)") in text
+    # the four class-months that missed from the nominal start, and the other eight
+    nominal_gaps = {name: _summary(name)["class_split"]["learner_gap_paired_median"]
+                    for name in OCT_DEC_PATHWISE + JULY_PATHWISE + SEPTEMBER_PATHWISE}
+    missed = sorted(name for name, gap in nominal_gaps.items() if gap > 10)
+    assert missed == ["dec2020_day_end_pathwise_scaled_8000", "dec2020_paper_pathwise_scaled_8000",
+                      "sep2020_day_end_pathwise_12000", "sep2020_paper_pathwise_12000"]
+    again = [day_end[0], paper[0]] + [
+        _summary(FROM_NOVEMBER[c][1])["class_split"]["learner_gap_paired_median"]
+        for c in ("day_end", "paper")]
+    assert max(again) <= 10
+    assert ("So the four class-months that missed 10 NOK/day from the nominal start are all "
+            "within it from November's; the other eight were within it from the nominal start") \
+        in text
+    # the critic leaves its good start on every seed, but never falls back to the nominal level
+    summary, table = critic[3], critic[4]
+    ahead = table["J_eval_start"].unique()
+    assert len(ahead) == 1
+    assert summary["no_improvement_count"] == 20
+    assert (table["J_eval_final"] < table["J_eval_nominal"]).all()
+    assert _summary("dec2020_paper_critic_8000")["class_split"]["learner_gap_paired_median"] > 1000
+    assert (f"from November's best, {ahead[0] - summary['class_split']['J_class_eval']['mean']:.1f} "
+            "NOK/day above December's on the runs' draws, every one of its 20 runs ends worse "
+            f"than it began (median paired gap {critic[0]:.1f}), though none ends at the nominal "
+            "MPC's level") in text
