@@ -244,7 +244,9 @@ UNSEEN = {"oct2020_paper_pathwise_7000": "oct2020_class_best_paper",
              for c in ("rest_of_day", "day_end", "paper")},
           "dec2020_day_end_pathwise_from_nov_8000": "dec2020_class_best_day_end",
           "dec2020_paper_pathwise_from_nov_8000": "dec2020_class_best_paper",
-          "dec2020_paper_critic_from_nov_8000": "dec2020_class_best_paper"}
+          "dec2020_paper_critic_from_nov_8000": "dec2020_class_best_paper",
+          "oct2020_day_end_pathwise_from_nov_7000": "oct2020_class_best_day_end",
+          "oct2020_paper_pathwise_from_nov_7000": "oct2020_class_best_paper"}
 #: stored study -> the tune result its class split was made against
 CLASS_BEST = {"paper_pathwise_5000": "data/class_best_paper",
               "paper_pathwise_6000": "data/class_best_paper",
@@ -377,6 +379,10 @@ UNSEEN_ROWS = {
         "sep2020_day_end_pathwise_from_nov_12000",
     "September 2020: the paper's MPC, pathwise, from November's class best":
         "sep2020_paper_pathwise_from_nov_12000",
+    "October 2020: the day-end forecast, pathwise, from November's class best":
+        "oct2020_day_end_pathwise_from_nov_7000",
+    "October 2020: the paper's MPC, pathwise, from November's class best":
+        "oct2020_paper_pathwise_from_nov_7000",
     "December 2020: the day-end forecast, pathwise, from November's class best":
         "dec2020_day_end_pathwise_from_nov_8000",
     "December 2020: the paper's MPC, pathwise, from November's class best":
@@ -941,3 +947,34 @@ def test_the_november_start_on_december_is_the_stored_studies():
             "NOK/day above December's on the runs' draws, every one of its 20 runs ends worse "
             f"than it began (median paired gap {critic[0]:.1f}), though none ends at the nominal "
             "MPC's level") in text
+
+
+def test_the_november_start_on_october_is_the_stored_studies():
+    """README's two October rows run again from November's class best, where the nominal start
+    was within 10 NOK/day already."""
+    text = " ".join(README.split())
+    figures = []
+    for c in ("day_end", "paper"):
+        name, nominal_name = (f"oct2020_{c}_pathwise_from_nov_7000",
+                              f"oct2020_{c}_pathwise_scaled_7000")
+        summary, table = _study(name)
+        nominal = _summary(nominal_name)
+        best = json.loads((ROOT / f"data/class_best_{c}/tune.json").read_text())["theta_best"]
+        assert summary["theta0"] == [float(x) for x in Theta.from_dict(best).to_vector()]
+        assert _config(name)["prices"]["month"] == "2020-10"
+        assert nominal["class_split"]["learner_gap_paired_median"] <= 10  # within it already
+        mine, theirs = (s["class_split"]["learner_gap_paired"] for s in (summary, nominal))
+        figures.append((summary["class_split"]["learner_gap_paired_median"],
+                        nominal["class_split"]["learner_gap_paired_median"],
+                        sum(mine[k] < theirs[k] for k in mine), summary, table))
+    (de, de_nom, de_better, _, _), (pa, pa_nom, pa_better, paper, paper_table) = figures
+    assert (f"October's day-end and paper classes from November's start end at {de:.1f} "
+            f"({de_nom:.1f} from the nominal start, lower on {de_better} of 20 seeds) and "
+            f"{pa:.1f} ({pa_nom:.1f}, lower on {pa_better} of 20)") in text
+    start = paper_table["J_eval_start"].unique()
+    assert len(start) == 1
+    ahead = paper["class_split"]["J_class_eval"]["mean"] - start[0]
+    assert ahead > 0  # November's best scores better than October's own class best there
+    assert (f"November's best already scores {ahead:.1f} NOK/day better than October's own "
+            f"class best on the runs' draws, and {paper['no_improvement_count']} of the 20 "
+            "paper-class runs end no better than that start") in text
