@@ -845,53 +845,60 @@ FROM_NOVEMBER = {c: (f"sep2020_{c}_pathwise_12000", f"sep2020_{c}_pathwise_from_
                  for c in ("day_end", "paper", "rest_of_day")}
 
 
+def _from_november(name: str, nominal_name: str, c: str, month: str) -> dict[str, Any]:
+    """A study started at November's class best of class ``c`` on ``month``, against the same
+    study from the nominal start: checks that it started there (summary and run config), that
+    the start was searched on the shipped month, that it ran the nominal study's learner and
+    month, and that its gap still counts from the same nominal J; returns its paired gap
+    (``gap``), the nominal start's (``nominal_gap``), the seeds it ended lower on (``better``),
+    its start's J less the class's best on the runs' draws (``ahead``), its ``summary`` and
+    ``table``."""
+    summary, table = _study(name)
+    nominal = _summary(nominal_name)
+    tune = json.loads((ROOT / f"data/class_best_{c}/tune.json").read_text())
+    start = [float(x) for x in Theta.from_dict(tune["theta_best"]).to_vector()]
+    config, nominal_config = _config(name), _config(nominal_name)
+    assert summary["theta0"] == config["learning"]["theta0"] == start
+    assert config["prices"]["month"] == month
+    # the start was not chosen on the month: the search behind it ran on the shipped month
+    assert "November 2020" in tune["prices"] and month not in tune["prices"]
+    assert config["learning"].get("gradient", "critic") == \
+        nominal_config["learning"].get("gradient", "critic")
+    # the gap still counts from the nominal MPC: the same J_nominal as the nominal start's
+    assert summary["J_nominal"] == pytest.approx(nominal["J_nominal"], rel=1e-12)
+    starts = table["J_eval_start"].unique()
+    assert len(starts) == 1  # every seed starts at the same theta on the same draws
+    mine, theirs = (s["class_split"]["learner_gap_paired"] for s in (summary, nominal))
+    return {"gap": summary["class_split"]["learner_gap_paired_median"],
+            "nominal_gap": nominal["class_split"]["learner_gap_paired_median"],
+            "better": sum(mine[k] < theirs[k] for k in mine),
+            "ahead": starts[0] - summary["class_split"]["J_class_eval"]["mean"],
+            "summary": summary, "table": table}
+
+
 def test_the_november_start_on_september_is_the_stored_studies():
     """README's paragraph "Starting from another month's best": every figure from the stored
     summaries, and the runs did start at November's class best."""
     text = " ".join(README.split())
-    gaps, better, studies = {}, {}, {}
-    for c, (nominal_name, name) in FROM_NOVEMBER.items():
-        nominal, study = _summary(nominal_name), _study(name)
-        studies[name] = study
-        summary = study[0]
-        best = json.loads((ROOT / f"data/class_best_{c}/tune.json").read_text())["theta_best"]
-        start = Theta.from_dict(best).to_vector()
-        assert summary["theta0"] == [float(x) for x in start]
-        config = _config(name)
-        assert config["learning"]["theta0"] == [float(x) for x in start]
-        assert config["prices"]["month"] == "2020-09"
-        # the start was not chosen on September: the search behind it ran on the shipped month
-        searched = json.loads((ROOT / f"data/class_best_{c}/tune.json").read_text())["prices"]
-        assert "November 2020" in searched and "2020-09" not in searched
-        mine, theirs = (s["class_split"]["learner_gap_paired"] for s in (summary, nominal))
-        gaps[c] = (summary["class_split"]["learner_gap_paired_median"],
-                   nominal["class_split"]["learner_gap_paired_median"])
-        better[c] = sum(mine[k] < theirs[k] for k in mine)
-        # the gap still counts from the nominal MPC: the same J_nominal as the nominal start's
-        assert summary["J_nominal"] == pytest.approx(nominal["J_nominal"], rel=1e-12)
-    assert max(g for g, _ in gaps.values()) <= 10  # "within 10 NOK/day ... in all three"
-    assert (f"paired learner gap {gaps['day_end'][0]:.1f} in the day-end class "
-            f"({gaps['day_end'][1]:.1f} from the nominal start, lower on {better['day_end']} of "
-            f"20 seeds), {gaps['paper'][0]:.1f} in the paper's ({gaps['paper'][1]:.1f}, lower "
-            f"on {better['paper']} of 20) and {gaps['rest_of_day'][0]:.1f} in the rest of the "
-            f"day ({gaps['rest_of_day'][1]:.1f})") in text
-    day_end, _ = studies[FROM_NOVEMBER["day_end"][1]]
+    runs = {c: _from_november(name, nominal_name, c, "2020-09")
+            for c, (nominal_name, name) in FROM_NOVEMBER.items()}
+    assert max(r["gap"] for r in runs.values()) <= 10  # "within 10 NOK/day ... in all three"
+    de, pa, rd = runs["day_end"], runs["paper"], runs["rest_of_day"]
+    assert (f"paired learner gap {de['gap']:.1f} in the day-end class ({de['nominal_gap']:.1f} "
+            f"from the nominal start, lower on {de['better']} of 20 seeds), {pa['gap']:.1f} in "
+            f"the paper's ({pa['nominal_gap']:.1f}, lower on {pa['better']} of 20) and "
+            f"{rd['gap']:.1f} in the rest of the day ({rd['nominal_gap']:.1f})") in text
     assert (f"The day-end regret falls from "
             f"{_summary(FROM_NOVEMBER['day_end'][0])['regret_median']:.1f} to "
-            f"{day_end['regret_median']:.1f}") in text
-    paper, paper_table = studies[FROM_NOVEMBER["paper"][1]]
-    starts = paper_table["J_eval_start"].unique()
-    assert len(starts) == 1  # every seed starts at the same theta on the same draws
-    ahead = starts[0] - paper["class_split"]["J_class_eval"]["mean"]
-    assert (f"November's best already starts {ahead:.1f} NOK/day above September's on the "
-            f"runs' draws, and {paper['no_improvement_count']} of the 20 runs end no better "
-            "than that start") in text
-    closed, late = _closed_and_late(studies)
+            f"{de['summary']['regret_median']:.1f}") in text
+    assert (f"November's best already starts {pa['ahead']:.1f} NOK/day above September's on "
+            f"the runs' draws, and {pa['summary']['no_improvement_count']} of the 20 runs end "
+            "no better than that start") in text
+    closed, late = _closed_and_late({c: (r["summary"], r["table"]) for c, r in runs.items()})
     assert f"Every run closes at least {closed} % of the gap from the nominal theta to J*" in text
     assert f"none loses more than {late} % of it after its best evaluation" in text
-    rest, _ = studies[FROM_NOVEMBER["rest_of_day"][1]]
-    worst = rest["class_split"]["learner_gap_paired_worst"]
-    assert rest["largest_late_regression"]["seed"] == worst["seed"]
+    worst = rd["summary"]["class_split"]["learner_gap_paired_worst"]
+    assert rd["summary"]["largest_late_regression"]["seed"] == worst["seed"]
     assert (f"(rest of the day, seed {worst['seed']}: its final evaluation is "
             f"{worst['value']:.1f} above the class's best)") in text
 
@@ -906,30 +913,18 @@ DECEMBER_FROM_NOVEMBER = {
 
 def test_the_november_start_on_december_is_the_stored_studies():
     text = " ".join(README.split())
-    quoted = {}
-    for name, (nominal_name, c) in DECEMBER_FROM_NOVEMBER.items():
-        summary, table = _study(name)
-        nominal = _summary(nominal_name)
-        best = json.loads((ROOT / f"data/class_best_{c}/tune.json").read_text())["theta_best"]
-        assert summary["theta0"] == [float(x) for x in Theta.from_dict(best).to_vector()]
-        assert _config(name)["prices"]["month"] == "2020-12"
-        assert _config(name)["learning"].get("gradient", "critic") == \
-            _config(nominal_name)["learning"].get("gradient", "critic")
-        mine, theirs = (s["class_split"]["learner_gap_paired"] for s in (summary, nominal))
-        quoted[name] = (summary["class_split"]["learner_gap_paired_median"],
-                        nominal["class_split"]["learner_gap_paired_median"],
-                        sum(mine[k] < theirs[k] for k in mine), summary, table)
-    day_end, paper, critic = (quoted[n] for n in DECEMBER_FROM_NOVEMBER)
-    assert (f"paired learner gap {day_end[0]:.1f} in the day-end class ({day_end[1]:.1f} from "
-            f"the nominal start, lower on {day_end[2]} of 20 seeds) and {paper[0]:.1f} in the "
-            f"paper's ({paper[1]:.1f}, lower on {paper[2]} of 20)") in text
+    de, pa, critic = (_from_november(name, nominal_name, c, "2020-12")
+                      for name, (nominal_name, c) in DECEMBER_FROM_NOVEMBER.items())
+    assert (f"paired learner gap {de['gap']:.1f} in the day-end class ({de['nominal_gap']:.1f} "
+            f"from the nominal start, lower on {de['better']} of 20 seeds) and {pa['gap']:.1f} "
+            f"in the paper's ({pa['nominal_gap']:.1f}, lower on {pa['better']} of 20)") in text
     # the four class-months that missed from the nominal start, and the other eight
     nominal_gaps = {name: _summary(name)["class_split"]["learner_gap_paired_median"]
                     for name in OCT_DEC_PATHWISE + JULY_PATHWISE + SEPTEMBER_PATHWISE}
     missed = sorted(name for name, gap in nominal_gaps.items() if gap > 10)
     assert missed == ["dec2020_day_end_pathwise_scaled_8000", "dec2020_paper_pathwise_scaled_8000",
                       "sep2020_day_end_pathwise_12000", "sep2020_paper_pathwise_12000"]
-    again = [day_end[0], paper[0]] + [
+    again = [de["gap"], pa["gap"]] + [
         _summary(FROM_NOVEMBER[c][1])["class_split"]["learner_gap_paired_median"]
         for c in ("day_end", "paper")]
     assert max(again) <= 10
@@ -937,44 +932,28 @@ def test_the_november_start_on_december_is_the_stored_studies():
             "within it from November's; the other eight were within it from the nominal start") \
         in text
     # the critic leaves its good start on every seed, but never falls back to the nominal level
-    summary, table = critic[3], critic[4]
-    ahead = table["J_eval_start"].unique()
-    assert len(ahead) == 1
+    summary, table = critic["summary"], critic["table"]
     assert summary["no_improvement_count"] == 20
     assert (table["J_eval_final"] < table["J_eval_nominal"]).all()
     assert _summary("dec2020_paper_critic_8000")["class_split"]["learner_gap_paired_median"] > 1000
-    assert (f"from November's best, {ahead[0] - summary['class_split']['J_class_eval']['mean']:.1f} "
-            "NOK/day above December's on the runs' draws, every one of its 20 runs ends worse "
-            f"than it began (median paired gap {critic[0]:.1f}), though none ends at the nominal "
-            "MPC's level") in text
+    assert (f"from November's best, {critic['ahead']:.1f} NOK/day above December's on the "
+            "runs' draws, every one of its 20 runs ends worse than it began (median paired gap "
+            f"{critic['gap']:.1f}), though none ends at the nominal MPC's level") in text
 
 
 def test_the_november_start_on_october_is_the_stored_studies():
     """README's two October rows run again from November's class best, where the nominal start
     was within 10 NOK/day already."""
     text = " ".join(README.split())
-    figures = []
-    for c in ("day_end", "paper"):
-        name, nominal_name = (f"oct2020_{c}_pathwise_from_nov_7000",
-                              f"oct2020_{c}_pathwise_scaled_7000")
-        summary, table = _study(name)
-        nominal = _summary(nominal_name)
-        best = json.loads((ROOT / f"data/class_best_{c}/tune.json").read_text())["theta_best"]
-        assert summary["theta0"] == [float(x) for x in Theta.from_dict(best).to_vector()]
-        assert _config(name)["prices"]["month"] == "2020-10"
-        assert nominal["class_split"]["learner_gap_paired_median"] <= 10  # within it already
-        mine, theirs = (s["class_split"]["learner_gap_paired"] for s in (summary, nominal))
-        figures.append((summary["class_split"]["learner_gap_paired_median"],
-                        nominal["class_split"]["learner_gap_paired_median"],
-                        sum(mine[k] < theirs[k] for k in mine), summary, table))
-    (de, de_nom, de_better, _, _), (pa, pa_nom, pa_better, paper, paper_table) = figures
-    assert (f"October's day-end and paper classes from November's start end at {de:.1f} "
-            f"({de_nom:.1f} from the nominal start, lower on {de_better} of 20 seeds) and "
-            f"{pa:.1f} ({pa_nom:.1f}, lower on {pa_better} of 20)") in text
-    start = paper_table["J_eval_start"].unique()
-    assert len(start) == 1
-    ahead = paper["class_split"]["J_class_eval"]["mean"] - start[0]
-    assert ahead > 0  # November's best scores better than October's own class best there
-    assert (f"November's best already scores {ahead:.1f} NOK/day better than October's own "
-            f"class best on the runs' draws, and {paper['no_improvement_count']} of the 20 "
-            "paper-class runs end no better than that start") in text
+    de, pa = (_from_november(f"oct2020_{c}_pathwise_from_nov_7000",
+                             f"oct2020_{c}_pathwise_scaled_7000", c, "2020-10")
+              for c in ("day_end", "paper"))
+    assert de["nominal_gap"] <= 10 and pa["nominal_gap"] <= 10  # within it already
+    assert (f"October's day-end and paper classes from November's start end at "
+            f"{de['gap']:.1f} ({de['nominal_gap']:.1f} from the nominal start, lower on "
+            f"{de['better']} of 20 seeds) and {pa['gap']:.1f} ({pa['nominal_gap']:.1f}, lower "
+            f"on {pa['better']} of 20)") in text
+    assert pa["ahead"] < 0  # November's best scores better than October's own class best there
+    assert (f"November's best already scores {-pa['ahead']:.1f} NOK/day better than October's "
+            f"own class best on the runs' draws, and {pa['summary']['no_improvement_count']} of "
+            "the 20 paper-class runs end no better than that start") in text
