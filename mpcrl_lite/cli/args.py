@@ -165,6 +165,21 @@ def add_theta0(p: argparse.ArgumentParser, kept: str = "") -> None:
                         f"(LearningConfig.theta0{kept})")
 
 
+def start_theta(args: argparse.Namespace, n: int) -> tuple[tuple[float, ...], str] | None:
+    """The start of ``--theta0 SOURCE`` for ``n`` batteries (None without it), checked before
+    any work: its entries (``LearningConfig.theta0``) and what it is, for the command's line
+    on stderr; the one place ``learn`` and ``study`` read the option."""
+    if args.theta0 is None:
+        return None
+    from .inputs import read_theta
+
+    try:
+        theta, what = read_theta(args.theta0, n)
+    except ValueError as err:
+        raise UsageError(str(err)) from None
+    return tuple(float(x) for x in theta.to_vector()), what
+
+
 def add_system_file(p: argparse.ArgumentParser) -> None:
     """``--system FILE.yaml``: the fields of SystemConfig from a YAML file."""
     p.add_argument("--system", type=Path, default=None, metavar="FILE.yaml",

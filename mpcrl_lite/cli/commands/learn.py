@@ -224,14 +224,9 @@ def run(args: argparse.Namespace) -> int:
     if prices is not None:  # the month's days
         system, mpc_config, learning = _a.configs(args, days_per_month=prices.days,
                                                   **learning_options)
-    if args.theta0 is not None:  # read and checked before any work
-        from ..inputs import read_theta
-
-        try:
-            theta, what = read_theta(args.theta0, system.n)
-        except ValueError as err:
-            raise UsageError(str(err)) from None
-        start = tuple(float(x) for x in theta.to_vector())
+    given = _a.start_theta(args, system.n)
+    if given is not None:
+        start, what = given
         if args.resume and kept.get("theta0", start) != start:
             raise UsageError(f"--theta0 {args.theta0} with --resume: the run in {args.out} "
                              "started from another theta; expected the same or no --theta0")

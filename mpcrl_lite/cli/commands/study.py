@@ -109,15 +109,10 @@ def run(args: argparse.Namespace) -> int:
             base[f"learning.{field}"] = getattr(args, field)
     if args.reset_momentum_at_bounds:  # a switch: False is "not given"
         base["learning.reset_momentum_at_bounds"] = True
-    if args.theta0 is not None:  # read and checked before any work
-        from ..inputs import read_theta
-
-        n = int(base.get("system.n", _a.SYSTEM.n))
-        try:
-            theta, what = read_theta(args.theta0, n)
-        except ValueError as err:
-            raise UsageError(str(err)) from None
-        base["learning.theta0"] = [float(x) for x in theta.to_vector()]
+    given = _a.start_theta(args, int(base.get("system.n", _a.SYSTEM.n)))
+    if given is not None:
+        start, what = given
+        base["learning.theta0"] = list(start)
         if not args.quiet:
             print(f"mpcrl_lite study: every run starts from {what}", file=sys.stderr)
     prices = _a.month_prices(args, _a.SYSTEM, args.days)  # checked before any work
