@@ -8,7 +8,12 @@ true system), once with :class:`~mpcrl_lite.mpc.backends.kernel.KernelSolver` an
 timed: ``solve_batch`` + ``sensitivity`` of every hour. Where the size has a copy of the
 kernels compiled for it (:data:`~mpcrl_lite.mpc.backends.kernel_sizes.SPECIALISED_SIZES`, the
 paper's), the generic kernels run too (``kernel_generic_*``, ``specialised_speedup_cpu``:
-generic / specialised CPU, ``specialised_same_bits``: the same actions and sensitivities). Reported per problem (one day-hour)
+generic / specialised CPU, ``specialised_same_bits``: the same actions and sensitivities);
+where the factorisation is ``stage`` the same kernels also run on one thread, four problems
+at once as by default (``kernel_one_thread_*``: their CPU without a second thread waiting
+between calls) and one problem after the other (``kernel_each_*``; ``lanes_speedup_cpu``: one
+at a time / four at once, both on one thread; ``lanes_same_bits``).
+Reported per problem (one day-hour)
 in microseconds, wall (``time.perf_counter``) and CPU (``time.process_time``), the median
 over ``--repeats`` runs (and, ``*_min``, the least contended run: on a shared machine the
 closest figure to an idle one), the ratio batch / kernel from the same run, the largest
@@ -111,6 +116,16 @@ def bench(n: int, N: int, hours: int, days: int, repeats: int) -> dict:
     solvers = {"kernel": kernel, "batch": batch}
     if (n, N) in SPECIALISED_SIZES:
         solvers["kernel_generic"] = generic
+    if kernel.method == "stage":
+        # the same kernels solving one problem after the other (no lanes; the same bits)
+        each = KernelSolver(mpc, config)
+        each.lanes = False
+        each.threads = 1
+        solvers["kernel_each"] = each
+        # the default kernels on one thread: their CPU without a second thread's waiting
+        one = KernelSolver(mpc, config)
+        one.threads = 1
+        solvers["kernel_one_thread"] = one
     for solver in solvers.values():
         closed_loop(solver, system, prices, 1, 0)  # first calls (caches, allocations)
     runs = {name: [] for name in solvers}
@@ -145,6 +160,15 @@ def bench(n: int, N: int, hours: int, days: int, repeats: int) -> dict:
         g = runs["kernel_generic"][-1]
         out["specialised_same_bits"] = bool(np.array_equal(g["action"], k["action"])
                                             and np.array_equal(g["grad"], k["grad"]))
+    if "kernel_each" in runs:
+        # what solving four problems at once saves (same results bit for bit)
+        out["lanes_speedup_cpu"] = (out["kernel_each_cpu_us_per_problem"]
+                                    / out["kernel_one_thread_cpu_us_per_problem"])
+        out["lanes_speedup_cpu_min"] = (out["kernel_each_cpu_us_per_problem_min"]
+                                        / out["kernel_one_thread_cpu_us_per_problem_min"])
+        e = runs["kernel_each"][-1]
+        out["lanes_same_bits"] = bool(np.array_equal(e["action"], k["action"])
+                                      and np.array_equal(e["grad"], k["grad"]))
     out["max_action_diff"] = float(np.max(np.abs(k["action"] - b["action"])))
     scale = np.maximum(np.abs(b["grad"]).max(axis=-2, keepdims=True), 1e-300)
     out["max_sens_diff_column_relative"] = float(np.max(np.abs(k["grad"] - b["grad"]) / scale))
@@ -188,6 +212,13 @@ def main(argv: list[str] | None = None) -> int:
         "kernel_generic_cpu_us_per_problem": main_row.get("kernel_generic_cpu_us_per_problem"),
         "specialised_speedup_cpu": main_row.get("specialised_speedup_cpu"),
         "specialised_same_bits": main_row.get("specialised_same_bits"),
+        "kernel_one_thread_cpu_us_per_problem":
+            main_row.get("kernel_one_thread_cpu_us_per_problem"),
+        "kernel_one_thread_cpu_us_per_problem_min":
+            main_row.get("kernel_one_thread_cpu_us_per_problem_min"),
+        "kernel_each_cpu_us_per_problem": main_row.get("kernel_each_cpu_us_per_problem"),
+        "lanes_speedup_cpu": main_row.get("lanes_speedup_cpu"),
+        "lanes_same_bits": main_row.get("lanes_same_bits"),
         "sizes": rows,
         "warm_up_s": compile_s,
         "total_s": time.perf_counter() - t0,

@@ -150,7 +150,8 @@ def test_a_large_call_goes_to_numbas_threads_in_one_compiled_call(mpc, monkeypat
     sol = solver._solve_parameters(P, None)
     solver.sensitivity(sol)
     solver._solve_parameters(P[:15], None)
-    assert calls == [("solve_rows_parallel", (0, 17, 9)), ("sensitivity_rows_parallel", (0, 17, 9)),
+    # blocks of whole groups of four: ceil(17 / 2) = 9 rounded up to 12
+    assert calls == [("solve_rows_parallel", (0, 17, 12)), ("sensitivity_rows_parallel", (0, 17, 12)),
                      ("solve_rows", (0, 15))]
 
 

@@ -85,7 +85,7 @@ SOLVER_LAYER = {
                            "mpc.solution", "theta"},
     "mpc.backends.ipopt": {"config", "mpc.formulation", "mpc.sensitivity", "mpc.solution",
                            "theta", "_util.lazy"},
-    "mpc.backends.kernel_core": {"_util", "_util.jit"},
+    "mpc.backends.kernel_core": {"_util", "_util.jit", "_util.vec4"},
     "mpc.backends.kernel_sizes": set(),  # imports kernel_core (or its copy) by name
     "mpc.backends.kernel": {"mpc.backends.kernel_core", "mpc.backends.kernel_sizes", "config", "mpc.formulation",
                             "mpc.solution", "theta", "_util.lazy", "_util.threads",

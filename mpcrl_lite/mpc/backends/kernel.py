@@ -1,4 +1,4 @@
-r"""The barrier interior point compiled with numba: one problem at a time, no numpy overhead.
+r"""The barrier interior point compiled with numba; problems of few agents four at a time.
 
 :class:`KernelSolver` is a drop-in replacement for
 :class:`~mpcrl_lite.mpc.backends.batch.BatchSolver`: it runs *the same iteration* on the same
@@ -11,10 +11,16 @@ in compiled loops with the structure of the KKT system spelled out (slack variab
 ``soc``, ``b`` and ``s`` eliminated in closed form, the per-stage grid coupling inverted
 exactly, a block-tridiagonal factorisation in the multipliers for few agents and the batch
 solver's grid Schur complement for many; see :mod:`mpcrl_lite.mpc.backends.kernel_core`).
+With the block-tridiagonal factorisation (few agents, the paper's sizes) the kernels take four
+problems side by side, each quantity of the four held in one vector register, with each
+problem's operations those it would have alone: the results are the same bits as one at a time
+(:attr:`KernelSolver.lanes`).
 
 Compilation and its cache
 -------------------------
-The kernels are compiled once per machine (about a minute of CPU) and cached on disk by
+The kernels are compiled once per machine (about four minutes of CPU for the generic kernels
+and the copies for the paper's sizes; ``python -m mpcrl_lite.cli.warm`` compiles them on two
+cores in about two) and cached on disk by
 numba (``@njit(cache=True)``); later processes load them in about a second. Fill the cache
 ahead of time with ``python -m mpcrl_lite.cli.warm`` (the Makefile's ``setup``
 does) or :func:`warm_up`. A process that finds no cache logs one line (WARNING) before it
@@ -35,9 +41,10 @@ cores; at most one thread per :data:`THREAD_MIN_PROBLEMS` problems, so small cal
 calling thread, and the learning months' 30 problems go to two). In the process that was
 started, one compiled call hands a block of problems to each of numba's threads
 (``kernel_core.solve_rows_parallel``); in a forked child, where numba's OpenMP threads cannot
-be used, Python threads take blocks of :data:`THREAD_BLOCK` problems in turn. Either way each
-problem is solved alone by the same compiled code without the GIL: the results do not depend
-on the thread count, bit for bit.
+be used, Python threads take blocks of :data:`THREAD_BLOCK` problems in turn. Either way the
+blocks are whole groups of four where they can be (the kernels solve four problems side by
+side, each with the operations it would have alone: ``kernel_core``'s "Four problems at
+once"), without the GIL: the results do not depend on the thread count, bit for bit.
 
 Sizes fixed at compile time
 ---------------------------
@@ -122,8 +129,9 @@ _KKT_CHECK_TOL = 1e-9  # relative KKT residual of the formulation check at const
 # once, no refinement; ~10x faster at n = 100) instead of column by column with refinement
 _STRUCTURED_MIN_N = 16
 #: problems per thread below which a call stays on one thread. A problem of the paper's size
-#: costs about 29 us to solve and 11 us for its sensitivity, starting numba's second thread
-#: some ten: with 8 the learning months' calls (30 problems) use two threads (a call alone:
+#: costs about 14 us to solve and 5 us for its sensitivity (four at a time; 27 and 11 one at
+#: a time), starting numba's second thread some ten: with 8 the learning months' calls (30
+#: problems) use two threads (a call alone:
 #: about half the wall time of one at 1.05x its CPU; the 100-month `learn` command: 5-9 % less
 #: wall time at 1.5x the CPU, as the second thread idles or spins between calls;
 #: benchmarks/README.md), while single problems and small calls stay on one
@@ -193,8 +201,8 @@ class KernelSolver(StartSettings, BackendBase):
     #: or a number; at most one per :data:`THREAD_MIN_PROBLEMS` problems, so that calls on
     #: fewer than twice as many stay on the calling thread. A block of problems per numba
     #: thread in one compiled call (in a forked child: Python threads taking blocks of
-    #: :data:`THREAD_BLOCK` in turn). Each problem is solved alone by the same compiled code:
-    #: the results do not depend on the thread count (bit for bit). Only calls from the main
+    #: :data:`THREAD_BLOCK` in turn). A problem's results are the same bits in any block:
+    #: they do not depend on the thread count. Only calls from the main
     #: thread split.
     threads: int | None = None
     #: use the copy of the kernels compiled for this solver's sizes where there is one
@@ -202,6 +210,11 @@ class KernelSolver(StartSettings, BackendBase):
     #: N = 12): about 1.5x less CPU per problem, the same results bit for bit. Read at the
     #: first solve.
     specialise: bool = True
+    #: solve four problems at once, and form their sensitivities, where the factorisation is
+    #: ``'stage'`` (the paper's sizes: about half the CPU, the same results bit for bit;
+    #: ``kernel_core.solve_lanes``, ``kernel_core.sensitivity_lanes``); False takes one
+    #: problem after the other, as a reference for benchmarks and tests.
+    lanes: bool = True
 
     def __init__(self, mpc: MPC, config: MPCConfig | None = None, method: str = "auto") -> None:
         if method not in ("auto", "stage", "agent"):
@@ -358,7 +371,10 @@ class KernelSolver(StartSettings, BackendBase):
             getattr(kernels, rows)(*args, 0, days)
         elif multiprocessing.parent_process() is None:
             threads = kernels.set_threads(threads)
-            getattr(kernels, rows + "_parallel")(*args, 0, days, -(-days // threads))
+            # blocks of whole groups of four, which the kernels solve at once
+            block = -(-days // threads)
+            block = -(-block // kernels.LANES) * kernels.LANES
+            getattr(kernels, rows + "_parallel")(*args, 0, days, block)
         else:
             run_blocks(getattr(kernels, rows), args, days, threads, THREAD_BLOCK)
 
@@ -378,7 +394,7 @@ class KernelSolver(StartSettings, BackendBase):
         iters, status = np.empty(days, np.int64), np.empty(days, np.int64)
         args = (np.ascontiguousarray(P), x0, warm, opts, self._ubar, self._stagew, self.n,
                 self.N, self._method, x, lam, mu, cost, iters, status, action)
-        self._run("solve_rows", args, days)
+        self._run("solve_rows" if self.lanes else "solve_each", args, days)
         return BatchSolution(
             action=action, x=x, lam=lam, mu=mu, cost=cost,
             success=status == K.CONVERGED,
@@ -421,7 +437,7 @@ class KernelSolver(StartSettings, BackendBase):
         args = (P, rows(solution.x, m.nx), rows(solution.lam, m.neq), rows(solution.mu, m.nin),
                 success, self._opts(), self._ubar, self._stagew, self.n, self.N, self._method,
                 self.structured_adjoint, grad, dsoc, cond, back, code)
-        self._run("sensitivity_rows", args, days)
+        self._run("sensitivity_rows" if self.lanes else "sensitivity_each", args, days)
         # the rows' verdicts at once (a decentralized hour has days x batteries of them);
         # only the rows that are not ok get a reason
         formed = code == K.SENS_OK

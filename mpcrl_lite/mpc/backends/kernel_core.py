@@ -3,9 +3,10 @@ r"""Compiled (numba) kernels of :class:`~mpcrl_lite.mpc.backends.kernel.KernelSo
 The same barrier interior point as :class:`~mpcrl_lite.mpc.backends.batch.BatchSolver` (same start,
 Mehrotra predictor-corrector then pure Newton steps at ``t = tau``, same stopping rule, with
 or without its polishing step), run
-problem by problem in compiled loops: nothing here allocates inside the Newton iteration.
+problem by problem in compiled loops (or four problems side by side, below): nothing here
+allocates inside the Newton iteration.
 
-Why one module of ~1,300 lines: it is one algorithm (the start, the Newton iteration and its
+Why one module of ~2,500 lines: it is one algorithm (the start, the Newton iteration and its
 factorisations, the stopping rule and the KKT sensitivity of the same barrier problem) whose
 parts call each other inside compiled loops, and numba's on-disk cache checks only the source
 file of a compiled function, not the files of the functions it calls. Split over several files,
@@ -69,10 +70,29 @@ checks turn into a failure status, never an exception mid-run. Non-finite direct
 detected in :func:`_solve` (``0 * v`` is NaN exactly when ``v`` is not finite), the residual
 in :func:`_residual`.
 
+Four problems at once
+---------------------
+With the ``STAGE`` factorisation (the paper's sizes) :func:`solve_rows` and
+:func:`sensitivity_rows` take the problems four at a time (:func:`solve_lanes`,
+:func:`sensitivity_lanes`; the rest, and the ``AGENT`` factorisation, one at a time through
+:func:`solve_each`, :func:`sensitivity_each`). Every work array gets a last axis of four, one
+"lane" per problem, and the numerical parts hold the four entries of a quantity as one LLVM
+vector (:mod:`mpcrl_lite._util.vec4`), so that one vector instruction does the work of four
+scalar ones. Each lane sees the scalar code's operations in the same order (no fused
+multiply-adds, no reordered sums; numba's ``max`` and ``min`` reproduced), so a problem's
+results are the same bits whether it was solved alone or beside three others
+(``tests/mpc/test_kernel_lanes.py``). The decisions of the iteration (stopping, Mehrotra's
+target, a failed step, a refinement step of the sensitivity) are taken lane by lane; a lane
+that has finished keeps its values (its updates are masked) while the others go on, so a
+group costs as many iterations as its slowest problem (about 8 % more Newton iterations than
+one at a time on the learning months' problems). At n = 3, N = 12 the solve takes about half
+the CPU and the sensitivity about 0.4 of it (``benchmarks/README.md``).
+
 Threads
 -------
-Each problem of a batch is solved (and its sensitivity formed) alone, with work arrays reused
-from problem to problem but never read before written: :func:`solve_rows` and
+Each problem of a batch is solved (and its sensitivity formed) alone or in a group of four
+whose lanes do not mix, with work arrays reused from problem to problem but never read before
+written: :func:`solve_rows` and
 :func:`sensitivity_rows` run a range of the problems without the GIL, so that
 :class:`~mpcrl_lite.mpc.backends.kernel.KernelSolver` can spread a large batch over threads,
 with the results of the one-thread call bit for bit: :func:`solve_rows_parallel` and
@@ -95,6 +115,7 @@ from numba import prange
 
 from ..._util import jit
 from ..._util.jit import njit_cached
+from ..._util.vec4 import LANES, vabs, vload, vmax, vmin, vsplat, vstore, where_gt, where_lt
 
 log = logging.getLogger("mpcrl_lite.mpc.backends.kernel")
 
@@ -877,7 +898,7 @@ def _data_arrays(n, N):
 
 @_nogil
 def solve_rows(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu_out,
-                cost_out, iters_out, status_out, action_out, d_lo, d_hi):
+               cost_out, iters_out, status_out, action_out, d_lo, d_hi):
     """Solve the problems ``P[d]``, ``d_lo <= d < d_hi`` (``MPC.parameters`` layout); results
     in the mpc's orderings, written into row ``d`` of the outputs.
 
@@ -885,8 +906,28 @@ def solve_rows(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu
     when ``warm``. Writes ``x_out``, ``lam_out``, ``mu_out``, ``cost_out``, ``iters_out``,
     ``status_out`` (``CONVERGED``, ``MAX_ITER``, ``NON_FINITE`` or ``BREAKDOWN``) and
     ``action_out`` (``b_0 - s_0`` where converged, else 0). With work arrays of its own and
-    without the GIL: blocks of problems may run on several threads at once (each problem is
-    solved alone, so the results do not depend on the blocks, bit for bit)."""
+    without the GIL: blocks of problems may run on several threads at once.
+
+    With the ``STAGE`` factorisation, four problems at a time go through :func:`solve_lanes`
+    (a last three too, as a group filled up to four; one or two left over, and every ``AGENT``
+    problem, through :func:`solve_each`). Both do the same
+    operations on each problem, so a problem's results are the same bits whichever solves it,
+    and they do not depend on the blocks or the threads."""
+    lo = d_lo
+    if method == STAGE and d_hi - d_lo >= LANES - 1:
+        lo = d_lo + (d_hi - d_lo) // LANES * LANES
+        if d_hi - lo == LANES - 1:  # three problems: one padded group is cheaper
+            lo = d_hi
+        solve_lanes(P, x0, warm, opts, ubar, stagew, n, N, x_out, lam_out, mu_out, cost_out,
+                    iters_out, status_out, action_out, d_lo, lo)
+    solve_each(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu_out,
+               cost_out, iters_out, status_out, action_out, lo, d_hi)
+
+
+@_jit
+def solve_each(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu_out,
+               cost_out, iters_out, status_out, action_out, d_lo, d_hi):
+    """:func:`solve_rows` one problem after the other (either factorisation)."""
     n, N = _dims(n, N)
     (X, dX, base, r1, L, dL, rp, r2, rsp, Mu, S, IS, D, dS, dMu, Cr, R, F, FG, SI, AW, TI, MC,
      MS, w, wg) = _work(n, N, method)
@@ -988,6 +1029,710 @@ def solve_rows(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu
         status_out[d] = status
         for i in range(n):
             action_out[d, i] = X[0, i, 0] - X[1, i, 0] if status == CONVERGED else 0.0
+
+
+# -------------------------------------------------------------- four problems at once ----
+# The STAGE solve of :func:`solve_each` on four problems side by side. Every work array gets a
+# last axis of four (one entry per problem, its "lane"), and the hot parts (residual,
+# factorisation, directions, steps to the boundary, the updates) hold the four entries of a
+# quantity as one vector value (:mod:`mpcrl_lite._util.vec4`): each line is then one vector
+# instruction for four problems where :func:`solve_each` spends one scalar instruction per
+# problem. Each lane sees the operations of :func:`solve_each` in the same order, so its bits
+# are those of solving the problem alone (``tests/mpc/test_kernel_lanes.py``). The
+# per-problem decisions (stopping, Mehrotra's target, a failed step) are taken lane by lane
+# in scalar code; a lane that has stopped keeps its iterate (its updates are masked) while the
+# others go on, so the four cost as many iterations as the slowest of them.
+@_inline
+def _x5(g, i, j, n, N):
+    """Flat offset of entry ``[g, i, j, 0]`` of a ``(G, n, N, 4)`` lane array."""
+    return ((g * n + i) * N + j) * LANES
+
+
+@_inline
+def _ij(i, j, N):
+    """Flat offset of ``[i, j, 0]`` of an ``(n, N, 4)`` lane array."""
+    return (i * N + j) * LANES
+
+
+@_inline
+def _si(j, i, k, n):
+    """Flat offset of ``[j, i, k, 0]`` of the ``(N, n, n, 4)`` lane array ``SI``."""
+    return ((j * n + i) * n + k) * LANES
+
+
+@_jit
+def _lanes_data(P, rows, n, N, stagew, opts, soc0, alpha, delta, qb, qs, hsoc, qsoc, e,
+                scale_out, c_out):
+    """:func:`_problem_data` of the problems ``P[rows[l]]``, lane ``l``, into lane arrays."""
+    th = n + 2 * N
+    hi, lo = opts[O_HI], opts[O_LO]
+    sum_w = 0.0
+    for j in range(N):
+        sum_w += stagew[W_WSOC, j]
+    for l in range(LANES):
+        p = P[rows[l]]
+        c = 0.0
+        scale = 0.0
+        sum_phi3 = 0.0
+        sum_t3 = 0.0
+        for i in range(n):
+            soc0[i, l] = p[i]
+            alpha[i, l] = p[th + i]
+            delta[i, l] = p[th + n + i]
+            tb, ts = p[th + 2 * n + i], p[th + 3 * n + i]
+            phi1, phi2, phi3 = p[th + 4 * n + i], p[th + 5 * n + i], p[th + 6 * n + i]
+            t1, t2, t3 = p[th + 7 * n + i], p[th + 8 * n + i], p[th + 9 * n + i]
+            sum_phi3 += phi3
+            sum_t3 += t3
+            s0 = soc0[i, l]
+            c += phi1 * s0 ** 2 + phi2 * s0 + phi3
+            c += opts[O_OM_HI] * max(s0 - hi, 0.0) + opts[O_OM_LO] * max(lo - s0, 0.0)
+            for j in range(N):
+                disc = stagew[W_DISC, j]
+                vb = disc * (p[n + j] + tb)
+                vs = -disc * (p[n + N + j] + ts)
+                qb[i, j, l] = vb
+                qs[i, j, l] = vs
+                scale = max(scale, abs(vb), abs(vs))
+                wsoc, term = stagew[W_WSOC, j], stagew[W_TERM, j]
+                hsoc[i, j, l] = 2.0 * (phi1 * wsoc + t1 * term)
+                qsoc[i, j, l] = phi2 * wsoc + t2 * term
+                e[i, j, l] = delta[i, l]
+            e[i, 0, l] += s0
+        c += sum_w * sum_phi3 + sum_t3
+        scale_out[l] = 1.0 + scale
+        c_out[l] = c
+
+
+@_jit
+def _lanes_start(soc0, alpha, delta, hsoc, qsoc, x0, rows, warm, opts, U, scale, X, L, Mu,
+                 S):
+    """:func:`_initial_point` (with :func:`_slacks`) of each lane, from ``x0[rows[l]]`` when
+    ``warm``."""
+    n, N = _dims(L.shape[0], L.shape[1])
+    nN = n * N
+    P, hi, lo = opts[O_P], opts[O_HI], opts[O_LO]
+    cap_min = np.inf
+    for i in range(n):
+        cap_min = min(cap_min, min(U[i], P / n))
+    sm = opts[O_SLACK_MARGIN]
+    t0_l = np.empty(LANES)
+    for l in range(LANES):
+        if not warm:
+            for v in range(2):
+                for i in range(n):
+                    u0 = opts[O_U0] * min(U[i], P / n)
+                    for j in range(N):
+                        X[v, i, j, l] = u0
+            t0 = opts[O_T0_COLD] * scale[l]
+        else:
+            xw = x0[rows[l]]
+            margin = opts[O_WARM_MARGIN] * cap_min
+            wgt = opts[O_WARM_WEIGHT]
+            for v in range(2):
+                for i in range(n):
+                    u0 = opts[O_U0] * min(U[i], P / n)
+                    for j in range(N):
+                        val = xw[j * 5 * n + v * n + i]
+                        if not math.isfinite(val):
+                            val = margin
+                        val = min(max(val, margin), U[i] - margin)
+                        X[v, i, j, l] = wgt * val + (1.0 - wgt) * u0
+            cap = P - n * margin
+            for v in range(2):
+                for j in range(N):
+                    tot = 0.0
+                    for i in range(n):
+                        tot += X[v, i, j, l]
+                    if tot > cap:
+                        f = cap / tot
+                        for i in range(n):
+                            X[v, i, j, l] *= f
+            t0 = opts[O_T0_WARM] * scale[l]
+        for i in range(n):
+            soc = soc0[i, l]
+            for j in range(N):
+                soc += alpha[i, l] * (X[0, i, j, l] - X[1, i, j, l]) + delta[i, l]
+                X[2, i, j, l] = soc
+                X[3, i, j, l] = max(soc - hi, 0.0) + sm
+                X[4, i, j, l] = max(lo - soc, 0.0) + sm
+        t0_l[l] = t0
+    _lanes_slacks(X, U, P, hi, lo, S)
+    for l in range(LANES):
+        t0 = t0_l[l]
+        for k in range(S.shape[0]):
+            Mu[k, l] = t0 / S[k, l]
+        for i in range(n):
+            acc = 0.0
+            for j in range(N - 1, -1, -1):
+                k = i * N + j
+                acc += hsoc[i, j, l] * X[2, i, j, l] + qsoc[i, j, l] + Mu[4 * nN + k, l] \
+                    - Mu[5 * nN + k, l]
+                L[i, j, l] = -acc
+
+
+@_jit
+def _lanes_slacks(X, U, P, hi, lo, S):
+    """:func:`_slacks` of the four lanes (``X`` (5, n, N, 4), ``S`` (m, 4))."""
+    n, N = _dims(X.shape[1], X.shape[2])
+    nN = n * N
+    for i in range(n):
+        u = U[i]
+        for j in range(N):
+            k = i * N + j
+            b, s, soc = (vload(X, _x5(0, i, j, n, N)), vload(X, _x5(1, i, j, n, N)),
+                         vload(X, _x5(2, i, j, n, N)))
+            shi, slo = vload(X, _x5(3, i, j, n, N)), vload(X, _x5(4, i, j, n, N))
+            vstore(S, k * LANES, b)
+            vstore(S, (nN + k) * LANES, u - b)
+            vstore(S, (2 * nN + k) * LANES, s)
+            vstore(S, (3 * nN + k) * LANES, u - s)
+            vstore(S, (4 * nN + k) * LANES, (shi - soc) + hi)
+            vstore(S, (5 * nN + k) * LANES, (soc + slo) - lo)
+            vstore(S, (6 * nN + k) * LANES, shi)
+            vstore(S, (7 * nN + k) * LANES, slo)
+    for j in range(N):
+        tb = vsplat(0.0)
+        ts = vsplat(0.0)
+        for i in range(n):
+            tb = tb + vload(X, _x5(0, i, j, n, N))
+            ts = ts + vload(X, _x5(1, i, j, n, N))
+        vstore(S, (8 * nN + j) * LANES, P - tb)
+        vstore(S, (8 * nN + N + j) * LANES, P - ts)
+
+
+@_jit
+def _lanes_residual(X, L, Mu, S, alpha, qb, qs, hsoc, qsoc, stagew, e, opts, U, scale, base,
+                    rp, out):
+    """:func:`_residual` of the four lanes: ``out[:4]`` the residual before its finiteness
+    checks, ``out[4:8]`` ``sum(mu S)``, ``out[8:12]`` the non-finite check (0 where
+    finite)."""
+    n, N = _dims(L.shape[0], L.shape[1])
+    nN = n * N
+    go = 8 * nN
+    P, hi, lo, tau = opts[O_P], opts[O_HI], opts[O_LO], opts[O_TAU]
+    zero = vsplat(0.0)
+    ed = zero
+    ep = zero
+    ec = zero
+    comp = zero
+    check = zero
+    for j in range(N):
+        tb = zero
+        ts = zero
+        for i in range(n):
+            tb = tb + vload(X, _x5(0, i, j, n, N))
+            ts = ts + vload(X, _x5(1, i, j, n, N))
+        sb = P - tb
+        ss = P - ts
+        vstore(S, (go + j) * LANES, sb)
+        vstore(S, (go + N + j) * LANES, ss)
+        c = vload(Mu, (go + j) * LANES) * sb
+        comp = comp + c
+        ec = vmax(ec, vabs(c - tau))
+        c = vload(Mu, (go + N + j) * LANES) * ss
+        comp = comp + c
+        ec = vmax(ec, vabs(c - tau))
+    for i in range(n):
+        a = vload(alpha, i * LANES)
+        u = U[i]
+        for j in range(N):
+            k = i * N + j
+            b, sl = vload(X, _x5(0, i, j, n, N)), vload(X, _x5(1, i, j, n, N))
+            soc, shi, slo = (vload(X, _x5(2, i, j, n, N)), vload(X, _x5(3, i, j, n, N)),
+                             vload(X, _x5(4, i, j, n, N)))
+            s_g = (b, u - b, sl, u - sl, (shi - soc) + hi, (soc + slo) - lo, shi, slo)
+            mu_g = (vload(Mu, k * LANES), vload(Mu, (nN + k) * LANES),
+                    vload(Mu, (2 * nN + k) * LANES), vload(Mu, (3 * nN + k) * LANES),
+                    vload(Mu, (4 * nN + k) * LANES), vload(Mu, (5 * nN + k) * LANES),
+                    vload(Mu, (6 * nN + k) * LANES), vload(Mu, (7 * nN + k) * LANES))
+            for g in range(8):
+                vstore(S, (g * nN + k) * LANES, s_g[g])
+                c = mu_g[g] * s_g[g]
+                comp = comp + c
+                ec = vmax(ec, vabs(c - tau))
+            Lij = vload(L, _ij(i, j, N))
+            aL = a * Lij
+            b0 = vload(qb, _ij(i, j, N)) - aL
+            b1 = vload(qs, _ij(i, j, N)) + aL
+            b2 = vload(hsoc, _ij(i, j, N)) * soc + vload(qsoc, _ij(i, j, N)) + Lij
+            if j < N - 1:
+                b2 = b2 - vload(L, _ij(i, j + 1, N))
+            qshi, qslo = stagew[W_QSHI, j], stagew[W_QSLO, j]
+            vstore(base, _x5(0, i, j, n, N), b0)
+            vstore(base, _x5(1, i, j, n, N), b1)
+            vstore(base, _x5(2, i, j, n, N), b2)
+            vstore(base, _x5(3, i, j, n, N), vsplat(qshi))
+            vstore(base, _x5(4, i, j, n, N), vsplat(qslo))
+            m4, m5 = mu_g[4], mu_g[5]
+            d0 = b0 + (vload(Mu, (go + j) * LANES) - (mu_g[0] - mu_g[1]))
+            d1 = b1 + (vload(Mu, (go + N + j) * LANES) - (mu_g[2] - mu_g[3]))
+            d2 = b2 + (m4 - m5)
+            d3 = qshi - (m4 + mu_g[6])
+            d4 = qslo - (m5 + mu_g[7])
+            ed = vmax(vmax(vmax(vmax(vmax(ed, vabs(d0)), vabs(d1)), vabs(d2)), vabs(d3)),
+                      vabs(d4))
+            r = soc - a * (b - sl)
+            if j > 0:
+                r = r - vload(X, _x5(2, i, j - 1, n, N))
+            r = r - vload(e, _ij(i, j, N))
+            vstore(rp, _ij(i, j, N), r)
+            ep = vmax(ep, vabs(r))
+            check = check + 0.0 * (d0 + d1 + d2 + d3 + d4 + r)
+    vstore(out, 0, vmax(vmax(ed, ec) / vload(scale, 0), ep))
+    vstore(out, LANES, comp)
+    vstore(out, 2 * LANES, check)
+
+
+@_jit
+def _lanes_factor(S, Mu, IS, D, alpha, hsoc, F, FG, SI, A, dv, out):
+    """:func:`_factor` with :func:`_factor_stage` of the four lanes; ``out[:4]`` 1 where
+    every ``Sigma_j`` was positive definite, else 0 (``A``, ``dv`` scratch)."""
+    n, N = _dims(alpha.shape[0], FG.shape[1])
+    nN = n * N
+    go = 8 * nN
+    one = vsplat(1.0)
+    zero = vsplat(0.0)
+    inf = vsplat(np.inf)
+    for k in range(S.shape[0]):
+        inv = 1.0 / vload(S, k * LANES)
+        vstore(IS, k * LANES, inv)
+        vstore(D, k * LANES, vload(Mu, k * LANES) * inv)
+    for i in range(n):
+        a = vload(alpha, i * LANES)
+        for j in range(N):
+            k = i * N + j
+            d4, d5 = vload(D, (4 * nN + k) * LANES), vload(D, (5 * nN + k) * LANES)
+            d6, d7 = vload(D, (6 * nN + k) * LANES), vload(D, (7 * nN + k) * LANES)
+            whi, wlo = d4 + d6, d5 + d7
+            wb = vload(D, k * LANES) + vload(D, (nN + k) * LANES)
+            ws = vload(D, (2 * nN + k) * LANES) + vload(D, (3 * nN + k) * LANES)
+            inv = 1.0 / (whi * wlo)
+            ishi, islo = wlo * inv, whi * inv
+            inv = 1.0 / (wb * ws)
+            vb, vs = ws * inv, wb * inv
+            c4 = d4 * ishi
+            c5 = d5 * islo
+            vstore(F, _x5(F_ISHI, i, j, n, N), ishi)
+            vstore(F, _x5(F_ISLO, i, j, n, N), islo)
+            vstore(F, _x5(F_C4, i, j, n, N), c4)
+            vstore(F, _x5(F_C5, i, j, n, N), c5)
+            vstore(F, _x5(F_V, i, j, n, N),
+                   1.0 / (vload(hsoc, _ij(i, j, N)) + c4 * d6 + c5 * d7))
+            vstore(F, _x5(F_VB, i, j, n, N), vb)
+            vstore(F, _x5(F_VS, i, j, n, N), vs)
+            vstore(F, _x5(F_BB, i, j, n, N), a * vb)
+            vstore(F, _x5(F_BS, i, j, n, N), a * vs)
+    for j in range(N):
+        svb = zero
+        svs = zero
+        for i in range(n):
+            svb = svb + vload(F, _x5(F_VB, i, j, n, N))
+            svs = svs + vload(F, _x5(F_VS, i, j, n, N))
+        db, ds = vload(D, (go + j) * LANES), vload(D, (go + N + j) * LANES)
+        vstore(FG, _ij(G_SVB, j, N), svb)
+        vstore(FG, _ij(G_SVS, j, N), svs)
+        vstore(FG, _ij(G_DB, j, N), db)
+        vstore(FG, _ij(G_DS, j, N), ds)
+        vstore(FG, _ij(G_KB, j, N), db / (1.0 + db * svb))
+        vstore(FG, _ij(G_KS, j, N), ds / (1.0 + ds * svs))
+    ok = one
+    for j in range(N):
+        kb, ks = vload(FG, _ij(G_KB, j, N)), vload(FG, _ij(G_KS, j, N))
+        for i in range(n):
+            bbi, bsi = vload(F, _x5(F_BB, i, j, n, N)), vload(F, _x5(F_BS, i, j, n, N))
+            for k in range(i + 1):
+                vstore(A, (i * n + k) * LANES,
+                       -(kb * bbi * vload(F, _x5(F_BB, k, j, n, N))
+                         + ks * bsi * vload(F, _x5(F_BS, k, j, n, N))))
+            vstore(A, (i * n + i) * LANES, vload(A, (i * n + i) * LANES) + (
+                vload(F, _x5(F_V, i, j, n, N)) + vload(alpha, i * LANES) * (bbi + bsi)))
+        if j > 0:
+            for i in range(n):
+                vi = vload(F, _x5(F_V, i, j - 1, n, N))
+                vstore(A, (i * n + i) * LANES, vload(A, (i * n + i) * LANES) + vi)
+                for k in range(i + 1):
+                    vstore(A, (i * n + k) * LANES, vload(A, (i * n + k) * LANES)
+                           - vi * vload(SI, _si(j - 1, i, k, n))
+                           * vload(F, _x5(F_V, k, j - 1, n, N)))
+        for k in range(n):
+            dk = vload(A, (k * n + k) * LANES)
+            for q in range(k):
+                akq = vload(A, (k * n + q) * LANES)
+                dk = dk - akq * akq * vload(dv, q * LANES)
+            # :func:`_factor_stage` stops at a pivot that is not > 0 and finite
+            ok = where_gt(dk, zero, ok, zero)
+            ok = where_lt(vabs(dk), inf, ok, zero)
+            vstore(dv, k * LANES, dk)
+            inv = 1.0 / dk
+            for i in range(k + 1, n):
+                v = vload(A, (i * n + k) * LANES)
+                for q in range(k):
+                    v = v - vload(A, (i * n + q) * LANES) * vload(A, (k * n + q) * LANES) \
+                        * vload(dv, q * LANES)
+                vstore(A, (i * n + k) * LANES, v * inv)
+            vstore(dv, (n + k) * LANES, inv)
+        for c in range(n):
+            vstore(A, (c * n + c) * LANES, one)
+            for i in range(c + 1, n):
+                v = -vload(A, (i * n + c) * LANES)
+                for q in range(c + 1, i):
+                    v = v - vload(A, (i * n + q) * LANES) * vload(A, (q * n + c) * LANES)
+                vstore(A, (i * n + c) * LANES, v)
+        for i in range(n):
+            for k in range(i + 1):
+                v = zero
+                for q in range(i, n):
+                    v = v + vload(A, (q * n + i) * LANES) * vload(dv, (n + q) * LANES) \
+                        * vload(A, (q * n + k) * LANES)
+                vstore(SI, _si(j, i, k, n), v)
+                vstore(SI, _si(j, k, i, n), v)
+    vstore(out, 0, ok)
+
+
+@_jit
+def _lanes_solve(r1, r2, dx, dl, alpha, F, FG, SI, rsp, w, out):
+    """:func:`_solve` (``STAGE``: :func:`_solve_stage`, :func:`_grid_block`) of the four
+    lanes; ``out[:4]`` 0 where the result is finite."""
+    n, N = _dims(alpha.shape[0], r2.shape[1])
+    zero = vsplat(0.0)
+    one = vsplat(1.0)
+    for i in range(n):
+        for j in range(N):
+            vstore(rsp, _ij(i, j, N), vload(r1, _x5(2, i, j, n, N))
+                   + vload(F, _x5(F_C4, i, j, n, N)) * vload(r1, _x5(3, i, j, n, N))
+                   - vload(F, _x5(F_C5, i, j, n, N)) * vload(r1, _x5(4, i, j, n, N)))
+    for j in range(N):
+        kb, ks = vload(FG, _ij(G_KB, j, N)), vload(FG, _ij(G_KS, j, N))
+        tb = zero
+        ts = zero
+        for i in range(n):
+            tb = tb + vload(F, _x5(F_VB, i, j, n, N)) * vload(r1, _x5(0, i, j, n, N))
+            ts = ts + vload(F, _x5(F_VS, i, j, n, N)) * vload(r1, _x5(1, i, j, n, N))
+        for i in range(n):
+            wb = vload(F, _x5(F_VB, i, j, n, N)) * (vload(r1, _x5(0, i, j, n, N)) - kb * tb)
+            ws = vload(F, _x5(F_VS, i, j, n, N)) * (vload(r1, _x5(1, i, j, n, N)) - ks * ts)
+            rho = vload(F, _x5(F_V, i, j, n, N)) * vload(rsp, _ij(i, j, N)) \
+                - vload(r2, _ij(i, j, N)) - vload(alpha, i * LANES) * (wb - ws)
+            if j > 0:
+                rho = rho + vload(F, _x5(F_V, i, j - 1, n, N)) * (
+                    vload(dl, _ij(i, j - 1, N)) - vload(rsp, _ij(i, j - 1, N)))
+            vstore(w, i * LANES, rho)
+        for i in range(n):
+            v = zero
+            for k in range(n):
+                v = v + vload(SI, _si(j, i, k, n)) * vload(w, k * LANES)
+            vstore(dl, _ij(i, j, N), v)
+    for j in range(N - 2, -1, -1):
+        for k in range(n):
+            vstore(w, k * LANES, vload(F, _x5(F_V, k, j, n, N)) * vload(dl, _ij(k, j + 1, N)))
+        for i in range(n):
+            v = vload(dl, _ij(i, j, N))
+            for k in range(n):
+                v = v + vload(SI, _si(j, i, k, n)) * vload(w, k * LANES)
+            vstore(dl, _ij(i, j, N), v)
+    for j in range(N):
+        for v in range(2):
+            fv = F_VB if v == 0 else F_VS
+            sgn = 1.0 if v == 0 else -1.0
+            kap = vload(FG, _ij(G_KB + v, j, N))
+            t = zero
+            for i in range(n):
+                t = t + vload(F, _x5(fv, i, j, n, N)) * (
+                    vload(r1, _x5(v, i, j, n, N))
+                    + sgn * vload(alpha, i * LANES) * vload(dl, _ij(i, j, N)))
+            tot = zero
+            for i in range(n):
+                d = vload(F, _x5(fv, i, j, n, N)) * (
+                    vload(r1, _x5(v, i, j, n, N))
+                    + sgn * vload(alpha, i * LANES) * vload(dl, _ij(i, j, N)) - kap * t)
+                vstore(dx, _x5(v, i, j, n, N), d)
+                tot = tot + d
+            # the exact flow where the grid limit is hard (:func:`_grid_block`), per lane
+            dgsv = vload(FG, _ij(G_DB + v, j, N)) * vload(FG, _ij(G_SVB + v, j, N))
+            delta = (t / (1.0 + dgsv) - tot) / vload(FG, _ij(G_SVB + v, j, N))
+            for i in range(n):
+                d = vload(dx, _x5(v, i, j, n, N))
+                vstore(dx, _x5(v, i, j, n, N),
+                       where_gt(dgsv, one, d + vload(F, _x5(fv, i, j, n, N)) * delta, d))
+    check = zero
+    for i in range(n):
+        for j in range(N):
+            dsoc = vload(rsp, _ij(i, j, N)) - vload(dl, _ij(i, j, N))
+            if j < N - 1:
+                dsoc = dsoc + vload(dl, _ij(i, j + 1, N))
+            dsoc = dsoc * vload(F, _x5(F_V, i, j, n, N))
+            vstore(dx, _x5(2, i, j, n, N), dsoc)
+            vstore(dx, _x5(3, i, j, n, N), vload(F, _x5(F_ISHI, i, j, n, N))
+                   * vload(r1, _x5(3, i, j, n, N)) + vload(F, _x5(F_C4, i, j, n, N)) * dsoc)
+            vstore(dx, _x5(4, i, j, n, N), vload(F, _x5(F_ISLO, i, j, n, N))
+                   * vload(r1, _x5(4, i, j, n, N)) - vload(F, _x5(F_C5, i, j, n, N)) * dsoc)
+            check = check + 0.0 * (dsoc + vload(dx, _x5(0, i, j, n, N))
+                                   + vload(dx, _x5(1, i, j, n, N)) + vload(dl, _ij(i, j, N)))
+    vstore(out, 0, check)
+
+
+@_inline
+def _lanes_to_boundary(x, dx):
+    """:func:`_to_boundary` of the four lanes (the same four chains of minima)."""
+    m = x.shape[0]
+    tiny = vsplat(_TINY)
+    a0 = vsplat(np.inf)
+    a1 = a0
+    a2 = a0
+    a3 = a0
+    k = 0
+    while k + 4 <= m:
+        a0 = vmin(a0, vload(x, k * LANES) / vmax(-vload(dx, k * LANES), tiny))
+        a1 = vmin(a1, vload(x, (k + 1) * LANES) / vmax(-vload(dx, (k + 1) * LANES), tiny))
+        a2 = vmin(a2, vload(x, (k + 2) * LANES) / vmax(-vload(dx, (k + 2) * LANES), tiny))
+        a3 = vmin(a3, vload(x, (k + 3) * LANES) / vmax(-vload(dx, (k + 3) * LANES), tiny))
+        k += 4
+    while k < m:
+        a0 = vmin(a0, vload(x, k * LANES) / vmax(-vload(dx, k * LANES), tiny))
+        k += 1
+    return vmin(vmin(a0, a1), vmin(a2, a3))
+
+
+@_jit
+def _lanes_direction(t_l, corr_l, any_corr, Cr, S, IS, Mu, D, base, rp, alpha, F, FG, SI, r1,
+                     r2, dX, dL, dS, dMu, rsp, w, ok_out, steps):
+    """:func:`_direction` of the four lanes: targets ``t_l`` (4,), Mehrotra's corrector ``Cr``
+    in the lanes where ``corr_l`` is 1 (read only if ``any_corr``); ``ok_out[:4]`` 0 where
+    finite, ``steps`` the largest primal (``[:4]``) and dual (``[4:8]``) steps."""
+    n, N = _dims(alpha.shape[0], FG.shape[1])
+    nN = n * N
+    go = 8 * nN
+    m = S.shape[0]
+    t = vload(t_l, 0)
+    zero = vsplat(0.0)
+    if any_corr:
+        corr = vload(corr_l, 0)
+        for k in range(m):
+            isk = vload(IS, k * LANES)
+            vstore(dMu, k * LANES,
+                   where_gt(corr, zero, (t - vload(Cr, k * LANES)) * isk, t * isk))
+    else:
+        for k in range(m):
+            vstore(dMu, k * LANES, t * vload(IS, k * LANES))
+    for i in range(n):
+        for j in range(N):
+            k = i * N + j
+            u4, u5 = vload(dMu, (4 * nN + k) * LANES), vload(dMu, (5 * nN + k) * LANES)
+            vstore(r1, _x5(0, i, j, n, N), -(vload(base, _x5(0, i, j, n, N)) + (
+                vload(dMu, (go + j) * LANES)
+                - (vload(dMu, k * LANES) - vload(dMu, (nN + k) * LANES)))))
+            vstore(r1, _x5(1, i, j, n, N), -(vload(base, _x5(1, i, j, n, N)) + (
+                vload(dMu, (go + N + j) * LANES)
+                - (vload(dMu, (2 * nN + k) * LANES) - vload(dMu, (3 * nN + k) * LANES)))))
+            vstore(r1, _x5(2, i, j, n, N), -(vload(base, _x5(2, i, j, n, N)) + (u4 - u5)))
+            vstore(r1, _x5(3, i, j, n, N), -(vload(base, _x5(3, i, j, n, N))
+                                             - (u4 + vload(dMu, (6 * nN + k) * LANES))))
+            vstore(r1, _x5(4, i, j, n, N), -(vload(base, _x5(4, i, j, n, N))
+                                             - (u5 + vload(dMu, (7 * nN + k) * LANES))))
+            vstore(r2, _ij(i, j, N), -vload(rp, _ij(i, j, N)))
+    _lanes_solve(r1, r2, dX, dL, alpha, F, FG, SI, rsp, w, ok_out)
+    for i in range(n):
+        for j in range(N):
+            k = i * N + j
+            db, ds = vload(dX, _x5(0, i, j, n, N)), vload(dX, _x5(1, i, j, n, N))
+            dsoc, dshi, dslo = (vload(dX, _x5(2, i, j, n, N)), vload(dX, _x5(3, i, j, n, N)),
+                                vload(dX, _x5(4, i, j, n, N)))
+            vstore(dS, k * LANES, db)
+            vstore(dS, (nN + k) * LANES, -db)
+            vstore(dS, (2 * nN + k) * LANES, ds)
+            vstore(dS, (3 * nN + k) * LANES, -ds)
+            vstore(dS, (4 * nN + k) * LANES, dshi - dsoc)
+            vstore(dS, (5 * nN + k) * LANES, dsoc + dslo)
+            vstore(dS, (6 * nN + k) * LANES, dshi)
+            vstore(dS, (7 * nN + k) * LANES, dslo)
+    for j in range(N):
+        tb = zero
+        ts = zero
+        for i in range(n):
+            tb = tb + vload(dX, _x5(0, i, j, n, N))
+            ts = ts + vload(dX, _x5(1, i, j, n, N))
+        vstore(dS, (go + j) * LANES, -tb)
+        vstore(dS, (go + N + j) * LANES, -ts)
+    for k in range(m):
+        vstore(dMu, k * LANES, vload(dMu, k * LANES) - vload(Mu, k * LANES)
+               - vload(D, k * LANES) * vload(dS, k * LANES))
+    vstore(steps, 0, _lanes_to_boundary(S, dS))
+    vstore(steps, LANES, _lanes_to_boundary(Mu, dMu))
+
+
+@_jit
+def solve_lanes(P, x0, warm, opts, ubar, stagew, n, N, x_out, lam_out, mu_out, cost_out,
+                iters_out, status_out, action_out, d_lo, d_hi):
+    """:func:`solve_each` (``STAGE``) of the problems ``d_lo <= d < d_hi``, four at a time
+    (a last block of fewer is filled up with copies of its last problem, whose results are
+    not written): the same results bit for bit, in about half the time."""
+    n, N = _dims(n, N)
+    nN = n * N
+    m = 8 * nN + 2 * N
+    B = LANES
+    X, dX, base, r1 = (np.empty((5, n, N, B)), np.empty((5, n, N, B)), np.empty((5, n, N, B)),
+                       np.empty((5, n, N, B)))
+    L, dL, rp, r2, rsp = (np.empty((n, N, B)), np.empty((n, N, B)), np.empty((n, N, B)),
+                          np.empty((n, N, B)), np.empty((n, N, B)))
+    Mu, S, IS, D, dS, dMu, Cr = (np.empty((m, B)), np.empty((m, B)), np.empty((m, B)),
+                                 np.empty((m, B)), np.empty((m, B)), np.empty((m, B)),
+                                 np.empty((m, B)))
+    F, FG = np.empty((N_F, n, N, B)), np.empty((N_G, N, B))
+    SI, A, dv, w = (np.empty((N, n, n, B)), np.empty((n, n, B)), np.empty((2 * n, B)),
+                    np.empty((n, B)))
+    soc0, alpha, delta = np.empty((n, B)), np.empty((n, B)), np.empty((n, B))
+    qb, qs, hsoc, qsoc, e = (np.empty((n, N, B)), np.empty((n, N, B)), np.empty((n, N, B)),
+                             np.empty((n, N, B)), np.empty((n, N, B)))
+    scale, cconst = np.empty(B), np.empty(B)
+    res, fact, ok_a, ok_n = np.empty(3 * B), np.empty(B), np.empty(B), np.empty(B)
+    steps, t_l, corr_l, aff, mask = (np.empty(2 * B), np.empty(B), np.empty(B), np.empty(B),
+                                     np.empty(B))
+    err_prev = np.empty(B)
+    iters, status, rows = np.empty(B, np.int64), np.empty(B, np.int64), np.empty(B, np.int64)
+    active, final, failed, pred = (np.empty(B, np.bool_), np.empty(B, np.bool_),
+                                   np.empty(B, np.bool_), np.empty(B, np.bool_))
+    tau, tol = opts[O_TAU], opts[O_TOL]
+    floor = tol * 1e-5
+    max_iter = int(opts[O_MAX_ITER])
+    switch = opts[O_SWITCH]
+    polish = opts[O_POLISH] != 0.0
+    zero = vsplat(0.0)
+    for lo in range(d_lo, d_hi, B):
+        for l in range(B):
+            rows[l] = min(lo + l, d_hi - 1)
+            status[l] = MAX_ITER
+            err_prev[l] = np.inf
+            iters[l] = 0
+            active[l] = True
+            final[l] = False
+            failed[l] = False
+        _lanes_data(P, rows, n, N, stagew, opts, soc0, alpha, delta, qb, qs, hsoc, qsoc, e,
+                    scale, cconst)
+        if not warm:
+            rows[:] = 0
+        _lanes_start(soc0, alpha, delta, hsoc, qsoc, x0, rows, warm, opts, ubar, scale, X, L,
+                     Mu, S)
+        while True:
+            _lanes_residual(X, L, Mu, S, alpha, qb, qs, hsoc, qsoc, stagew, e, opts, ubar,
+                            scale, base, rp, res)
+            # the stopping rule of :func:`solve_each`, lane by lane
+            n_active = 0
+            n_pred = 0
+            for l in range(B):
+                pred[l] = False
+                if not active[l]:
+                    continue
+                err = res[l]
+                if res[2 * B + l] != 0.0 or not math.isfinite(err) or math.isnan(res[B + l]):
+                    err = np.inf
+                done = err <= floor or (err <= tol and (not polish or err_prev[l] <= tol
+                                                        or err > 0.1 * err_prev[l]))
+                bad = not math.isfinite(err)
+                if done or bad or failed[l] or iters[l] >= max_iter:
+                    if done:
+                        status[l] = CONVERGED
+                    elif bad:
+                        status[l] = NON_FINITE
+                    elif failed[l]:
+                        status[l] = BREAKDOWN
+                    active[l] = False
+                    continue
+                err_prev[l] = err
+                n_active += 1
+                pred[l] = not final[l]
+                if pred[l]:
+                    n_pred += 1
+            if n_active == 0:
+                break
+            _lanes_factor(S, Mu, IS, D, alpha, hsoc, F, FG, SI, A, dv, fact)
+            for l in range(B):
+                t_l[l] = tau
+                corr_l[l] = 0.0
+            if n_pred > 0:
+                # Mehrotra's predictor (computed in every lane, used where ``pred``)
+                for l in range(B):
+                    aff[l] = 0.0
+                _lanes_direction(aff, corr_l, False, Cr, S, IS, Mu, D, base, rp, alpha, F,
+                                 FG, SI, r1, r2, dX, dL, dS, dMu, rsp, w, ok_a, steps)
+                ap = vmin(vsplat(1.0), vload(steps, 0))
+                ad = vmin(vsplat(1.0), vload(steps, B))
+                acc = zero
+                for k in range(m):
+                    dSk, dMuk = vload(dS, k * B), vload(dMu, k * B)
+                    acc = acc + (vload(Mu, k * B) + ad * dMuk) * (vload(S, k * B) + ap * dSk)
+                    vstore(Cr, k * B, dSk * dMuk)
+                vstore(aff, 0, acc)
+                for l in range(B):
+                    if not pred[l]:
+                        continue
+                    if not (fact[l] == 1.0 and ok_a[l] == 0.0):
+                        fact[l] = 0.0
+                    mu_avg = res[B + l] / m
+                    ratio = (aff[l] / m) / mu_avg
+                    if not math.isfinite(ratio):
+                        fact[l] = 0.0
+                        ratio = 1.0
+                    target = min(max(ratio, 0.0), 1.0) ** 3 * mu_avg
+                    t_l[l] = max(target, tau)
+                    corr_l[l] = 1.0
+                    final[l] = target <= switch * tau
+            _lanes_direction(t_l, corr_l, n_pred > 0, Cr, S, IS, Mu, D, base, rp, alpha, F, FG,
+                             SI, r1, r2, dX, dL, dS, dMu, rsp, w, ok_n, steps)
+            for l in range(B):
+                mask[l] = 0.0
+                if not active[l]:
+                    continue
+                ap_l, ad_l = min(1.0, _ETA * steps[l]), min(1.0, _ETA * steps[B + l])
+                steps[l] = ap_l
+                steps[B + l] = ad_l
+                if not (fact[l] == 1.0 and ok_n[l] == 0.0 and math.isfinite(ap_l)
+                        and math.isfinite(ad_l)):
+                    failed[l] = True
+                    continue
+                mask[l] = 1.0
+                iters[l] += 1
+            # the step, in the lanes that take it
+            take = vload(mask, 0)
+            ap = vload(steps, 0)
+            ad = vload(steps, B)
+            for k in range(5 * nN):
+                x = vload(X, k * B)
+                vstore(X, k * B, where_gt(take, zero, x + ap * vload(dX, k * B), x))
+            for k in range(nN):
+                x = vload(L, k * B)
+                vstore(L, k * B, where_gt(take, zero, x + ad * vload(dL, k * B), x))
+            for k in range(m):
+                x = vload(Mu, k * B)
+                vstore(Mu, k * B, where_gt(take, zero, x + ad * vload(dMu, k * B), x))
+        # results in mpc's orderings (as :func:`solve_each`)
+        for l in range(min(B, d_hi - lo)):
+            d = lo + l
+            cost = cconst[l]
+            for i in range(n):
+                for j in range(N):
+                    cost += (qb[i, j, l] * X[0, i, j, l] + qs[i, j, l] * X[1, i, j, l]
+                             + (0.5 * hsoc[i, j, l] * X[2, i, j, l] + qsoc[i, j, l])
+                             * X[2, i, j, l]
+                             + stagew[W_QSHI, j] * X[3, i, j, l]
+                             + stagew[W_QSLO, j] * X[4, i, j, l])
+                    for k in range(5):
+                        x_out[d, j * 5 * n + k * n + i] = X[k, i, j, l]
+                    lam_out[d, j * n + i] = L[i, j, l]
+                    blk = j * (8 * n + 2)
+                    for g in range(4):
+                        mu_out[d, blk + g * n + i] = Mu[g * nN + i * N + j, l]
+                        mu_out[d, blk + 4 * n + 2 + g * n + i] = Mu[(4 + g) * nN + i * N + j, l]
+            for j in range(N):
+                blk = j * (8 * n + 2)
+                mu_out[d, blk + 4 * n] = Mu[8 * nN + j, l]
+                mu_out[d, blk + 4 * n + 1] = Mu[8 * nN + N + j, l]
+            cost_out[d] = cost
+            iters_out[d] = iters[l]
+            status_out[d] = status[l]
+            for i in range(n):
+                action_out[d, i] = X[0, i, 0, l] - X[1, i, 0, l] if status[l] == CONVERGED \
+                    else 0.0
 
 
 # ------------------------------------------------------------------------- sensitivity ----
@@ -1268,7 +2013,7 @@ def _adjoint_structured(X, L, Mu, IS, D, alpha, stagew, F, MC, MS, MM, G, Y, Q, 
 
 @_nogil
 def sensitivity_rows(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, structured,
-                      grad, dsoc, cond, back, code, d_lo, d_hi):
+                     grad, dsoc, cond, back, code, d_lo, d_hi):
     """``d pi / d theta`` at the solutions ``(x, lam, mu)`` (mpc orderings) of the problems
     ``d_lo <= d < d_hi``.
 
@@ -1280,7 +2025,339 @@ def sensitivity_rows(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, st
     ``solved[d]`` False are skipped. Where the result is not usable ``grad`` is 0.
     ``structured`` (with the ``AGENT`` factorisation only): all columns at once by
     :func:`_adjoint_structured`; else column by column with iterative refinement. As
-    :func:`solve_rows`: own work arrays, no GIL."""
+    :func:`solve_rows`: own work arrays, no GIL; with the ``STAGE`` factorisation four
+    problems at a time (:func:`sensitivity_lanes`, the same bits as
+    :func:`sensitivity_each`)."""
+    lo = d_lo
+    if method == STAGE and d_hi - d_lo >= LANES - 1:
+        lo = d_lo + (d_hi - d_lo) // LANES * LANES
+        if d_hi - lo == LANES - 1:
+            lo = d_hi
+        sensitivity_lanes(P, x, lam, mu, solved, opts, ubar, stagew, n, N, grad, dsoc, cond,
+                          back, code, d_lo, lo)
+    sensitivity_each(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, structured,
+                     grad, dsoc, cond, back, code, lo, d_hi)
+
+
+@_jit
+def _lanes_backward_error(zx, zl, r1, D, alpha, hsoc, rx, rl, magnitudes, out):
+    """:func:`_backward_error` of the four lanes into ``out[:4]``."""
+    n, N = _dims(zl.shape[0], zl.shape[1])
+    nN = n * N
+    go = 8 * nN
+    zero = vsplat(0.0)
+    res = zero
+    mag = zero
+    check = zero
+    for j in range(N):
+        tb = zero
+        ts = zero
+        ab = zero
+        at = zero
+        for i in range(n):
+            zb, zs = vload(zx, _x5(0, i, j, n, N)), vload(zx, _x5(1, i, j, n, N))
+            tb = tb + zb
+            ts = ts + zs
+            ab = ab + vabs(zb)
+            at = at + vabs(zs)
+        dgb, dgs = vload(D, (go + j) * LANES), vload(D, (go + N + j) * LANES)
+        for i in range(n):
+            k = i * N + j
+            a = vload(alpha, i * LANES)
+            b, s = vload(zx, _x5(0, i, j, n, N)), vload(zx, _x5(1, i, j, n, N))
+            soc, shi, slo = (vload(zx, _x5(2, i, j, n, N)), vload(zx, _x5(3, i, j, n, N)),
+                             vload(zx, _x5(4, i, j, n, N)))
+            lam = vload(zl, _ij(i, j, N))
+            nxt = vload(zl, _ij(i, j + 1, N)) if j < N - 1 else zero
+            prev = vload(zx, _x5(2, i, j - 1, n, N)) if j > 0 else zero
+            wb = vload(D, k * LANES) + vload(D, (nN + k) * LANES)
+            ws = vload(D, (2 * nN + k) * LANES) + vload(D, (3 * nN + k) * LANES)
+            d4, d5 = vload(D, (4 * nN + k) * LANES), vload(D, (5 * nN + k) * LANES)
+            d6, d7 = vload(D, (6 * nN + k) * LANES), vload(D, (7 * nN + k) * LANES)
+            u4 = d4 * (soc - shi)
+            u5 = d5 * (soc + slo)
+            x0 = wb * b + dgb * tb - a * lam - vload(r1, _x5(0, i, j, n, N))
+            x1 = ws * s + dgs * ts + a * lam - vload(r1, _x5(1, i, j, n, N))
+            x2 = vload(hsoc, _ij(i, j, N)) * soc + u4 + u5 + lam - nxt \
+                - vload(r1, _x5(2, i, j, n, N))
+            x3 = d6 * shi - u4 - vload(r1, _x5(3, i, j, n, N))
+            x4 = d7 * slo + u5 - vload(r1, _x5(4, i, j, n, N))
+            xl = soc - a * b + a * s - prev
+            vstore(rx, _x5(0, i, j, n, N), x0)
+            vstore(rx, _x5(1, i, j, n, N), x1)
+            vstore(rx, _x5(2, i, j, n, N), x2)
+            vstore(rx, _x5(3, i, j, n, N), x3)
+            vstore(rx, _x5(4, i, j, n, N), x4)
+            vstore(rl, _ij(i, j, N), xl)
+            res = vmax(vmax(vmax(vmax(vmax(vmax(res, vabs(x0)), vabs(x1)), vabs(x2)),
+                                 vabs(x3)), vabs(x4)), vabs(xl))
+            check = check + 0.0 * (x0 + x1 + x2 + x3 + x4 + xl)
+            if magnitudes:
+                aa, asoc = vabs(a), vabs(soc)
+                m4 = d4 * (asoc + vabs(shi))
+                m5 = d5 * (asoc + vabs(slo))
+                mag = vmax(vmax(vmax(vmax(vmax(vmax(
+                    mag, wb * vabs(b) + dgb * ab + aa * vabs(lam)),
+                    ws * vabs(s) + dgs * at + aa * vabs(lam)),
+                    vabs(vload(hsoc, _ij(i, j, N))) * asoc + m4 + m5 + vabs(lam) + vabs(nxt)),
+                    d6 * vabs(shi) + m4), d7 * vabs(slo) + m5),
+                    asoc + aa * (vabs(b) + vabs(s)) + vabs(prev))
+    back = res / (mag + 1.0)
+    vstore(out, 0, back)
+    vstore(out, LANES, check)
+
+
+@_jit
+def _lanes_grad_column(X, L, zx, zl, stagew, out):
+    """:func:`_grad_column` of the four lanes: ``out`` (8, n, 4) holds the rows
+    0, 1, 2, 3, 4, 5, 7, 8 of ``grad[:, o]`` (the phi3 and T3 rows stay 0)."""
+    n, N = _dims(L.shape[0], L.shape[1])
+    zero = vsplat(0.0)
+    for i in range(n):
+        g0 = zero
+        g1 = zero
+        g2 = zero
+        g3 = zero
+        g4 = zero
+        g5 = zero
+        g7 = zero
+        g8 = zero
+        for j in range(N):
+            zb, zs = vload(zx, _x5(0, i, j, n, N)), vload(zx, _x5(1, i, j, n, N))
+            zsoc, zlj = vload(zx, _x5(2, i, j, n, N)), vload(zl, _ij(i, j, N))
+            soc = vload(X, _x5(2, i, j, n, N))
+            g0 = g0 + (vload(L, _ij(i, j, N)) * (zb - zs)
+                       + (vload(X, _x5(0, i, j, n, N)) - vload(X, _x5(1, i, j, n, N))) * zlj)
+            g1 = g1 + zlj
+            g2 = g2 - stagew[W_DISC, j] * zb
+            g3 = g3 + stagew[W_DISC, j] * zs
+            g4 = g4 - 2.0 * stagew[W_WSOC, j] * soc * zsoc
+            g5 = g5 - stagew[W_WSOC, j] * zsoc
+            g7 = g7 - 2.0 * stagew[W_TERM, j] * soc * zsoc
+            g8 = g8 - stagew[W_TERM, j] * zsoc
+        vstore(out, (0 * n + i) * LANES, g0)
+        vstore(out, (1 * n + i) * LANES, g1)
+        vstore(out, (2 * n + i) * LANES, g2)
+        vstore(out, (3 * n + i) * LANES, g3)
+        vstore(out, (4 * n + i) * LANES, g4)
+        vstore(out, (5 * n + i) * LANES, g5)
+        vstore(out, (6 * n + i) * LANES, g7)
+        vstore(out, (7 * n + i) * LANES, g8)
+
+
+@_jit
+def _lanes_zmax(zx, zl, IS, zmax_l):
+    """:func:`_zmax` of the four lanes, ``zmax_l[:4]`` updated in place (NaN where the
+    column is not finite)."""
+    n, N = _dims(zl.shape[0], zl.shape[1])
+    nN = n * N
+    go = 8 * nN
+    zero = vsplat(0.0)
+    one = vsplat(1.0)
+    zmax = vload(zmax_l, 0)
+    check = zero
+    for j in range(N):
+        tb = zero
+        ts = zero
+        for i in range(n):
+            k = i * N + j
+            zb, zs = vload(zx, _x5(0, i, j, n, N)), vload(zx, _x5(1, i, j, n, N))
+            zsoc, zshi, zslo = (vload(zx, _x5(2, i, j, n, N)), vload(zx, _x5(3, i, j, n, N)),
+                                vload(zx, _x5(4, i, j, n, N)))
+            zlij = vload(zl, _ij(i, j, N))
+            tb = tb + zb
+            ts = ts + zs
+            zmax = vmax(vmax(vmax(vmax(vmax(vmax(vmax(vmax(
+                zmax,
+                vabs(zb) * vmax(vmax(one, vload(IS, k * LANES)),
+                                vload(IS, (nN + k) * LANES))),
+                vabs(zs) * vmax(vmax(one, vload(IS, (2 * nN + k) * LANES)),
+                                vload(IS, (3 * nN + k) * LANES))),
+                vabs(zsoc)),
+                vabs(zshi) * vmax(one, vload(IS, (6 * nN + k) * LANES))),
+                vabs(zslo) * vmax(one, vload(IS, (7 * nN + k) * LANES))),
+                vabs(zlij)),
+                vabs(zsoc - zshi) * vload(IS, (4 * nN + k) * LANES)),
+                vabs(zsoc + zslo) * vload(IS, (5 * nN + k) * LANES))
+            check = check + 0.0 * (zb + zs + zsoc + zshi + zslo + zlij)
+        zmax = vmax(vmax(zmax, vabs(tb) * vload(IS, (go + j) * LANES)),
+                    vabs(ts) * vload(IS, (go + N + j) * LANES))
+    # the check is a sum of zeros, or NaN
+    vstore(zmax_l, 0, where_lt(vabs(check), one, zmax, vsplat(np.nan)))
+
+
+@_jit
+def sensitivity_lanes(P, x, lam, mu, solved, opts, ubar, stagew, n, N, grad, dsoc, cond,
+                      back, code, d_lo, d_hi):
+    """:func:`sensitivity_each` (``STAGE``, column by column with refinement) of the problems
+    ``d_lo <= d < d_hi``, four at a time (a last group of fewer filled up with copies of its
+    last problem, not written): the same results bit for bit. The refinement steps of a
+    column are taken lane by lane (a lane whose column is good enough keeps it while the
+    others refine theirs)."""
+    n, N = _dims(n, N)
+    nN = n * N
+    m = 8 * nN + 2 * N
+    B = LANES
+    Pb, hi, lo = opts[O_P], opts[O_HI], opts[O_LO]
+    X, zx, rx, r1, cx = (np.empty((5, n, N, B)), np.empty((5, n, N, B)),
+                         np.empty((5, n, N, B)), np.empty((5, n, N, B)),
+                         np.empty((5, n, N, B)))
+    L, zl, rl, r2, rsp, cl = (np.empty((n, N, B)), np.empty((n, N, B)), np.empty((n, N, B)),
+                              np.empty((n, N, B)), np.empty((n, N, B)), np.empty((n, N, B)))
+    Mu, S, IS, D = np.empty((m, B)), np.empty((m, B)), np.empty((m, B)), np.empty((m, B))
+    F, FG = np.empty((N_F, n, N, B)), np.empty((N_G, N, B))
+    SI, A, dv, w = (np.empty((N, n, n, B)), np.empty((n, n, B)), np.empty((2 * n, B)),
+                    np.empty((n, B)))
+    soc0, alpha, delta = np.empty((n, B)), np.empty((n, B)), np.empty((n, B))
+    qb, qs, hsoc, qsoc, e = (np.empty((n, N, B)), np.empty((n, N, B)), np.empty((n, N, B)),
+                             np.empty((n, N, B)), np.empty((n, N, B)))
+    scale, cconst = np.empty(B), np.empty(B)
+    fact, okv, be, zmax, bmax, kmax = (np.empty(B), np.empty(B), np.empty(2 * B),
+                                       np.empty(B), np.empty(B), np.empty(B))
+    bcol, live, refine = np.empty(B), np.empty(B), np.empty(B)
+    gcol = np.empty((8, n, B))
+    rows = np.empty(B, np.int64)
+    usable = np.empty(B, np.bool_)
+    zero = vsplat(0.0)
+    for lo_d in range(d_lo, d_hi, B):
+        n_live = 0
+        for l in range(B):
+            d = min(lo_d + l, d_hi - 1)
+            rows[l] = d
+            live[l] = 0.0
+            if l < d_hi - lo_d:
+                grad[d, :, :] = 0.0
+                dsoc[d, :, :] = 0.0
+                cond[d] = np.inf
+                back[d] = np.inf
+            if not solved[d]:
+                if l < d_hi - lo_d:
+                    code[d] = SENS_SKIPPED
+                continue
+            xd, ld, md = x[d], lam[d], mu[d]
+            for i in range(n):
+                for j in range(N):
+                    for k in range(5):
+                        X[k, i, j, l] = xd[j * 5 * n + k * n + i]
+                    L[i, j, l] = ld[j * n + i]
+                    blk = j * (8 * n + 2)
+                    for g in range(4):
+                        Mu[g * nN + i * N + j, l] = md[blk + g * n + i]
+                        Mu[(4 + g) * nN + i * N + j, l] = md[blk + 4 * n + 2 + g * n + i]
+            for j in range(N):
+                blk = j * (8 * n + 2)
+                Mu[8 * nN + j, l] = md[blk + 4 * n]
+                Mu[8 * nN + N + j, l] = md[blk + 4 * n + 1]
+            live[l] = 1.0
+            n_live += 1
+        if n_live == 0:
+            continue
+        _lanes_data(P, rows, n, N, stagew, opts, soc0, alpha, delta, qb, qs, hsoc, qsoc, e,
+                    scale, cconst)
+        _lanes_slacks(X, ubar, Pb, hi, lo, S)
+        # ||K||_max (entries 1, alpha, H, mu, h) and whether the point is strictly interior
+        for l in range(B):
+            km = 1.0
+            for i in range(n):
+                km = max(km, abs(alpha[i, l]))
+                for j in range(N):
+                    km = max(km, abs(hsoc[i, j, l]))
+            kmax[l] = km
+        km = vload(kmax, 0)
+        inside = vload(live, 0)
+        for k in range(m):
+            s_k, mu_k = vload(S, k * B), vload(Mu, k * B)
+            inside = where_gt(s_k, zero, inside, zero)
+            inside = where_gt(mu_k, zero, inside, zero)
+            km = vmax(vmax(km, s_k), mu_k)
+        vstore(kmax, 0, km)
+        vstore(refine, 0, inside)
+        for l in range(B):
+            if live[l] == 1.0 and refine[l] == 0.0:
+                live[l] = 0.0
+                if l < d_hi - lo_d:
+                    code[rows[l]] = SENS_NOT_INTERIOR
+        _lanes_factor(S, Mu, IS, D, alpha, hsoc, F, FG, SI, A, dv, fact)
+        for l in range(B):
+            usable[l] = fact[l] == 1.0
+            zmax[l] = 0.0
+            bmax[l] = 0.0
+        for o in range(n):
+            r1[:] = 0.0
+            r2[:] = 0.0
+            r1[0, o, 0, :] = 1.0
+            r1[1, o, 0, :] = -1.0
+            _lanes_solve(r1, r2, zx, zl, alpha, F, FG, SI, rsp, w, okv)
+            for l in range(B):
+                usable[l] = usable[l] and okv[l] == 0.0
+                bcol[l] = np.inf
+                refine[l] = 1.0
+            for step in range(_REFINE_MAX + 1):
+                _lanes_backward_error(zx, zl, r1, D, alpha, hsoc, rx, rl, step > 0, be)
+                n_refine = 0
+                for l in range(B):
+                    if refine[l] == 0.0:
+                        continue
+                    b_l = np.inf
+                    if step > 0 and be[B + l] == 0.0 and not math.isnan(be[l]):
+                        b_l = be[l]
+                    bcol[l] = b_l
+                    if step == _REFINE_MAX or (step > 0 and b_l <= _BACKWARD_ERROR_GOOD):
+                        refine[l] = 0.0
+                    else:
+                        n_refine += 1
+                if n_refine == 0:
+                    break
+                for k in range(5 * nN):
+                    vstore(rx, k * B, -vload(rx, k * B))
+                for k in range(nN):
+                    vstore(rl, k * B, -vload(rl, k * B))
+                _lanes_solve(rx, rl, cx, cl, alpha, F, FG, SI, rsp, w, okv)
+                for l in range(B):
+                    if refine[l] == 1.0:
+                        usable[l] = usable[l] and okv[l] == 0.0
+                take = vload(refine, 0)
+                for k in range(5 * nN):
+                    z = vload(zx, k * B)
+                    vstore(zx, k * B, where_gt(take, zero, z + vload(cx, k * B), z))
+                for k in range(nN):
+                    z = vload(zl, k * B)
+                    vstore(zl, k * B, where_gt(take, zero, z + vload(cl, k * B), z))
+            for l in range(B):
+                bmax[l] = max(bmax[l], bcol[l])
+            _lanes_grad_column(X, L, zx, zl, stagew, gcol)
+            _lanes_zmax(zx, zl, IS, zmax)
+            for l in range(min(B, d_hi - lo_d)):
+                if live[l] == 0.0:
+                    continue
+                d = rows[l]
+                for i in range(n):
+                    for r, row in enumerate((0, 1, 2, 3, 4, 5, 7, 8)):
+                        grad[d, row * n + i, o] = gcol[r, i, l]
+                    dsoc[d, i, o] = zl[i, 0, l]
+        for l in range(min(B, d_hi - lo_d)):
+            if live[l] == 0.0:
+                continue
+            d = rows[l]
+            c = kmax[l] * zmax[l]
+            cond[d] = c if math.isfinite(c) else np.inf
+            back[d] = bmax[l]
+            G = grad[d]
+            finite = 0.0
+            for k in range(G.size):
+                finite += 0.0 * G.flat[k]
+            if usable[l] and finite == 0.0 and math.isfinite(c):
+                code[d] = SENS_OK
+            else:
+                code[d] = SENS_SINGULAR
+                G[:, :] = 0.0
+                dsoc[d, :, :] = 0.0
+
+
+@_jit
+def sensitivity_each(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, structured,
+                     grad, dsoc, cond, back, code, d_lo, d_hi):
+    """:func:`sensitivity_rows` one problem after the other (either factorisation)."""
     n, N = _dims(n, N)
     (X, zx, rx, r1, L, zl, rl, r2, rsp, Mu, S, IS, D, _ds, _dmu, _cr, _r, F, FG, SI, AW, TI,
      MC, MS, w, wg) = _work(n, N, method)
@@ -1386,6 +2463,30 @@ def solve_rows_parallel(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, la
 
 
 @_parallel
+def solve_each_parallel(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu_out,
+                        cost_out, iters_out, status_out, action_out, d_lo, d_hi, block):
+    """:func:`solve_each` on blocks spread over numba's threads, as
+    :func:`solve_rows_parallel` (the one-at-a-time reference)."""
+    blocks = (d_hi - d_lo + block - 1) // block
+    for b in prange(blocks):
+        lo = d_lo + b * block
+        solve_each(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu_out,
+                   cost_out, iters_out, status_out, action_out, lo, min(lo + block, d_hi))
+
+
+@_parallel
+def sensitivity_each_parallel(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method,
+                              structured, grad, dsoc, cond, back, code, d_lo, d_hi, block):
+    """:func:`sensitivity_each` on blocks spread over numba's threads (the one-at-a-time
+    reference)."""
+    blocks = (d_hi - d_lo + block - 1) // block
+    for b in prange(blocks):
+        lo = d_lo + b * block
+        sensitivity_each(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, structured,
+                         grad, dsoc, cond, back, code, lo, min(lo + block, d_hi))
+
+
+@_parallel
 def sensitivity_rows_parallel(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method,
                               structured, grad, dsoc, cond, back, code, d_lo, d_hi, block):
     """:func:`sensitivity_rows` on blocks spread over numba's threads, as
@@ -1450,4 +2551,4 @@ def ensure_compiled() -> None:
     """Load the kernels from the cache or compile them (logging one line if it compiles)."""
     jit.ensure_compiled((solve_rows, sensitivity_rows, solve_rows_parallel,
                          sensitivity_rows_parallel), warm_up,
-                        "the MPC kernels (about a minute)")
+                        "the MPC kernels (a minute or two)")

@@ -8,7 +8,8 @@ types of :mod:`mpcrl_lite.mpc.solution`):
 * ``'batch'`` -- :class:`~mpcrl_lite.mpc.backends.batch.BatchSolver`, a numpy interior point that
   solves all days of a month at once;
 * ``'kernel'`` -- :class:`~mpcrl_lite.mpc.backends.kernel.KernelSolver`, the batch solver's
-  iteration compiled with numba, one problem at a time (the same results to rounding);
+  iteration compiled with numba, four problems at a time in vector registers (the same
+  results to rounding);
 * ``'auto'`` -- ``'kernel'`` when the MPC is a convex QP for the given theta, else ``'ipopt'``.
 
 :data:`REGISTRY` maps the names of :data:`mpcrl_lite.config.BACKENDS` to the classes; adding a
