@@ -55,10 +55,10 @@ bit for bit, at about 1.3-1.6x less CPU.
 
 Cost (``benchmarks/bench_kernel.py``, closed-loop hours of a 30-day month, solve plus
 sensitivity per problem, measured beside the batch solver in the same run; benchmarks/README.md
-keeps the history): for the paper's size (n = 3, N = 12) about 40 us of CPU per problem on one
-thread (29 us for the solve, 11 for the sensitivity; 63 us with the generic kernels), a
-30-problem call on two threads in about half the wall time of one; about 3-5 ms for n = 100
-and 0.2-0.4 ms for N = 48. Loading numba and the kernels adds about a second
+keeps the history): for the paper's size (n = 3, N = 12) about 24 us of CPU per problem on one
+thread, four at a time (about 14 us for the solve, 5 for the sensitivity; 41-46 us one at a
+time), a 30-problem call on two threads in about two thirds of the wall time of one; about
+3 ms for n = 100 and 0.11 ms for N = 48. Loading numba and the kernels adds about a second
 to the first use in a process and about 100 MB of resident memory: importing this module
 and building a :class:`KernelSolver` load neither (numba comes with the first solver built,
 the kernels with its first solve or sensitivity).
