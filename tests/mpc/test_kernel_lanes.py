@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from mpc_problems import mixed_problems
 
 from mpcrl_lite.config import MPCConfig, SystemConfig
 from mpcrl_lite.mpc.backends import kernel_core, kernel_sizes
@@ -15,21 +16,6 @@ from mpcrl_lite.mpc.formulation import MPC
 from mpcrl_lite.theta import Theta
 
 FIELDS = ("x", "lam", "mu", "cost", "iters", "status", "action")
-
-
-def _problems(mpc: MPC, days: int, seed: int) -> np.ndarray:
-    """``days`` parameter rows: states outside [0.1, 0.9] too, random prices, a different
-    theta per row (every fourth the nominal one)."""
-    rng = np.random.default_rng(seed)
-    nominal = Theta.nominal(mpc.system).to_vector()
-    rows = []
-    for d in range(days):
-        theta = nominal + (0.0 if d % 4 == 0 else
-                           rng.normal(0.0, 0.3, nominal.size) * np.abs(nominal).clip(0.1))
-        buy = rng.uniform(5.0, 130.0, mpc.N)
-        rows.append(mpc.parameters(rng.uniform(-0.05, 1.05, mpc.n), buy, 0.5 * buy,
-                                   Theta.from_vector(theta, mpc.n)))
-    return np.array(rows)
 
 
 def _solve(entry, solver: KernelSolver, P: np.ndarray, x0: np.ndarray | None,
@@ -71,7 +57,7 @@ def test_four_at_once_equal_one_at_a_time_bit_for_bit(specialise):
     solver = _solver(mpc, specialise)
     K = solver._kernels
     assert (K is kernel_core) == (not specialise)
-    P = _problems(mpc, 23, seed=11)  # five groups of four and a last three
+    P = mixed_problems(mpc, 23, seed=11)  # five groups of four and a last three
     cold_each = _solve(K.solve_each, solver, P, None)
     cold = _solve(K.solve_lanes, solver, P, None)
     _assert_same(cold, cold_each)
@@ -97,7 +83,7 @@ def test_the_lanes_stop_each_for_its_own_reason():
     mpc = MPC(SystemConfig())
     solver = _solver(mpc, True, max_iter=8)
     K = solver._kernels
-    P = _problems(mpc, 8, seed=3)
+    P = mixed_problems(mpc, 8, seed=3)
     P[1, mpc.n] = np.nan  # a price: not finite
     theta = Theta.nominal(mpc.system).to_dict()
     theta["phi1"] = -np.array(theta["phi1"]) * 400.0  # a concave soc cost
@@ -120,7 +106,7 @@ def test_four_at_once_with_a_hard_grid_limit_and_without_polish(P_bar, polish):
     mpc = MPC(SystemConfig(P_bar=P_bar))
     solver = _solver(mpc, True, polish=polish)
     K = solver._kernels
-    P = _problems(mpc, 12, seed=7)
+    P = mixed_problems(mpc, 12, seed=7)
     each = _solve(K.solve_each, solver, P, None)
     _assert_same(_solve(K.solve_lanes, solver, P, None), each)
     assert (each["status"] == kernel_core.CONVERGED).all()
@@ -132,7 +118,7 @@ def test_four_at_once_in_the_generic_kernels_at_other_sizes(n, N):
     assert (n, N) not in kernel_sizes.SPECIALISED_SIZES
     assert kernel_core.choose_method(n, N) == kernel_core.STAGE
     solver = _solver(mpc, True)
-    P = _problems(mpc, 10, seed=n + N)
+    P = mixed_problems(mpc, 10, seed=n + N)
     each = _solve(kernel_core.solve_each, solver, P, None)
     _assert_same(_solve(kernel_core.solve_lanes, solver, P, None), each)
     _assert_same(_solve(kernel_core.solve_rows, solver, P, None), each)
@@ -157,7 +143,7 @@ def _assert_same_sensitivities(a, b) -> None:
 def test_sensitivities_four_at_once_equal_one_at_a_time(P_bar, specialise):
     mpc = MPC(SystemConfig(P_bar=P_bar))
     solver = _solver(mpc, specialise)
-    P = _problems(mpc, 23, seed=13)
+    P = mixed_problems(mpc, 23, seed=13)
     solver.lanes = False
     solution = solver._solve_parameters(P, None)
     solver.lanes = True
@@ -172,7 +158,7 @@ def test_sensitivities_of_rows_that_fail_each_in_their_own_way():
     point is not finite beside good rows: each row gets the verdict it gets alone."""
     mpc = MPC(SystemConfig())
     solver = _solver(mpc, True)
-    P = _problems(mpc, 8, seed=17)
+    P = mixed_problems(mpc, 8, seed=17)
     solution = solver._solve_parameters(P, None)
     solution.success[1] = False
     solution.mu[2, 5] = 0.0  # not strictly interior

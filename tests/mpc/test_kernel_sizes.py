@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from mpc_problems import mixed_problems
 
 from mpcrl_lite.config import MPCConfig, SystemConfig
 from mpcrl_lite.mpc.backends import kernel_core, kernel_sizes
@@ -20,28 +21,12 @@ from mpcrl_lite.theta import Theta
 def mpc() -> MPC:
     return MPC(SystemConfig())
 
-
-def _problems(mpc: MPC, days: int, seed: int) -> np.ndarray:
-    """Parameter rows of ``days`` problems: states outside [0.1, 0.9] too, random prices and a
-    different theta per row (every fourth the nominal one)."""
-    rng = np.random.default_rng(seed)
-    nominal = Theta.nominal(mpc.system).to_vector()
-    rows = []
-    for d in range(days):
-        theta = nominal + (0.0 if d % 4 == 0 else
-                           rng.normal(0.0, 0.3, nominal.size) * np.abs(nominal).clip(0.1))
-        buy = rng.uniform(5.0, 130.0, mpc.N)
-        rows.append(mpc.parameters(rng.uniform(-0.05, 1.05, mpc.n), buy, 0.5 * buy,
-                                   Theta.from_vector(theta, mpc.n)))
-    return np.array(rows)
-
-
 @pytest.mark.parametrize("N", [12, 11])  # the paper's MPC, the Q-learner's tail
 @pytest.mark.parametrize("method", ["stage", "agent"])
 def test_specialised_kernels_equal_the_generic_ones_bit_for_bit(method, N):
     mpc = MPC(SystemConfig(N=N))
     assert (mpc.n, mpc.N) in kernel_sizes.SPECIALISED_SIZES
-    P = _problems(mpc, 23, seed=5)
+    P = mixed_problems(mpc, 23, seed=5)
     results = []
     for specialise in (True, False):
         solver = KernelSolver(mpc, MPCConfig(), method=method)
@@ -138,7 +123,7 @@ def test_a_large_call_goes_to_numbas_threads_in_one_compiled_call(mpc, monkeypat
     entry (a block per thread); smaller calls stay on the calling thread."""
     solver = KernelSolver(mpc)
     solver.threads = 2
-    P = _problems(mpc, 17, seed=2)
+    P = mixed_problems(mpc, 17, seed=2)
     solver._solve_parameters(P[:1], None)  # loads the kernels
     module = solver._kernels
     calls = []
