@@ -1,12 +1,12 @@
 """Blocks of independent problems spread over threads, for compiled kernels without the GIL.
 
-A compiled kernel that solves problems one at a time (the MPC back-end's
+A compiled kernel that solves independent problems (the MPC back-end's
 :func:`~mpcrl_lite.mpc.backends.kernel_core.solve_rows`, the coordination rounds'
 :func:`~mpcrl_lite.decentralized.coordination_kernel.coordinate`) can run on several threads
 at once when it releases the GIL (``nogil=True``). :func:`run_blocks` hands out blocks of
 problems in turn to the calling thread and helpers: a thread on a busy core takes fewer
-blocks, and since each problem is solved alone by the same compiled code, which thread solves
-it does not change its result.
+blocks, and since a problem's result does not depend on the block it is solved in (alone, or
+in a group of four with the same operations), which thread solves it does not change it.
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from __future__ import annotations
 import functools
 import multiprocessing
 import os
+import sys
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -36,7 +37,8 @@ _limited = threading.local()
 
 def one_blas_thread(fn: Callable[_P, _R]) -> Callable[_P, _R]:
     """``fn`` run with the BLAS/LAPACK libraries limited to :data:`BLAS_THREADS` threads
-    (``threadpoolctl``; ~0.1 ms a call, the previous limits restored after it).
+    (``threadpoolctl``, its libraries found once: :func:`_blas_controller`; the previous
+    limits restored after it).
 
     A learner's ``run_one_month`` and ``learning_step`` are wrapped in it, so that a month or
     an update called on its own (in a notebook, a benchmark) gives the numbers and the speed
@@ -51,16 +53,34 @@ def one_blas_thread(fn: Callable[_P, _R]) -> Callable[_P, _R]:
     def limited(*args: _P.args, **kwargs: _P.kwargs) -> _R:
         if getattr(_limited, "depth", 0):
             return fn(*args, **kwargs)
-        from threadpoolctl import threadpool_limits  # loaded with the first month
-
         _limited.depth = 1
         try:
-            with threadpool_limits(limits=BLAS_THREADS):
+            with _blas_controller().limit(limits=BLAS_THREADS):
                 return fn(*args, **kwargs)
         finally:
             _limited.depth = 0
 
     return limited
+
+
+#: the process's ``threadpoolctl.ThreadpoolController`` and how many modules were imported
+#: when it was made
+_controller: list = [None, -1]
+_controller_lock = threading.Lock()
+
+
+def _blas_controller():
+    """The thread-pool libraries loaded in this process (``threadpoolctl``), found once and
+    found again only after new modules were imported (a new module is how a new BLAS comes
+    in: scipy's with ``scipy.linalg``). Finding them walks every loaded shared library, 1-2 ms
+    with numba, CasADi and scipy loaded: once a month and update, a few per cent of a study."""
+    loaded = len(sys.modules)
+    with _controller_lock:
+        if _controller[0] is None or _controller[1] != loaded:
+            from threadpoolctl import ThreadpoolController  # loaded with the first month
+
+            _controller[0], _controller[1] = ThreadpoolController(), len(sys.modules)
+        return _controller[0]
 
 
 def auto_threads() -> int:
