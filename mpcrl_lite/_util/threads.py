@@ -72,8 +72,9 @@ _controller_lock = threading.Lock()
 def _blas_controller():
     """The thread-pool libraries loaded in this process (``threadpoolctl``), found once and
     found again only after new modules were imported (a new module is how a new BLAS comes
-    in: scipy's with ``scipy.linalg``). Finding them walks every loaded shared library, 1-2 ms
-    with numba, CasADi and scipy loaded: once a month and update, a few per cent of a study."""
+    in: scipy's with ``scipy.linalg``). Finding them walks every loaded shared library: about
+    0.4 ms a call with numba, CasADi and scipy loaded, against 0.014 ms with the libraries kept
+    (a study worker's lockstep: 0.97x the time)."""
     loaded = len(sys.modules)
     with _controller_lock:
         if _controller[0] is None or _controller[1] != loaded:

@@ -131,10 +131,10 @@ _STRUCTURED_MIN_N = 16
 #: problems per thread below which a call stays on one thread. A problem of the paper's size
 #: costs about 14 us to solve and 5 us for its sensitivity (four at a time; 27 and 11 one at
 #: a time), starting numba's second thread some ten: with 8 the learning months' calls (30
-#: problems) use two threads (a call alone:
-#: about half the wall time of one at 1.05x its CPU; the 100-month `learn` command: 5-9 % less
-#: wall time at 1.5x the CPU, as the second thread idles or spins between calls;
-#: benchmarks/README.md), while single problems and small calls stay on one
+#: problems) use two threads (a call alone: about two thirds of the wall time of one; the
+#: 100-month `learn` command: 9 % less wall time at 1.3x the CPU, as the second thread idles
+#: or spins between calls; benchmarks/README.md), while single problems and small calls stay
+#: on one
 THREAD_MIN_PROBLEMS = 8
 #: problems per block that a Python thread takes at a time in a forked child
 #: (:func:`mpcrl_lite._util.threads.run_blocks`)
