@@ -896,6 +896,17 @@ def _data_arrays(n, N):
             np.empty((n, N)), np.empty((n, N)), np.empty((n, N)))
 
 
+@_inline
+def _lanes_end(method, d_lo, d_hi):
+    """Where the rows ``d_lo <= d < d_hi`` that go four at a time end: whole groups of four
+    with the ``STAGE`` factorisation, a last three with them (one group filled up to four is
+    cheaper than three alone); ``d_lo`` where none do."""
+    if method != STAGE:
+        return d_lo
+    end = d_lo + (d_hi - d_lo) // LANES * LANES
+    return d_hi if d_hi - end == LANES - 1 else end
+
+
 @_nogil
 def solve_rows(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu_out,
                cost_out, iters_out, status_out, action_out, d_lo, d_hi):
@@ -913,11 +924,8 @@ def solve_rows(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu
     problem, through :func:`solve_each`). Both do the same
     operations on each problem, so a problem's results are the same bits whichever solves it,
     and they do not depend on the blocks or the threads."""
-    lo = d_lo
-    if method == STAGE and d_hi - d_lo >= LANES - 1:
-        lo = d_lo + (d_hi - d_lo) // LANES * LANES
-        if d_hi - lo == LANES - 1:  # three problems: one padded group is cheaper
-            lo = d_hi
+    lo = _lanes_end(method, d_lo, d_hi)
+    if lo > d_lo:
         solve_lanes(P, x0, warm, opts, ubar, stagew, n, N, x_out, lam_out, mu_out, cost_out,
                     iters_out, status_out, action_out, d_lo, lo)
     solve_each(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu_out,
@@ -1032,16 +1040,9 @@ def solve_each(P, x0, warm, opts, ubar, stagew, n, N, method, x_out, lam_out, mu
 
 
 # -------------------------------------------------------------- four problems at once ----
-# The STAGE solve of :func:`solve_each` on four problems side by side. Every work array gets a
-# last axis of four (one entry per problem, its "lane"), and the hot parts (residual,
-# factorisation, directions, steps to the boundary, the updates) hold the four entries of a
-# quantity as one vector value (:mod:`mpcrl_lite._util.vec4`): each line is then one vector
-# instruction for four problems where :func:`solve_each` spends one scalar instruction per
-# problem. Each lane sees the operations of :func:`solve_each` in the same order, so its bits
-# are those of solving the problem alone (``tests/mpc/test_kernel_lanes.py``). The
-# per-problem decisions (stopping, Mehrotra's target, a failed step) are taken lane by lane
-# in scalar code; a lane that has stopped keeps its iterate (its updates are masked) while the
-# others go on, so the four cost as many iterations as the slowest of them.
+# (the module docstring's "Four problems at once"). The problem data and the start are written
+# per lane straight into the lane arrays: routing them through _problem_data and
+# _initial_point and copying the results in cost 1.1-1.7 us per problem (benchmarks/README.md).
 @_inline
 def _x5(g, i, j, n, N):
     """Flat offset of entry ``[g, i, j, 0]`` of a ``(G, n, N, 4)`` lane array."""
@@ -1609,8 +1610,6 @@ def solve_lanes(P, x0, warm, opts, ubar, stagew, n, N, x_out, lam_out, mu_out, c
             failed[l] = False
         _lanes_data(P, rows, n, N, stagew, opts, soc0, alpha, delta, qb, qs, hsoc, qsoc, e,
                     scale, cconst)
-        if not warm:
-            rows[:] = 0
         _lanes_start(soc0, alpha, delta, hsoc, qsoc, x0, rows, warm, opts, ubar, scale, X, L,
                      Mu, S)
         while True:
@@ -2028,11 +2027,8 @@ def sensitivity_rows(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, st
     :func:`solve_rows`: own work arrays, no GIL; with the ``STAGE`` factorisation four
     problems at a time (:func:`sensitivity_lanes`, the same bits as
     :func:`sensitivity_each`)."""
-    lo = d_lo
-    if method == STAGE and d_hi - d_lo >= LANES - 1:
-        lo = d_lo + (d_hi - d_lo) // LANES * LANES
-        if d_hi - lo == LANES - 1:
-            lo = d_hi
+    lo = _lanes_end(method, d_lo, d_hi)
+    if lo > d_lo:
         sensitivity_lanes(P, x, lam, mu, solved, opts, ubar, stagew, n, N, grad, dsoc, cond,
                           back, code, d_lo, lo)
     sensitivity_each(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method, structured,
