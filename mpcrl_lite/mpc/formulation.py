@@ -204,14 +204,13 @@ class MPC:
         if tvec.shape[-1:] != (self.n_theta,) or (tvec.ndim > 1 and tvec.shape[:-1] != batch):
             raise ValueError(f"theta has shape {tvec.shape}; expected ({self.n_theta},) or one "
                              f"per problem, {batch + (self.n_theta,)}")
-        parts = [
-            np.broadcast_to(soc0, batch + (self.n,)),
-            np.broadcast_to(buy, batch + (self.N,)),
-            np.broadcast_to(sell, batch + (self.N,)),
-            np.broadcast_to(tvec, batch + (self.n_theta,)),
-        ]
-        p = np.concatenate(parts, axis=-1)
-        if not np.all(np.isfinite(p)):
+        n, N = self.n, self.N
+        p = np.empty(batch + (self.np,))
+        p[..., :n] = soc0
+        p[..., n:n + N] = buy
+        p[..., n + N:n + 2 * N] = sell
+        p[..., n + 2 * N:] = tvec
+        if not np.isfinite(p).all():
             raise ValueError("MPC parameters contain non-finite values (soc0, prices or theta)")
         return p
 

@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 
 from ..config import SystemConfig
-from ..system.battery import StepResult, sample_noise, step
+from ..system.battery import StepResult, sample_noise, step, step_unchecked
 from ..theta import Theta
 from .exploration import (
     GaussianExploration,
@@ -279,12 +279,18 @@ def simulate(
     solver_ok, sens_ok = np.empty((H, D), bool), np.empty((H, D), bool)
     socs = np.empty((H + 1, D, n))
     socs[0] = soc
+    # The hour's inputs need no second check where they are known to be good: the soc (checked
+    # at the start, clipped to [0, 1] by every step), the prices and a given noise (checked
+    # above), a drawn noise, the policy's action (_decision) and the package's exploration
+    # of it; an action from another hook goes through step's checks.
+    advance = step_unchecked if explore is None or type(explore) is GaussianExploration \
+        else step
     for k in range(H):
         decision = _decision(decide(k, soc.copy()), k, (D, n))
         pi = decision.action
         a = pi if explore is None else explore(k, pi, rng)
         delta = _draw_noise(rng, (D, n), system) if noise is None else noise[k]
-        res = step(soc, a, delta, buy[:, k], sell[:, k], system)
+        res = advance(soc, a, delta, buy[:, k], sell[:, k], system)
         out["policy"][k], out["a"][k], out["noise"][k] = pi, a, delta
         out["b"][k], out["s"][k], out["correction"][k] = res.b, res.s, res.correction
         out["agent_cost"][k] = res.agent_cost
@@ -402,6 +408,8 @@ class MPCPolicy:
         # one theta per run: the rows' parameter vectors (days, n_theta) at each call
         self._vectors = None if isinstance(theta, Theta) else np.stack(
             [t.to_vector() for t in thetas])
+        # the runs' vectors repeated for their rows (made at the first call, which knows them)
+        self._theta_rows: np.ndarray | None = None
         if not isinstance(sensitivities, bool):
             raise ValueError(  # noqa: TRY004
                 f"sensitivities={sensitivities!r}: expected True or False"
@@ -421,10 +429,12 @@ class MPCPolicy:
         warm = None if self._x is None or hour != self._hour + 1 else mpc.shift(self._x)
         theta = self.theta
         if self._vectors is not None:
-            runs = len(self._vectors)
-            if len(soc) % runs:
-                raise ValueError(f"{len(soc)} rows for {runs} thetas: expected equal blocks")
-            theta = np.repeat(self._vectors, len(soc) // runs, axis=0)
+            theta = self._theta_rows
+            if theta is None or len(theta) != len(soc):
+                runs = len(self._vectors)
+                if len(soc) % runs:
+                    raise ValueError(f"{len(soc)} rows for {runs} thetas: expected equal blocks")
+                theta = self._theta_rows = np.repeat(self._vectors, len(soc) // runs, axis=0)
         sol = self.solver.solve_batch(soc, buy, sell, theta, x0=warm)
         self.failures += int(np.count_nonzero(~sol.success))
         self._x = sol.x if warm is None else np.where(sol.success[:, None], sol.x, warm)

@@ -55,6 +55,7 @@ __all__ = [
     "sample_noise",
     "split_action",
     "step",
+    "step_unchecked",
     "unchecked_penalty",
 ]
 
@@ -484,10 +485,10 @@ def step(
     days = soc.shape[0]
     phi_b = _day_prices("buy_price", buy_price, days)
     phi_s = _day_prices("sell_price", sell_price, days)
-    return _step_checked(soc, a, noise, phi_b, phi_s, system)
+    return step_unchecked(soc, a, noise, phi_b, phi_s, system)
 
 
-def _step_checked(
+def step_unchecked(
     soc: np.ndarray,
     a: np.ndarray,
     noise: np.ndarray,
@@ -495,6 +496,11 @@ def _step_checked(
     phi_s: np.ndarray,
     system: SystemConfig,
 ) -> StepResult:
+    """:func:`step` without the input checks, for the closed loop's hours
+    (:func:`mpcrl_lite.sim.closed_loop.simulate`), whose inputs are checked once or are finite
+    by construction: ``soc`` float ``(days, n)`` in ``[0, 1]``, ``a`` and ``noise`` finite
+    float ``(days, n)``, ``phi_b`` and ``phi_s`` finite float ``(days,)``. The same
+    arithmetic as :func:`step`, so the same result to the last bit."""
     net, soc_next = _apply_controller(soc, a, noise, battery_values(system, "alpha"))
     b, s = np.maximum(net, 0.0), np.maximum(-net, 0.0)
     cost = _agent_costs(soc, b, s, phi_b, phi_s, system)

@@ -266,14 +266,27 @@ class Prices:
         Returns
         -------
         buy, sell : numpy.ndarray
-            Each of shape ``(days, N)``; ``sell = sell_ratio * buy``.
+            Each of shape ``(days, N)``; ``sell = sell_ratio * buy``. Read-only (the same
+            arrays for every call with the same ``hour`` and ``N``).
         """
         hour = check_int("hour", hour, 0, HOURS_PER_DAY - 1)
         N = check_int("N", N, 1)
-        ahead = int(hour) + np.arange(N)  # hours counted from today's midnight, (N,)
-        day = (np.arange(self.days)[:, None] + ahead[None, :] // HOURS_PER_DAY) % self.days
-        buy = self.buy[day, ahead[None, :] % HOURS_PER_DAY]  # (days, N)
-        return buy, sell_prices(buy, self.sell_ratio)
+        # the prices are read-only, so each window is made once (a learning run asks for the
+        # same 24 every month) and handed out read-only
+        windows = self.__dict__.get("_windows")
+        if windows is None:
+            windows = {}
+            object.__setattr__(self, "_windows", windows)
+        found = windows.get((int(hour), int(N)))
+        if found is None:
+            ahead = int(hour) + np.arange(N)  # hours counted from today's midnight, (N,)
+            day = (np.arange(self.days)[:, None] + ahead[None, :] // HOURS_PER_DAY) % self.days
+            buy = self.buy[day, ahead[None, :] % HOURS_PER_DAY]  # (days, N)
+            sell = sell_prices(buy, self.sell_ratio)
+            buy.setflags(write=False)
+            sell.setflags(write=False)
+            found = windows[int(hour), int(N)] = (buy, sell)
+        return found
 
     def to_frame(self) -> pd.DataFrame:
         """The prices as a tidy table for plotting: one row per (day, hour).
