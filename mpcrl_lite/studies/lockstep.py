@@ -68,6 +68,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 from tqdm.auto import tqdm
 
+from .._util.malloc import keep_freed_memory
 from ..learning.checkpoint import open_run
 from ..learning.experiment import Experiment
 from ..learning.history import History
@@ -162,6 +163,7 @@ def run_lockstep(
                                or months < 1):
         raise ValueError(f"months={months!r}: expected an integer >= 1")
     paths = [None if o is None else Path(o) for o in outs_list]
+    keep_freed_memory()  # the months' arrays reuse freed memory (same results, less time)
     results: list[History | BaseException | None] = [None] * len(learners)
     targets = [0] * len(learners)
 

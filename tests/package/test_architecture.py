@@ -24,7 +24,7 @@ from conftest import package_imports, package_modules
 #: and subpackages of ``mpcrl_lite``. A module may import from its own layer or lower ones.
 LAYERS: list[set[str]] = [
     {"_util"},  # plain helpers: jit set-up, four-lane vectors, JSON, statistics, validators, files,
-    #           references
+    #           references, the allocator's thresholds
     {"config", "theta"},  # every number and choice; the parameter vector
     {"system"},  # prices, the true batteries, forecasts
     {"mpc"},  # the one formulation, its solutions and sensitivity, the back-ends
@@ -41,8 +41,8 @@ LAYERS: list[set[str]] = [
 #: Inside a subpackage, its modules lowest first: a module imports only from a lower entry of
 #: its own subpackage (never from its own entry: modules side by side are independent).
 SUBLAYERS: dict[str, list[set[str]]] = {
-    "_util": [{"budget", "gym_registration", "jit", "jsonio", "lazy", "resources", "references",
-               "stats", "threads", "validate", "vec4", "version", "workers"}],
+    "_util": [{"budget", "gym_registration", "jit", "jsonio", "lazy", "malloc", "resources",
+               "references", "stats", "threads", "validate", "vec4", "version", "workers"}],
     "system": [{"price_files", "battery"}, {"prices"}, {"forecast"}],
     "system.price_files": [{"areas", "series"},
                            {"currency", "detect", "energidataservice", "entsoe", "entsoe_legacy",

@@ -309,3 +309,43 @@ def test_record_arrays_round_trip_and_month_record_shares_them():
     assert month.soc is record.soc and month.summary() == record.summary()
     with pytest.raises(ValueError, match="level="):
         record.hours_soc_below([0.1, 0.2])
+
+
+# -- the hour's checks: once where the inputs are known to be good ---------------------------
+def test_the_unchecked_step_is_the_checked_one_to_the_last_bit():
+    from mpcrl_lite.system.battery import step, step_unchecked
+
+    rng = np.random.default_rng(4)
+    soc = rng.uniform(0.0, 1.0, (7, SYSTEM.n))
+    a = rng.uniform(-2.0, 2.0, (7, SYSTEM.n))  # some beyond the low-level controller's edges
+    noise = sample_noise(rng, (7, SYSTEM.n), SYSTEM)
+    buy = rng.uniform(10.0, 90.0, 7)
+    checked = step(soc, a, noise, buy, 0.5 * buy, SYSTEM)
+    unchecked = step_unchecked(soc, a, noise, buy, 0.5 * buy, SYSTEM)
+    for name in ("soc_next", "b", "s", "correction", "agent_cost", "stage_cost", "grid_power"):
+        assert getattr(checked, name).tobytes() == getattr(unchecked, name).tobytes(), name
+
+
+def test_the_exploration_hook_gives_bounded_exploration_to_the_last_bit():
+    from mpcrl_lite.sim.exploration import bounded_exploration
+
+    pi = project_action(np.random.default_rng(8).uniform(-1.5, 1.5, (40, SYSTEM.n)), SYSTEM)
+    for bounds in ("symmetric", "radial", "project"):
+        hook = GaussianExploration(0.4, SYSTEM, bounds)
+        got = hook(3, pi, np.random.default_rng(2))
+        e = 0.4 * np.random.default_rng(2).standard_normal(pi.shape)
+        assert got.tobytes() == bounded_exploration(pi, e, SYSTEM, bounds).tobytes(), bounds
+    # a bad action still gets bounded_exploration's error
+    with pytest.raises(ValueError, match="non-finite"):
+        GaussianExploration(0.4, SYSTEM)(3, np.full((2, SYSTEM.n), np.nan),
+                                        np.random.default_rng(2))
+
+
+def test_an_action_from_another_hook_is_still_checked():
+    buy, sell = _prices(2)
+
+    def broken(hour, pi, rng):
+        return np.where(hour == 5, np.inf, pi)
+
+    with pytest.raises(ValueError, match="expected finite values only"):
+        simulate(_rule, buy, sell, SYSTEM, rng=np.random.default_rng(0), explore=broken)

@@ -701,3 +701,16 @@ def test_prices_pickle_with_their_origin():
     assert dict(back.origin) == dict(prices.origin)
     with pytest.raises(TypeError):
         back.origin["days"] = 1  # read-only again
+
+
+def test_a_window_is_made_once_and_handed_out_read_only():
+    prices = ramp_prices()
+    buy, sell = prices.window(hour=21, N=6)
+    again = prices.window(hour=21, N=6)
+    assert again[0] is buy and again[1] is sell
+    with pytest.raises(ValueError):
+        buy[0, 0] = 1.0
+    # the same numbers as a month made anew (whose cache is empty)
+    fresh = Prices(prices.buy.copy()).window(hour=21, N=6)
+    np.testing.assert_array_equal(buy, fresh[0])
+    np.testing.assert_array_equal(sell, fresh[1])
