@@ -160,6 +160,18 @@ class Checkpointing:
                                           tuple(configs.values()))
         return known[1]
 
+    def _config_dicts(self) -> dict[str, Any]:
+        """The configurations as ``checkpoint.json`` holds them, made once per set of
+        configuration objects (they are frozen; every month's checkpoint repeats them)."""
+        configs = self.configs()
+        key = tuple((name, id(cfg)) for name, cfg in configs.items())
+        known = getattr(self, "_config_dicts_of", None)
+        if known is None or known[0] != key:
+            known = self._config_dicts_of = (
+                key, {k: cfg.to_dict() for k, cfg in configs.items()},
+                tuple(configs.values()))
+        return known[1]
+
     def checkpoint_state(self) -> dict[str, Any]:
         """The content of ``checkpoint.json``."""
         return {
@@ -167,7 +179,7 @@ class Checkpointing:
             "months_done": self.history.months,
             **self.learner_state(),
             "rng": self.rng.bit_generator.state,
-            **{key: cfg.to_dict() for key, cfg in self.configs().items()},
+            **self._config_dicts(),
             "prices": prices_fingerprint(self.prices),
         }
 

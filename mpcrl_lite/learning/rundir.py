@@ -92,7 +92,7 @@ import hashlib
 import json
 import os
 import re
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -321,20 +321,25 @@ def commit(
         if path.parent == directory:
             del _appended[path]
     _appended.update(hashes)
-    _publish(directory, manifest, dict(files))
+    _publish(directory, manifest, dict(files), written=set(files))
     return manifest
 
 
-def _publish(directory: Path, manifest: Mapping[str, Any], data: Mapping[str, bytes]) -> None:
+def _publish(directory: Path, manifest: Mapping[str, Any], data: Mapping[str, bytes],
+             written: Collection[str] = ()) -> None:
     """Make the commit durable (fsync of the directory), point the visible names at the
     committed files, then remove the staged names and any leftovers of interrupted writers.
     A failure here is left for the next writer (the commit is done: readers find the staged
-    files)."""
+    files). ``written`` names the files the commit has just staged."""
     try:
         durable.fsync_dir(directory)
         for name, entry in manifest["files"].items():
             target = directory / name
-            if entry.get("append") or _file_sha256(target) == entry["sha256"]:
+            # a file the commit has just staged is pointed at anew (its visible name holds an
+            # earlier content, so reading and hashing it first would only cost time); any
+            # other only where its visible name does not hold it (an earlier publish failed)
+            if entry.get("append") or (name not in written
+                                       and _file_sha256(target) == entry["sha256"]):
                 continue
             staged = directory / entry["staged"]
             if not staged.exists():
