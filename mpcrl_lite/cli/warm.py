@@ -2,8 +2,10 @@
 
 The Makefile's ``setup`` runs it once, so that no notebook, test or command waits for the
 compiler: the MPC back-end (:mod:`mpcrl_lite.mpc.backends.kernel_core`), the exploration
-(:mod:`mpcrl_lite.sim.exploration_kernel`) and the coordination rounds of the decentralized
-learner (:mod:`mpcrl_lite.decentralized.coordination_kernel`). Each loads its kernels on
+(:mod:`mpcrl_lite.sim.exploration_kernel`), the month of the closed loop
+(:mod:`mpcrl_lite.sim.compiled_month`, for the generic kernels and the paper's sizes) and the
+coordination rounds of the decentralized learner
+(:mod:`mpcrl_lite.decentralized.coordination_kernel`). Each loads its kernels on
 first use anyway; this only moves the wait ahead: about four minutes of CPU, two on two cores
 (the generic kernels with the exploration and the coordination rounds about 1.9 minutes, each
 size's copy of the MPC kernels about one). (The causal dynamic program's kernels
@@ -22,7 +24,7 @@ from concurrent.futures import ProcessPoolExecutor
 from .._util.workers import end_with_parent
 from ..decentralized import coordination_kernel
 from ..mpc.backends import kernel, kernel_sizes
-from ..sim import exploration_kernel
+from ..sim import compiled_month, exploration_kernel
 
 __all__ = ["main", "warm_up"]
 
@@ -34,6 +36,11 @@ def _groups() -> list[str]:
     return ["generic", *(f"{n}x{N}" for n, N in sorted(kernel_sizes.SPECIALISED_SIZES))]
 
 
+#: the sizes whose compiled month (:mod:`mpcrl_lite.sim.compiled_month`) is compiled here with
+#: their kernels: the paper's (the 11-hour tail of the Q-learner's MPC never runs a month)
+MONTH_SIZES = frozenset({(3, 12)})
+
+
 def _compile(group: str) -> float:
     """Compile (or load) one group of :func:`_groups`; the seconds it took."""
     t0 = time.perf_counter()
@@ -41,10 +48,51 @@ def _compile(group: str) -> float:
         kernel.K.ensure_compiled()
         exploration_kernel.ensure_compiled()
         coordination_kernel.ensure_compiled()
+        _warm_month(2, 4)
     else:
         n, N = (int(v) for v in group.split("x"))
         kernel_sizes.kernels(n, N).ensure_compiled()
+        if (n, N) in MONTH_SIZES:
+            _warm_month(n, N)
     return time.perf_counter() - t0
+
+
+class _Threads:
+    """``solver`` whose compiled months take ``threads`` threads, also in a worker process
+    (where a run takes one): both entries of the compiled month get compiled."""
+
+    def __init__(self, solver, threads: int) -> None:
+        self.solver, self.threads = solver, threads
+        self.mpc, self.name = solver.mpc, solver.name
+
+    def loop_parts(self, rows: int):
+        parts = self.solver.loop_parts(rows)
+        return None if parts is None else {**parts, "threads": self.threads}
+
+    def report_failures(self, status) -> None:
+        self.solver.report_failures(status)
+
+
+def _warm_month(n: int, N: int) -> None:
+    """Compile (or load) the compiled month of the kernels of ``n`` batteries and horizon
+    ``N`` (:mod:`mpcrl_lite.sim.compiled_month`): a short month with exploration and
+    sensitivities, in one block of days and in two, with the argument types of a run."""
+    import numpy as np
+
+    from ..config import LearningConfig, MPCConfig, SystemConfig
+    from ..mpc.backends.registry import make_solver
+    from ..mpc.formulation import MPC
+    from ..sim.closed_loop import run_month
+    from ..system.prices import Prices
+    from ..theta import Theta
+
+    system = SystemConfig(n=n, N=N)
+    solver = make_solver(MPC(system), MPCConfig(backend="kernel"))
+    prices = Prices.month(system, 16)
+    for threads in (1, 2):
+        run_month(Theta.nominal(system), _Threads(solver, threads), prices, system,
+                  np.random.default_rng(0), exploration_std=LearningConfig().exploration_std,
+                  sensitivities=True)
 
 
 def warm_up(verbose: bool = False, workers: int | None = None) -> float:
@@ -63,7 +111,8 @@ def warm_up(verbose: bool = False, workers: int | None = None) -> float:
             list(pool.map(_compile, groups))
     for group in groups:
         _compile(group)
-    removed = kernel_sizes.prune()  # the copies of other versions, now that these are ready
+    # the copies of other versions, now that these are ready
+    removed = kernel_sizes.prune() + compiled_month.prune()
     took = time.perf_counter() - t0
     if verbose:
         print(f"mpcrl_lite kernels ready in {took:.1f} s (cache: {kernel.cache_dir()})")

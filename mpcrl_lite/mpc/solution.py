@@ -32,6 +32,7 @@ import logging
 import time
 from collections import Counter
 from dataclasses import dataclass, field, replace
+from collections.abc import Sequence
 from typing import Protocol
 
 import numpy as np
@@ -53,6 +54,7 @@ __all__ = [
     "SolverBackend",
     "StartSettings",
     "check_parameters",
+    "failure_summary",
 ]
 
 #: Description of the action used when a solve fails.
@@ -67,6 +69,18 @@ STATUS_MAX_ITER = "max_iter_reached"
 STATUS_NON_FINITE = "non_finite"
 #: Status of a problem whose linear algebra broke down (singular or non-finite system).
 STATUS_BREAKDOWN = "linear_algebra_breakdown"
+
+
+def failure_summary(status: Sequence[str], success: Sequence[bool], backend: str = "") -> str:
+    """:meth:`BatchSolution.failure_summary` of a call's statuses and successes (the one
+    wording of a call with failed problems, also for a compiled closed loop's hours)."""
+    failed = [s for s, ok in zip(status, success, strict=True) if not ok]
+    if not failed:
+        return ""
+    statuses = ", ".join(f"{s}: {count}" for s, count in Counter(failed).most_common())
+    prefix = f"{backend} back-end: " if backend else ""
+    return (f"{prefix}{len(failed)} of {len(status)} MPC problems failed ({statuses}); "
+            "their batteries idle (the fallback action)")
 
 
 @dataclass(frozen=True)
@@ -144,13 +158,7 @@ class BatchSolution:
         """One line for a log: how many problems failed and with which statuses, e.g.
         ``"batch back-end: 3 of 24 MPC problems failed (max_iter_reached: 3); their batteries
         idle (the fallback action)"``; the empty string when none failed."""
-        if not self.failures:
-            return ""
-        counts = Counter(s for s, ok in zip(self.status, self.success, strict=True) if not ok)
-        statuses = ", ".join(f"{status}: {count}" for status, count in counts.most_common())
-        backend = f"{self.backend} back-end: " if self.backend else ""
-        return (f"{backend}{self.failures} of {len(self)} MPC problems failed ({statuses}); "
-                "their batteries idle (the fallback action)")
+        return failure_summary(self.status, self.success, self.backend)
 
     @staticmethod
     def stack(

@@ -508,6 +508,13 @@ def run_month(
         prices = _TiledPrices(prices, len(theta))
         if soc0 is not None and np.ndim(soc0) == 2:
             soc0 = np.tile(np.asarray(soc0, dtype=float), (len(theta), 1))
+    if not on_hour:  # the whole month in one compiled call where it covers it
+        compiled = _compiled_month(theta, solver, prices, system, rng=rng,
+                                   exploration_std=exploration_std, sensitivities=sensitivities,
+                                   soc0=soc0, bounds=exploration_bounds,
+                                   margin=exploration_margin)
+        if compiled is not None:
+            return compiled
     recorder = SensitivityRecorder() if sensitivities else None
     explore = (GaussianExploration(exploration_std, system, exploration_bounds,
                                    exploration_margin) if exploration_std > 0 else None)
@@ -598,9 +605,68 @@ def evaluate_mpc(
     if soc0 is not None and np.ndim(soc0) == 2:
         soc0 = np.tile(np.asarray(soc0, dtype=float), (draws, 1))
     tiled = _TiledPrices(prices, draws)
+    compiled = _compiled_month(theta, solver, tiled, system, noise=noise, soc0=soc0)
+    if compiled is not None:
+        return compiled
     record = simulate(MPCPolicy(solver, theta, tiled), tiled.buy[:, :H], tiled.sell[:, :H],
                       system, noise=noise, soc0=soc0)
     return MonthRecord.from_record(record)
+
+
+def _compiled_month(
+    theta: Theta | Sequence[Theta], solver: Any, prices: Any, system: SystemConfig, *,
+    rng: Any = None, noise: Any = None, exploration_std: float = 0.0,
+    sensitivities: bool = False, soc0: Any = None, bounds: str = "symmetric",
+    margin: float = 0.0,
+) -> MonthRecord | None:
+    """The month of :func:`run_month` (noise from ``rng``) or of :func:`evaluate_mpc` (the
+    ``noise`` given) in one compiled call (:mod:`mpcrl_lite.sim.compiled_month`), the same
+    record to the last bit; None where that does not cover it (the caller then runs the
+    Python loop, which also reports bad input)."""
+    loop_parts = getattr(solver, "loop_parts", None)
+    if loop_parts is None or not isinstance(system, SystemConfig):
+        return None
+    from . import compiled_month
+
+    if not compiled_month.ENABLED:
+        return None
+    H, D, n, N = system.hours_per_day, prices.days, system.n, solver.mpc.N
+    explore = exploration_std > 0
+    thetas = [theta] if isinstance(theta, Theta) else list(theta)
+    if not thetas or any(not isinstance(t, Theta) or t.n != n for t in thetas) \
+            or D % len(thetas) or solver.mpc.n != n \
+            or (noise is None and not isinstance(rng, (np.random.Generator, RunBlocks))):
+        return None
+    parts = loop_parts(D)
+    if not compiled_month.eligible(parts, n, bounds if explore else None, margin):
+        return None
+    buy, sell = _prices("buy", prices.buy[:, :H], H), _prices("sell", prices.sell[:, :H], H)
+    if sell.shape != buy.shape:
+        return None
+    soc = _initial_soc(soc0, system, D)
+    rows = np.repeat(np.stack([t.to_vector() for t in thetas]), D // len(thetas), axis=0)
+    windows = [prices.window(k, N) for k in range(H)]
+    wbuy, wsell = np.stack([w[0] for w in windows]), np.stack([w[1] for w in windows])
+    if not (np.isfinite(rows).all() and np.isfinite(wbuy).all() and np.isfinite(wsell).all()):
+        return None
+    e = None
+    if noise is None:  # drawn in the Python loop's order: the exploration, then the noise
+        e = np.empty((H, D, n)) if explore else None
+        noise = np.empty((H, D, n))
+        for k in range(H):
+            if e is not None:
+                e[k] = float(exploration_std) * rng.standard_normal((D, n))
+            noise[k] = _draw_noise(rng, (D, n), system)
+    else:
+        noise = _finite("noise", noise).copy()
+        if noise.shape != (H, D, n):
+            return None
+    arrays, grad_pi, statuses = compiled_month.run(
+        parts, system, solver.mpc, soc, rows, wbuy, wsell, buy, sell, e, noise,
+        bool(sensitivities), bounds == "symmetric")
+    for k in range(H):  # the warnings of the hours with failed solves, as solve_batch logs them
+        solver.report_failures(statuses[k])
+    return MonthRecord.from_record(Record(system=system, **arrays), grad_pi)
 
 
 def draw_J(record: Record, draws: int) -> np.ndarray:

@@ -71,6 +71,7 @@ import logging
 import multiprocessing
 import threading
 import time
+from typing import Any
 
 import numpy as np
 
@@ -90,6 +91,7 @@ from ..solution import (
     Sensitivity,
     StartSettings,
     check_parameters,
+    failure_summary,
 )
 
 ca = lazy_module("casadi")  # CasADi (~0.1-0.2 s of import) loads when first used
@@ -377,6 +379,37 @@ class KernelSolver(StartSettings, BackendBase):
             getattr(kernels, rows + "_parallel")(*args, 0, days, block)
         else:
             run_blocks(getattr(kernels, rows), args, days, threads, THREAD_BLOCK)
+
+    # ------------------------------------------------------- inside a compiled loop ------
+    def loop_parts(self, rows: int) -> dict[str, Any] | None:
+        """What a compiled closed loop needs to call this solver's kernels itself
+        (:mod:`mpcrl_lite.sim.compiled_month`) for calls of ``rows`` problems: the kernel
+        module, the arguments of its ``solve_rows`` and ``sensitivity_rows`` that stay the
+        same all month, the sensitivity's verdict thresholds, whether to warm start, and the
+        threads a call of this size gets (one in a forked child, whose numba threads are
+        gone: :meth:`_run`). None where the loop must call :meth:`solve_batch` instead (the
+        one-problem-at-a-time reference, ``lanes=False``). Loads and checks the kernels
+        (:meth:`_ready`)."""
+        if not self.lanes:
+            return None
+        self._ready()
+        threads = self._threads(rows) if multiprocessing.parent_process() is None else 1
+        return {
+            "kernels": self._kernels, "opts": self._opts(), "ubar": self._ubar,
+            "stagew": self._stagew, "n": self.n, "N": self.N, "method": self._method,
+            "structured": bool(self.structured_adjoint),
+            "cond_max": float(self.config.kkt_cond_max),
+            "back_max": _BACKWARD_ERROR_MAX, "warm_start": bool(self.config.warm_start),
+            "threads": threads, "lanes": int(self._kernels.LANES),
+        }
+
+    def report_failures(self, status: np.ndarray) -> None:
+        """Log the failed problems of one call, given the kernels' status codes of its rows,
+        as :meth:`solve_batch` does (for a compiled loop's hours)."""
+        success = status == K.CONVERGED
+        if not success.all():
+            log.warning("%s", failure_summary(tuple(_status_names()[status].tolist()), success,
+                                              self.name))
 
     # ------------------------------------------------------------------ solving ----------
     def _solve_parameters(self, P: np.ndarray, x0: np.ndarray | None,

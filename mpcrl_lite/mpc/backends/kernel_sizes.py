@@ -36,7 +36,7 @@ import threading
 from pathlib import Path
 from types import ModuleType
 
-__all__ = ["SPECIALISED_SIZES", "kernels", "prune", "source"]
+__all__ = ["SPECIALISED_SIZES", "folder", "kernels", "prune", "source", "write_once"]
 
 #: the sizes ``(n, N)`` served by a specialised copy: the paper's three batteries and
 #: 12-hour horizon (the package's defaults), and the 11-hour tail of their fixed-first-action
@@ -97,6 +97,17 @@ def _write(path: Path, text: str, mtime: float) -> None:
     tmp.write_text(text, encoding="utf-8")
     os.utime(tmp, (mtime, mtime))
     os.replace(tmp, path)
+
+
+def folder() -> Path:
+    """The cache folder of the generated kernel modules (:func:`_folder`); the compiled closed
+    loop (:mod:`mpcrl_lite.sim.compiled_month`) puts its copies there too."""
+    return _folder()
+
+
+def write_once(path: Path, text: str, mtime: float) -> None:
+    """Write a generated module's ``text`` to ``path`` unless it is there (:func:`_write`)."""
+    _write(path, text, mtime)
 
 
 def _stem(n: int, N: int, text: str | None = None) -> str:
