@@ -28,7 +28,6 @@ never holds code of other kernels.
 
 from __future__ import annotations
 
-import numpy as np
 from numba import prange
 
 from .._util.jit import njit_cached

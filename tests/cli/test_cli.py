@@ -11,6 +11,7 @@ import pytest
 
 from mpcrl_lite.cli.main import build_parser, main
 from mpcrl_lite.config import BACKENDS, OPTIMIZERS, LearningConfig, MPCConfig, SystemConfig
+from mpcrl_lite.learning.history import History
 from mpcrl_lite.learning.rundir import CHECKPOINT
 from mpcrl_lite.publish.report import PROFILES
 
@@ -187,3 +188,18 @@ def test_learn_eval_here_keeps_the_evaluations_in_the_process(flag, expected, tm
             "--no-figures", *flag]
     assert main(argv) == 0
     assert seen == [expected]
+
+
+def test_the_command_ends_its_process_with_everything_written(tmp_path):
+    """``python -m mpcrl_lite`` ends at once once its command returns (cli.main.end_process):
+    the run is committed, the summary written, the output flushed and the status kept."""
+    out = tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-m", "mpcrl_lite", "learn", "--months", "2",
+                           "--days", "2", "--eval-draws", "1", "--no-figures", "--quiet",
+                           "--out", str(out)],
+                          capture_output=True, text=True, timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout.strip().splitlines()[-1])["months"] == 2
+    assert History.load(out).months == 2
+    assert json.loads((out / "summary.json").read_text())["months"] == 2
+    assert not (out / ".run").exists()  # the last commit published and tidied
