@@ -77,6 +77,10 @@ class ValueRecorder:
     After the month, :attr:`value` and :attr:`ok` are ``(H, D)`` and :attr:`x` ``(H, D, nx)``.
     """
 
+    #: it only reads the steps: a compiled month calls it after the month with the same steps
+    #: (:func:`mpcrl_lite.sim.closed_loop.run_month`)
+    replayable = True
+
     def __init__(self, value: MPCValue) -> None:
         self.mpc_value = value
         self._v: list[np.ndarray] = []

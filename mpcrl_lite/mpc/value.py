@@ -294,23 +294,22 @@ class MPCValue:
         hess = np.zeros((days, nt, nt)) if hessian else None
         x, lam = y[:, :m.nx], y[:, m.nx:m.nx + problem.nlam]
         v_all, g_all, _ = self._closed(x, lam, P[:, :m.np], tau)
-        for d in range(days):
-            if not ok[d]:
+        # the rows at once (a month of Q-learning asks for 1,440 of them); a row's value and
+        # gradient are copied as they are
+        finite = np.isfinite(v_all) & np.isfinite(g_all).all(axis=1)
+        for d in np.flatnonzero(ok & ~finite).tolist():
+            ok[d], reasons[d] = False, "non-finite value (a point outside the barrier's domain)"
+        value[ok] = v_all[ok]
+        grad[ok] = g_all[ok]
+        for d in np.flatnonzero(ok).tolist() if hessian else ():
+            try:
+                H, res = problem.hessian(y[d], P[d], tau)
+            except RuntimeError:
+                H, res = np.nan, np.inf
+            H, res = np.array(H), float(res)
+            if not (np.all(np.isfinite(H)) and res <= _HESSIAN_RESIDUAL_MAX):
+                ok[d], reasons[d] = False, "singular or ill-conditioned KKT matrix"
+                value[d], grad[d] = np.nan, 0.0
                 continue
-            v, dL = v_all[d], g_all[d]
-            if not (np.isfinite(v) and np.all(np.isfinite(dL))):
-                ok[d], reasons[d] = False, "non-finite value (a point outside the barrier's domain)"
-                continue
-            value[d], grad[d] = v, dL
-            if hessian:
-                try:
-                    H, res = problem.hessian(y[d], P[d], tau)
-                except RuntimeError:
-                    H, res = np.nan, np.inf
-                H, res = np.array(H), float(res)
-                if not (np.all(np.isfinite(H)) and res <= _HESSIAN_RESIDUAL_MAX):
-                    ok[d], reasons[d] = False, "singular or ill-conditioned KKT matrix"
-                    value[d], grad[d] = np.nan, 0.0
-                    continue
-                hess[d] = 0.5 * (H + H.T)
+            hess[d] = 0.5 * (H + H.T)
         return ValueDerivatives(value, grad, hess, ok, tuple(reasons), solution)

@@ -177,6 +177,10 @@ class SensitivityRecorder:
     """Hour hook collecting each hour's ``decision.grad``; :attr:`grad_pi` stacks them into
     ``(H, days, ...)`` (e.g. ``(H, D, n_theta, n)`` for :class:`MPCPolicy`)."""
 
+    #: it only reads the steps: a compiled month may call it after the month
+    #: (:func:`run_month`)
+    replayable = True
+
     def __init__(self) -> None:
         self._grads: list[np.ndarray] = []
 
@@ -508,13 +512,13 @@ def run_month(
         prices = _TiledPrices(prices, len(theta))
         if soc0 is not None and np.ndim(soc0) == 2:
             soc0 = np.tile(np.asarray(soc0, dtype=float), (len(theta), 1))
-    if not on_hour:  # the whole month in one compiled call where it covers it
-        compiled = _compiled_month(theta, solver, prices, system, rng=rng,
-                                   exploration_std=exploration_std, sensitivities=sensitivities,
-                                   soc0=soc0, bounds=exploration_bounds,
-                                   margin=exploration_margin)
-        if compiled is not None:
-            return compiled
+    # the whole month in one compiled call where it covers it
+    compiled = _compiled_month(theta, solver, prices, system, rng=rng,
+                               exploration_std=exploration_std, sensitivities=sensitivities,
+                               soc0=soc0, bounds=exploration_bounds, margin=exploration_margin,
+                               hooks=on_hour)
+    if compiled is not None:
+        return compiled
     recorder = SensitivityRecorder() if sensitivities else None
     explore = (GaussianExploration(exploration_std, system, exploration_bounds,
                                    exploration_margin) if exploration_std > 0 else None)
@@ -617,14 +621,21 @@ def _compiled_month(
     theta: Theta | Sequence[Theta], solver: Any, prices: Any, system: SystemConfig, *,
     rng: Any = None, noise: Any = None, exploration_std: float = 0.0,
     sensitivities: bool = False, soc0: Any = None, bounds: str = "symmetric",
-    margin: float = 0.0,
+    margin: float = 0.0, hooks: Sequence[HourHook] = (),
 ) -> MonthRecord | None:
     """The month of :func:`run_month` (noise from ``rng``) or of :func:`evaluate_mpc` (the
     ``noise`` given) in one compiled call (:mod:`mpcrl_lite.sim.compiled_month`), the same
     record to the last bit; None where that does not cover it (the caller then runs the
-    Python loop, which also reports bad input)."""
+    Python loop, which also reports bad input).
+
+    Hour ``hooks`` are allowed where each is ``replayable`` (a class attribute: it only reads
+    the steps it is given, e.g. :class:`SensitivityRecorder` or
+    :class:`~mpcrl_lite.learning.qlearning.ValueRecorder`): they get the month's
+    :class:`HourStep` s after it, in the order of the hours, with the same arrays as the
+    Python loop's (the solution of every hour included; ``grad_soc0`` is None)."""
     loop_parts = getattr(solver, "loop_parts", None)
-    if loop_parts is None or not isinstance(system, SystemConfig):
+    if loop_parts is None or not isinstance(system, SystemConfig) \
+            or any(not getattr(hook, "replayable", False) for hook in hooks):
         return None
     from . import compiled_month
 
@@ -661,12 +672,40 @@ def _compiled_month(
         noise = _finite("noise", noise).copy()
         if noise.shape != (H, D, n):
             return None
-    arrays, grad_pi, statuses = compiled_month.run(
+    arrays, grad_pi, statuses, kept = compiled_month.run(
         parts, system, solver.mpc, soc, rows, wbuy, wsell, buy, sell, e, noise,
-        bool(sensitivities), bounds == "symmetric")
+        bool(sensitivities), bounds == "symmetric", keep=bool(hooks))
     for k in range(H):  # the warnings of the hours with failed solves, as solve_batch logs them
         solver.report_failures(statuses[k])
+    if hooks:
+        _replay(hooks, arrays, grad_pi, statuses, kept, solver, buy, sell)
     return MonthRecord.from_record(Record(system=system, **arrays), grad_pi)
+
+
+def _replay(hooks: Sequence[HourHook], arrays: dict[str, np.ndarray], grad: np.ndarray | None,
+            statuses: np.ndarray, kept: dict[str, np.ndarray], solver: Any, buy: np.ndarray,
+            sell: np.ndarray) -> None:
+    """Call the ``replayable`` hour hooks of a compiled month with its hours' steps."""
+    from ..mpc.solution import BatchSolution
+
+    for k in range(statuses.shape[0]):
+        solution = BatchSolution(
+            action=arrays["policy"][k], x=kept["x"][k], lam=kept["lam"][k], mu=kept["mu"][k],
+            cost=kept["cost"][k], success=arrays["solver_ok"][k],
+            status=solver.status_strings(statuses[k]), iterations=kept["iterations"][k],
+            p=kept["p"][k], backend=solver.name)
+        decision = Decision(action=arrays["policy"][k], solver_ok=arrays["solver_ok"][k],
+                            planned_power=arrays["planned_power"][k],
+                            sens_ok=arrays["sens_ok"][k],
+                            grad=None if grad is None else grad[k], solution=solution)
+        result = StepResult(
+            soc_next=arrays["soc"][k + 1], b=arrays["b"][k], s=arrays["s"][k],
+            correction=arrays["correction"][k], agent_cost=arrays["agent_cost"][k],
+            stage_cost=arrays["stage_cost"][k], grid_power=arrays["grid_power"][k])
+        step_ = HourStep(k, arrays["soc"][k], decision, arrays["a"][k], arrays["noise"][k],
+                         result, buy[:, k], sell[:, k])
+        for hook in hooks:
+            hook(step_)
 
 
 def draw_J(record: Record, draws: int) -> np.ndarray:

@@ -146,14 +146,16 @@ def eligible(parts: dict[str, Any] | None, n: int, bounds: str | None, margin: f
 def run(parts: dict[str, Any], system: Any, mpc: Any, soc0: np.ndarray, theta: np.ndarray,
         wbuy: np.ndarray, wsell: np.ndarray, buy: np.ndarray, sell: np.ndarray,
         e: np.ndarray | None, noise: np.ndarray, sensitivities: bool,
-        symmetric: bool) -> tuple[dict[str, np.ndarray], np.ndarray | None, np.ndarray]:
+        symmetric: bool, keep: bool = False,
+        ) -> tuple[dict[str, np.ndarray], np.ndarray | None, np.ndarray, dict | None]:
     """The month's arrays: ``soc0`` (D, n) checked, ``theta`` (D, n_theta), the windows
     ``wbuy``, ``wsell`` (H, D, N), the true prices ``buy``, ``sell`` (D, H), the exploration
     ``e`` (H, D, n) already times its std (None: none) and the ``noise`` (H, D, n).
 
     Returns the record's arrays by name (as :class:`~mpcrl_lite.sim.record.Record` takes
-    them, ``soc`` included), ``grad_pi`` (H, D, n_theta, n) or None, and the solver's
-    status codes (H, D)."""
+    them, ``soc`` included), ``grad_pi`` (H, D, n_theta, n) or None, the solver's status
+    codes (H, D) and, with ``keep``, every hour's solutions (``x``, ``lam``, ``mu``, ``p``
+    (H, D, ...), ``cost``, ``iterations`` (H, D); else None)."""
     from ..system.battery import battery_values
 
     H, D, n = noise.shape
@@ -170,6 +172,10 @@ def run(parts: dict[str, Any], system: Any, mpc: Any, soc0: np.ndarray, theta: n
     solver_ok, sens_ok = np.empty((H, D), bool), np.empty((H, D), bool)
     grad_pi = np.empty((H, D, nt, n)) if sensitivities else np.empty((1, 1, nt, n))
     statuses = np.empty((H, D), np.int64)
+    rows = (H, D) if keep else (1, 1)
+    kept = {"x": np.empty((*rows, nx)), "lam": np.empty((*rows, mpc.neq)),
+            "mu": np.empty((*rows, mpc.nin)), "p": np.empty((*rows, mpc.np)),
+            "cost": np.empty(rows), "iterations": np.empty(rows, np.int64)}
     args = (
         np.ascontiguousarray(soc0, f64), np.ascontiguousarray(theta, f64),
         np.ascontiguousarray(wbuy, f64), np.ascontiguousarray(wsell, f64),
@@ -195,7 +201,8 @@ def run(parts: dict[str, Any], system: Any, mpc: Any, soc0: np.ndarray, theta: n
         # the record
         socs, arrays["policy"], arrays["a"], arrays["b"], arrays["s"], arrays["correction"],
         arrays["agent_cost"], per_day["stage_cost"], per_day["grid_power"],
-        per_day["planned_power"], solver_ok, sens_ok, grad_pi, statuses,
+        per_day["planned_power"], solver_ok, sens_ok, grad_pi, statuses, bool(keep),
+        kept["x"], kept["lam"], kept["mu"], kept["p"], kept["cost"], kept["iterations"],
     )
     threads = int(parts["threads"])
     entry = month.month_parallel if threads > 1 else month.month_rows
@@ -213,4 +220,4 @@ def run(parts: dict[str, Any], system: Any, mpc: Any, soc0: np.ndarray, theta: n
             entry(*args, 0, D)
     out = {"soc": socs, **arrays, "noise": noise, **per_day, "buy": np.ascontiguousarray(buy.T),
            "solver_ok": solver_ok, "sens_ok": sens_ok}
-    return out, (grad_pi if sensitivities else None), statuses
+    return out, (grad_pi if sensitivities else None), statuses, (kept if keep else None)

@@ -46,7 +46,8 @@ def month_rows(soc0, theta, wbuy, wsell, buy, sell, e, noise, opts, ubar, stagew
                P_bar, cond_max, back_max, alpha, penalty, soc_low, soc_high, ib, is_,
                P, x, lam, mu, xw, cold, cost, iters, status, action, grad, dsoc, cond, back,
                code, solved, socs, policy, a_out, b_out, s_out, corr, agent_cost, stage_cost,
-               grid, planned, solver_ok, sens_ok, grad_pi, statuses, d_lo, d_hi):
+               grid, planned, solver_ok, sens_ok, grad_pi, statuses, keep, xs, lams, mus,
+               Ps, costs, iterss, d_lo, d_hi):
     """The month of the days ``d_lo <= d < d_hi`` (see the module docstring).
 
     Inputs: ``soc0`` (D, n), ``theta`` (D, n_theta) each day's parameters, ``wbuy``,
@@ -57,7 +58,8 @@ def month_rows(soc0, theta, wbuy, wsell, buy, sell, e, noise, opts, ubar, stagew
     ``b`` and ``s`` in ``x``. Work arrays (D, ...): ``P, x, lam, mu, xw`` (the warm start),
     ``cold`` (1, nx) zeros, ``cost, iters, status, action, grad, dsoc, cond, back, code,
     solved``. Outputs: the record's arrays, hour first, and ``statuses`` (H, D) the solver's
-    status codes."""
+    status codes; with ``keep``, every hour's solutions too: ``xs, lams, mus, Ps`` (H, D, ...)
+    and ``costs, iterss`` (H, D) (else those arrays are not touched)."""
     H = e.shape[0]
     nx = x.shape[1]
     stage = 5 * n
@@ -97,6 +99,13 @@ def month_rows(soc0, theta, wbuy, wsell, buy, sell, e, noise, opts, ubar, stagew
                 side = _np_max(bought, sold)
                 top = side if j == 0 else _np_max(top, side)
             planned[k, d] = top
+            if keep:
+                xs[k, d, :] = x[d, :]
+                lams[k, d, :] = lam[d, :]
+                mus[k, d, :] = mu[d, :]
+                Ps[k, d, :] = P[d, :]
+                costs[k, d] = cost[d]
+                iterss[k, d] = iters[d]
         if sensitivities:
             sensitivity_rows(P, x, lam, mu, solved, opts, ubar, stagew, n, N, method,
                              structured, grad, dsoc, cond, back, code, d_lo, d_hi)
@@ -154,7 +163,8 @@ def month_parallel(soc0, theta, wbuy, wsell, buy, sell, e, noise, opts, ubar, st
                    P_bar, cond_max, back_max, alpha, penalty, soc_low, soc_high, ib, is_,
                    P, x, lam, mu, xw, cold, cost, iters, status, action, grad, dsoc, cond,
                    back, code, solved, socs, policy, a_out, b_out, s_out, corr, agent_cost,
-                   stage_cost, grid, planned, solver_ok, sens_ok, grad_pi, statuses, block):
+                   stage_cost, grid, planned, solver_ok, sens_ok, grad_pi, statuses, keep, xs,
+                   lams, mus, Ps, costs, iterss, block):
     """:func:`month_rows` on blocks of ``block`` days spread over numba's threads; each
     day's month is computed alone, so the results do not depend on the blocks."""
     days = soc0.shape[0]
@@ -166,5 +176,5 @@ def month_parallel(soc0, theta, wbuy, wsell, buy, sell, e, noise, opts, ubar, st
                    P_bar, cond_max, back_max, alpha, penalty, soc_low, soc_high, ib, is_,
                    P, x, lam, mu, xw, cold, cost, iters, status, action, grad, dsoc, cond,
                    back, code, solved, socs, policy, a_out, b_out, s_out, corr, agent_cost,
-                   stage_cost, grid, planned, solver_ok, sens_ok, grad_pi, statuses, lo,
-                   min(lo + block, days))
+                   stage_cost, grid, planned, solver_ok, sens_ok, grad_pi, statuses, keep, xs,
+                   lams, mus, Ps, costs, iterss, lo, min(lo + block, days))

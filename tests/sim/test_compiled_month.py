@@ -190,3 +190,61 @@ def test_each_kernel_module_gets_its_own_copy():
     assert "from mpcrl_lite.mpc.backends.kernel_core_n3_N12 import" in sized
     assert compiled_month.module(kernel_core) is not compiled_month.module(
         kernel_sizes.kernels(3, 12))
+
+
+class _Steps:
+    """A replayable hook keeping every step it is given (copies)."""
+
+    replayable = True
+
+    def __init__(self) -> None:
+        self.steps = []
+
+    def __call__(self, step) -> None:
+        d, r = step.decision, step.result
+        sol = d.solution
+        self.steps.append([step.hour, step.soc.copy(), step.a.copy(), step.noise.copy(),
+                           step.buy.copy(), step.sell.copy(), d.action.copy(),
+                           d.solver_ok.copy(), d.planned_power.copy(), d.sens_ok.copy(),
+                           d.grad.copy(), sol.x.copy(), sol.lam.copy(), sol.mu.copy(),
+                           sol.p.copy(), sol.cost.copy(), sol.success.copy(), sol.status,
+                           sol.iterations.copy(), r.soc_next.copy(), r.b.copy(), r.s.copy(),
+                           r.correction.copy(), r.agent_cost.copy(), r.stage_cost.copy(),
+                           r.grid_power.copy()])
+
+
+def test_replayable_hooks_get_the_python_loops_steps(monkeypatch, solver):
+    prices = Prices.month(SYSTEM, 6)
+    hooks = []
+
+    def month():
+        hooks.append(_Steps())
+        return run_month(Theta.nominal(SYSTEM), solver, prices, SYSTEM,
+                         np.random.default_rng(9), exploration_std=EXPLORATION,
+                         sensitivities=True, on_hour=[hooks[-1]])
+
+    reference, compiled = _months(monkeypatch, month)
+    _same(reference, compiled)
+    want, got = hooks
+    assert len(want.steps) == len(got.steps) == SYSTEM.hours_per_day
+    for w, g in zip(want.steps, got.steps, strict=True):
+        for a, b in zip(w, g, strict=True):
+            if isinstance(a, np.ndarray):
+                assert a.dtype == b.dtype and a.tobytes() == b.tobytes()
+            else:
+                assert a == b
+
+
+@pytest.mark.parametrize("hessian", ["approx", "full"])
+def test_a_q_learning_run_is_the_same_run(monkeypatch, hessian):
+    from mpcrl_lite.learning.q_experiment import QLearningExperiment
+
+    histories = []
+    for enabled in (False, True):
+        monkeypatch.setattr(compiled_month, "ENABLED", enabled)
+        exp = QLearningExperiment(learning=LearningConfig(days_per_month=6, eval_draws=1,
+                                                          hessian=hessian, seed=5))
+        histories.append(exp.run(2, progress=False))
+    want, got = histories
+    for key in ("J", "theta", "theta_final", "J_eval", "grad_norm", "solver_failures"):
+        assert getattr(got, key) == getattr(want, key), key

@@ -403,6 +403,10 @@ class KernelSolver(StartSettings, BackendBase):
             "threads": threads, "lanes": int(self._kernels.LANES),
         }
 
+    def status_strings(self, status: np.ndarray) -> tuple[str, ...]:
+        """The status strings (``BatchSolution.status``) of the kernels' status codes."""
+        return tuple(_status_names()[np.asarray(status, np.int64)].tolist())
+
     def report_failures(self, status: np.ndarray) -> None:
         """Log the failed problems of one call, given the kernels' status codes of its rows,
         as :meth:`solve_batch` does (for a compiled loop's hours)."""
