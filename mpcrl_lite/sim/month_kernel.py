@@ -3,7 +3,8 @@ r"""The closed loop of :func:`mpcrl_lite.sim.closed_loop.simulate` for an MPC po
 A learning month is 24 hours of one solver call, one sensitivity call, the exploration and
 the battery step for every day at once. Once the solver was compiled
 (:mod:`mpcrl_lite.mpc.backends.kernel_core`), the numpy and Python around those calls were
-about a quarter of a month's time. :func:`month_rows` runs the whole month of a block of days
+about a third of a month's time (a month of the paper's run took 30 ms, 20 ms compiled:
+``benchmarks/README.md``, "A month in one compiled call"). :func:`month_rows` runs the whole month of a block of days
 in one compiled call: for each hour the MPC parameters of each day, the warm start, the
 solve, the planned grid power, the sensitivities and their verdict, the exploration
 (:func:`mpcrl_lite.sim.exploration_kernel.explore_rows`) and the step of the true system
