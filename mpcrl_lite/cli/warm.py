@@ -6,10 +6,11 @@ compiler: the MPC back-end (:mod:`mpcrl_lite.mpc.backends.kernel_core`), the exp
 (:mod:`mpcrl_lite.sim.compiled_month`, for the generic kernels and the paper's sizes) and the
 coordination rounds of the decentralized learner
 (:mod:`mpcrl_lite.decentralized.coordination_kernel`). Each loads its kernels on
-first use anyway; this only moves the wait ahead: about four minutes of CPU, two on two cores
-(the generic kernels with the exploration and the coordination rounds about 1.9 minutes, each
-size's copy of the MPC kernels about one). (The causal dynamic program's kernels
-compile on their first solve, a few seconds.)
+first use anyway; this only moves the wait ahead: from an empty cache about five minutes of
+CPU, three on two cores (176 s on 2026-12-07; the generic kernels with the exploration, the
+coordination rounds and their compiled month in one process, each size's copy of the MPC
+kernels, with the paper's size's compiled month, in the other). (The causal dynamic
+program's kernels compile on their first solve, a few seconds.)
 """
 
 from __future__ import annotations
