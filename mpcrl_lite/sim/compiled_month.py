@@ -162,7 +162,10 @@ def run(parts: dict[str, Any], system: Any, mpc: Any, soc0: np.ndarray, theta: n
     N, nx, nt = mpc.N, mpc.nx, theta.shape[1]
     kernels = parts["kernels"]
     month = module(kernels)
-    f64 = np.float64
+    def c(a: Any, dtype: Any = np.float64) -> np.ndarray:
+        # C order and writable: numba compiles a read-only or strided array as another type
+        return np.require(a, dtype, ["C", "W"])
+
     explore = e is not None
     arrays = {k: np.empty((H, D, n)) for k in ("policy", "a", "b", "s", "correction",
                                                "agent_cost")}
@@ -177,21 +180,17 @@ def run(parts: dict[str, Any], system: Any, mpc: Any, soc0: np.ndarray, theta: n
             "mu": np.empty((*rows, mpc.nin)), "p": np.empty((*rows, mpc.np)),
             "cost": np.empty(rows), "iterations": np.empty(rows, np.int64)}
     args = (
-        np.ascontiguousarray(soc0, f64), np.ascontiguousarray(theta, f64),
-        np.ascontiguousarray(wbuy, f64), np.ascontiguousarray(wsell, f64),
-        np.ascontiguousarray(buy, f64), np.ascontiguousarray(sell, f64),
-        np.ascontiguousarray(e if explore else np.zeros((H, D, n)), f64),
-        np.ascontiguousarray(noise, f64),
-        parts["opts"], parts["ubar"], parts["stagew"], int(n), int(N), int(parts["method"]),
-        bool(parts["structured"]), bool(parts["warm_start"]), bool(sensitivities),
-        bool(explore), bool(symmetric),
-        np.ascontiguousarray(system.battery("U_bar"), f64), float(system.P_bar),
+        c(soc0), c(theta), c(wbuy), c(wsell), c(buy), c(sell),
+        c(e if explore else np.zeros((H, D, n))), c(noise),
+        c(parts["opts"]), c(parts["ubar"]), c(parts["stagew"]), int(n), int(N),
+        int(parts["method"]), bool(parts["structured"]), bool(parts["warm_start"]),
+        bool(sensitivities), bool(explore), bool(symmetric),
+        c(system.battery("U_bar")), float(system.P_bar),
         float(parts["cond_max"]), float(parts["back_max"]),
-        np.ascontiguousarray(np.broadcast_to(battery_values(system, "alpha"), (n,)), f64),
-        np.ascontiguousarray(np.broadcast_to(battery_values(system, "p"), (n,)), f64),
+        c(np.broadcast_to(battery_values(system, "alpha"), (n,))),
+        c(np.broadcast_to(battery_values(system, "p"), (n,))),
         float(system.soc_low), float(system.soc_high),
-        np.ascontiguousarray(mpc.index("b"), np.int64),
-        np.ascontiguousarray(mpc.index("s"), np.int64),
+        c(mpc.index("b"), np.int64), c(mpc.index("s"), np.int64),
         # work arrays of the solver calls
         np.empty((D, mpc.np)), np.zeros((D, nx)), np.empty((D, mpc.neq)),
         np.empty((D, mpc.nin)), np.zeros((D, nx)), np.zeros((1, nx)), np.empty(D),

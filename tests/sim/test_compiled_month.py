@@ -248,3 +248,27 @@ def test_a_q_learning_run_is_the_same_run(monkeypatch, hessian):
     want, got = histories
     for key in ("J", "theta", "theta_final", "J_eval", "grad_norm", "solver_failures"):
         assert getattr(got, key) == getattr(want, key), key
+
+
+def test_every_kind_of_month_calls_one_compiled_version(monkeypatch, solver):
+    """Read-only, strided or per-battery inputs must not make numba compile the month again
+    (a type of its own each): make setup's compiled month serves them all."""
+    from mpcrl_lite.mpc.backends import kernel_sizes
+    from mpcrl_lite.system.forecast import until_midnight
+
+    monkeypatch.setattr(compiled_month, "ENABLED", True)
+    monkeypatch.setattr(solver, "threads", 2)
+    prices = Prices.month(SYSTEM, 16)  # two threads' blocks: the parallel entry
+    theta = Theta.nominal(SYSTEM)
+    run_month(theta, solver, prices, SYSTEM, np.random.default_rng(0),
+              exploration_std=EXPLORATION, sensitivities=True)  # read-only prices
+    run_month(theta, solver, until_midnight(prices), SYSTEM, np.random.default_rng(0))
+    evaluate_mpc(theta, solver, prices, SYSTEM, seed=1, draws=2)  # tiled, writable prices
+    run_month([theta, theta], solver, prices, SYSTEM,
+              RunBlocks([np.random.default_rng(s) for s in (1, 2)], [SYSTEM, SYSTEM]))
+    mixed = SystemConfig(alpha=(1 / 24, 1 / 12, 1 / 12), U_bar=(1.0, 0.6, 0.8),
+                         p=(800.0, 1000.0, 1200.0))
+    run_month(Theta.nominal(mixed), make_solver(MPC(mixed), MPCConfig(backend="kernel")),
+              Prices.month(mixed, 16), mixed, np.random.default_rng(0))
+    month = compiled_month.module(kernel_sizes.kernels(SYSTEM.n, SYSTEM.N))
+    assert len(month.month_parallel.signatures) == 1
