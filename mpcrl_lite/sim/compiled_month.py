@@ -29,10 +29,8 @@ other versions. ``python -m mpcrl_lite.cli.warm`` compiles them (``make setup``)
 from __future__ import annotations
 
 import hashlib
-import importlib.util
 import logging
 import os
-import sys
 import threading
 from contextlib import nullcontext
 from pathlib import Path
@@ -98,19 +96,9 @@ def module(kernels: ModuleType) -> ModuleType:
             text = source(kernels)
             path = kernel_sizes.folder() / f"{_stem(kernels, text)}.py"
             kernel_sizes.write_once(path, text, os.stat(_TEMPLATE).st_mtime)
-            name = f"mpcrl_lite.sim.month_kernel_{_suffix(kernels)}"
-            spec = importlib.util.spec_from_file_location(name, path)
-            if spec is None or spec.loader is None:
-                raise RuntimeError(f"cannot import the compiled month from {path}")
-            mod = importlib.util.module_from_spec(spec)
-            mod.__package__ = "mpcrl_lite.sim"  # its relative imports are the template's
-            sys.modules[name] = mod
-            try:
-                spec.loader.exec_module(mod)
-            except BaseException:
-                sys.modules.pop(name, None)
-                raise
-            _loaded[key] = mod
+            # its relative imports are the template's
+            _loaded[key] = kernel_sizes.import_generated(
+                path, f"mpcrl_lite.sim.month_kernel_{_suffix(kernels)}", "mpcrl_lite.sim")
         return _loaded[key]
 
 

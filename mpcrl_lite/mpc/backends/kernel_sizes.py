@@ -36,7 +36,8 @@ import threading
 from pathlib import Path
 from types import ModuleType
 
-__all__ = ["SPECIALISED_SIZES", "folder", "kernels", "prune", "source", "write_once"]
+__all__ = ["SPECIALISED_SIZES", "folder", "import_generated", "kernels", "prune", "source",
+           "write_once"]
 
 #: the sizes ``(n, N)`` served by a specialised copy: the paper's three batteries and
 #: 12-hour horizon (the package's defaults), and the 11-hour tail of their fixed-first-action
@@ -144,12 +145,19 @@ def _load(n: int, N: int) -> ModuleType:
     text = source(n, N)
     path = _folder() / f"{_stem(n, N, text)}.py"
     _write(path, text, os.stat(_generic().__file__).st_mtime)
-    name = f"{_GENERIC}_n{n}_N{N}"
+    # its relative imports are the original's
+    return import_generated(path, f"{_GENERIC}_n{n}_N{N}", _GENERIC.rpartition(".")[0])
+
+
+def import_generated(path: Path, name: str, package: str) -> ModuleType:
+    """Import the generated module at ``path`` as ``name`` (registered in ``sys.modules``,
+    where its numba functions' callers find it), its relative imports resolved in
+    ``package``; nothing is left registered if it fails."""
     spec = importlib.util.spec_from_file_location(name, path)
     if spec is None or spec.loader is None:
-        raise RuntimeError(f"cannot import the specialised kernels from {path}")
+        raise RuntimeError(f"cannot import the generated module {name} from {path}")
     module = importlib.util.module_from_spec(spec)
-    module.__package__ = _GENERIC.rpartition(".")[0]  # its relative imports are the original's
+    module.__package__ = package
     sys.modules[name] = module
     try:
         spec.loader.exec_module(module)
