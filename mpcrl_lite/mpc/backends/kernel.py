@@ -412,8 +412,7 @@ class KernelSolver(StartSettings, BackendBase):
         as :meth:`solve_batch` does (for a compiled loop's hours)."""
         success = status == K.CONVERGED
         if not success.all():
-            log.warning("%s", failure_summary(tuple(_status_names()[status].tolist()), success,
-                                              self.name))
+            log.warning("%s", failure_summary(self.status_strings(status), success, self.name))
 
     # ------------------------------------------------------------------ solving ----------
     def _solve_parameters(self, P: np.ndarray, x0: np.ndarray | None,
@@ -435,7 +434,7 @@ class KernelSolver(StartSettings, BackendBase):
         return BatchSolution(
             action=action, x=x, lam=lam, mu=mu, cost=cost,
             success=status == K.CONVERGED,
-            status=tuple(_status_names()[status].tolist()),
+            status=self.status_strings(status),
             iterations=iters, p=P,
             solve_time=time.perf_counter() - t_start, backend=self.name,
         )
