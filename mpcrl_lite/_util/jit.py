@@ -82,11 +82,22 @@ class CompileNotice(event.Listener):
         pass
 
 
+#: the sets of dispatchers :func:`ensure_compiled` found loaded (by identity): a set is not
+#: looked at again (numba's ``signatures`` is a list made at every read, and a kernel called
+#: every hour asks at every call)
+_loaded: set[tuple[int, ...]] = set()
+
+
 def ensure_compiled(dispatchers: Iterable[Any], warm_up: Callable[[], None], what: str) -> None:
     """Load ``dispatchers`` from the cache or compile them by calling ``warm_up`` (logging
     one line, naming ``what``, if anything compiles). Nothing happens once they are loaded."""
-    dispatchers = list(dispatchers)
-    if all(d.signatures for d in dispatchers):
+    dispatchers = tuple(dispatchers)
+    key = tuple(map(id, dispatchers))
+    if key in _loaded:
         return
-    with event.install_listener("numba:compile", CompileNotice(what, cache_dir(dispatchers[0]))):
-        warm_up()
+    if not all(d.signatures for d in dispatchers):
+        with event.install_listener("numba:compile",
+                                    CompileNotice(what, cache_dir(dispatchers[0]))):
+            warm_up()
+    if all(d.signatures for d in dispatchers):
+        _loaded.add(key)

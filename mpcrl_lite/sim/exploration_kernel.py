@@ -263,13 +263,6 @@ def warm_up() -> None:
         explore_rows(a, 0.1 * a, upper, 1.0, symmetric)
 
 
-#: whether :func:`ensure_compiled` has loaded the functions (checked at every hour's call)
-_loaded = False
-
-
 def ensure_compiled() -> None:
     """Load both functions from the cache or compile them (logging one line if it compiles)."""
-    global _loaded
-    if not _loaded:
-        jit.ensure_compiled((explore_rows, project_rows), warm_up, "the exploration kernel")
-        _loaded = True
+    jit.ensure_compiled((explore_rows, project_rows), warm_up, "the exploration kernel")
