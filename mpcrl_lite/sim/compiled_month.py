@@ -7,7 +7,8 @@ hand a month to :func:`run` when everything in it is covered here:
   once: :meth:`~mpcrl_lite.mpc.backends.kernel.KernelSolver.loop_parts` says so);
 * no exploration, or the package's Gaussian one with the ``'symmetric'`` or ``'radial'``
   bounds around the policy itself (no margin);
-* no hour hooks of the caller's (the sensitivities are recorded here);
+* hour hooks only where they just read their steps (``replayable``, as the sensitivity and
+  the Q-learner's value recorders): they get the month's steps after it;
 * fewer than eight batteries (numpy sums eight or more numbers in another order).
 
 Everything else runs the Python loop (:func:`~mpcrl_lite.sim.closed_loop.simulate`), which is
@@ -168,7 +169,7 @@ def run(parts: dict[str, Any], system: Any, mpc: Any, soc0: np.ndarray, theta: n
             "mu": np.empty((*rows, mpc.nin)), "p": np.empty((*rows, mpc.np)),
             "cost": np.empty(rows), "iterations": np.empty(rows, np.int64)}
     args = (
-        c(soc0), c(theta), c(wbuy), c(wsell), c(buy), c(sell),
+        c(theta), c(wbuy), c(wsell), c(buy), c(sell),
         c(e if explore else np.zeros((H, D, n))), c(noise),
         c(parts["opts"]), c(parts["ubar"]), c(parts["stagew"]), int(n), int(N),
         int(parts["method"]), bool(parts["structured"]), bool(parts["warm_start"]),

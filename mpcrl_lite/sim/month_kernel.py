@@ -42,7 +42,7 @@ __all__ = ["month_parallel", "month_rows"]
 
 
 @_nogil
-def month_rows(soc0, theta, wbuy, wsell, buy, sell, e, noise, opts, ubar, stagew, n, N,
+def month_rows(theta, wbuy, wsell, buy, sell, e, noise, opts, ubar, stagew, n, N,
                method, structured, warm_start, sensitivities, explore, symmetric, upper,
                P_bar, cond_max, back_max, alpha, penalty, soc_low, soc_high, ib, is_,
                P, x, lam, mu, xw, cold, cost, iters, status, action, grad, dsoc, cond, back,
@@ -51,14 +51,15 @@ def month_rows(soc0, theta, wbuy, wsell, buy, sell, e, noise, opts, ubar, stagew
                Ps, costs, iterss, d_lo, d_hi):
     """The month of the days ``d_lo <= d < d_hi`` (see the module docstring).
 
-    Inputs: ``soc0`` (D, n), ``theta`` (D, n_theta) each day's parameters, ``wbuy``,
+    Inputs: ``theta`` (D, n_theta) each day's parameters, ``wbuy``,
     ``wsell`` (H, D, N) the MPC's price windows, ``buy``, ``sell`` (D, H) the true prices,
     ``e`` (H, D, n) the exploration drawn (times its std; read when ``explore``), ``noise``
     (H, D, n); the solver's ``opts, ubar, stagew, n, N, method, structured``; the system's
     ``alpha``, ``penalty`` (n,) and the soc band; ``ib``, ``is_`` (N, n) the positions of
     ``b`` and ``s`` in ``x``. Work arrays (D, ...): ``P, x, lam, mu, xw`` (the warm start),
     ``cold`` (1, nx) zeros, ``cost, iters, status, action, grad, dsoc, cond, back, code,
-    solved``. Outputs: the record's arrays, hour first, and ``statuses`` (H, D) the solver's
+    solved``. Outputs: the record's arrays, hour first (``socs[0]``, the days' start, is an
+    input), and ``statuses`` (H, D) the solver's
     status codes; with ``keep``, every hour's solutions too: ``xs, lams, mus, Ps`` (H, D, ...)
     and ``costs, iterss`` (H, D) (else those arrays are not touched)."""
     H = e.shape[0]
@@ -78,11 +79,12 @@ def month_rows(soc0, theta, wbuy, wsell, buy, sell, e, noise, opts, ubar, stagew
         warm = warm_start and k > 0
         if k > 0:
             for d in range(d_lo, d_hi):
+                # the solution kept from the previous hour: its own, or the guess it was given
+                kept = x[d] if status[d] == CONVERGED or k == 1 else xw[d]
                 for j in range(nx - stage):
-                    xw[d, j] = x[d, j + stage] if status[d] == CONVERGED or k == 1 \
-                        else xw[d, j + stage]
+                    xw[d, j] = kept[j + stage]
                 for j in range(nx - stage, nx):
-                    xw[d, j] = x[d, j] if status[d] == CONVERGED or k == 1 else xw[d, j]
+                    xw[d, j] = kept[j]
         solve_rows(P, xw if warm else cold, warm, opts, ubar, stagew, n, N, method, x, lam,
                    mu, cost, iters, status, action, d_lo, d_hi)
         for d in range(d_lo, d_hi):
@@ -135,10 +137,10 @@ def month_rows(soc0, theta, wbuy, wsell, buy, sell, e, noise, opts, ubar, stagew
                 a = commanded[d - d_lo, i]
                 delta = noise[k, d, i]
                 raw = soc + alpha[i] * (delta + a)
-                top = (1.0 - soc) / alpha[i] - delta
-                bottom = (0.0 - soc) / alpha[i] - delta
-                net = _np_min(a, top) if raw > 1.0 else a
-                net = _np_max(a, bottom) if raw < 0.0 else net
+                to_full = (1.0 - soc) / alpha[i] - delta
+                to_empty = (0.0 - soc) / alpha[i] - delta
+                net = _np_min(a, to_full) if raw > 1.0 else a
+                net = _np_max(a, to_empty) if raw < 0.0 else net
                 b = _np_max(net, 0.0)
                 s = _np_max(-net, 0.0)
                 pen = penalty[i] * _np_max(soc - soc_high, 0.0) \
@@ -159,7 +161,7 @@ def month_rows(soc0, theta, wbuy, wsell, buy, sell, e, noise, opts, ubar, stagew
 
 
 @_parallel
-def month_parallel(soc0, theta, wbuy, wsell, buy, sell, e, noise, opts, ubar, stagew, n, N,
+def month_parallel(theta, wbuy, wsell, buy, sell, e, noise, opts, ubar, stagew, n, N,
                    method, structured, warm_start, sensitivities, explore, symmetric, upper,
                    P_bar, cond_max, back_max, alpha, penalty, soc_low, soc_high, ib, is_,
                    P, x, lam, mu, xw, cold, cost, iters, status, action, grad, dsoc, cond,
@@ -168,11 +170,11 @@ def month_parallel(soc0, theta, wbuy, wsell, buy, sell, e, noise, opts, ubar, st
                    lams, mus, Ps, costs, iterss, block):
     """:func:`month_rows` on blocks of ``block`` days spread over numba's threads; each
     day's month is computed alone, so the results do not depend on the blocks."""
-    days = soc0.shape[0]
+    days = socs.shape[1]
     blocks = (days + block - 1) // block
     for b in prange(blocks):
         lo = b * block
-        month_rows(soc0, theta, wbuy, wsell, buy, sell, e, noise, opts, ubar, stagew, n, N,
+        month_rows(theta, wbuy, wsell, buy, sell, e, noise, opts, ubar, stagew, n, N,
                    method, structured, warm_start, sensitivities, explore, symmetric, upper,
                    P_bar, cond_max, back_max, alpha, penalty, soc_low, soc_high, ib, is_,
                    P, x, lam, mu, xw, cold, cost, iters, status, action, grad, dsoc, cond,
