@@ -97,4 +97,3 @@ def end_process(status: int | None) -> int:
             pass
     os._exit(code)
     return code  # pragma: no cover (os._exit does not return)
-

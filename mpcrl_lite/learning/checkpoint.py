@@ -18,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -151,25 +152,24 @@ class Checkpointing:
     def configs_hash(self) -> str:
         """sha256 of the configurations, ``learning.months`` left out (a resume may extend
         the run); computed once per set of configuration objects (they are frozen)."""
-        configs = self.configs()
-        key = tuple((name, id(cfg)) for name, cfg in configs.items())
-        known = getattr(self, "_configs_hash", None)
-        if known is None or known[0] != key:
-            # the objects are kept with their hash, so that their ids stay theirs
-            known = self._configs_hash = (key, rundir.config_sha256(_plain_configs(configs)),
-                                          tuple(configs.values()))
-        return known[1]
+        return self._per_configs(
+            "_configs_hash", lambda configs: rundir.config_sha256(_plain_configs(configs)))
 
     def _config_dicts(self) -> dict[str, Any]:
         """The configurations as ``checkpoint.json`` holds them, made once per set of
         configuration objects (they are frozen; every month's checkpoint repeats them)."""
+        return self._per_configs(
+            "_config_dicts_of", lambda configs: {k: c.to_dict() for k, c in configs.items()})
+
+    def _per_configs(self, attribute: str, make: Callable[[dict[str, Any]], Any]) -> Any:
+        """``make(self.configs())``, kept in ``attribute`` until a configuration object is
+        replaced (the objects are kept with it, so that their ids stay theirs)."""
         configs = self.configs()
         key = tuple((name, id(cfg)) for name, cfg in configs.items())
-        known = getattr(self, "_config_dicts_of", None)
+        known = getattr(self, attribute, None)
         if known is None or known[0] != key:
-            known = self._config_dicts_of = (
-                key, {k: cfg.to_dict() for k, cfg in configs.items()},
-                tuple(configs.values()))
+            known = (key, make(configs), tuple(configs.values()))
+            setattr(self, attribute, known)
         return known[1]
 
     def checkpoint_state(self) -> dict[str, Any]:
