@@ -54,8 +54,12 @@ def to_json_types(value: Any) -> Any:
 def dumps(data: Any, indent: int | None = 1, **options: Any) -> bytes:
     """Strict JSON (UTF-8) of ``data``: numpy values as plain numbers, NaN and infinities
     as ``null``; ``options`` go to :func:`json.dumps` (e.g. ``sort_keys``, ``separators``)."""
-    text = json.dumps(to_json_types(data), indent=indent, allow_nan=False,
-                      default=json_default, **options)
+    try:  # the same text at once where every number is finite (most of the time)
+        text = json.dumps(data, indent=indent, allow_nan=False, default=json_default,
+                          **options)
+    except ValueError:  # a NaN or an infinity: each one made null first
+        text = json.dumps(to_json_types(data), indent=indent, allow_nan=False,
+                          default=json_default, **options)
     return text.encode("utf-8")
 
 
