@@ -124,7 +124,9 @@ def test_a_large_call_goes_to_numbas_threads_in_one_compiled_call(mpc, monkeypat
     solver = KernelSolver(mpc)
     solver.threads = 2
     P = mixed_problems(mpc, 17, seed=2)
-    solver._solve_parameters(P[:1], None)  # loads the kernels
+    # the kernels loaded: each entry where the solver first calls it
+    solver.sensitivity(solver._solve_parameters(P, None))
+    solver.sensitivity(solver._solve_parameters(P[:1], None))
     module = solver._kernels
     calls = []
     for name in ("solve_rows", "solve_rows_parallel", "sensitivity_rows",

@@ -239,8 +239,10 @@ class KernelSolver(StartSettings, BackendBase):
             np.where(stage, gam[1:] * sysc.omega[1], sysc.omega_f[1]),
         ]))
         # the kernels are loaded (or compiled) and checked against the formulation at the
-        # first solve (:meth:`_ready`); the coordination kernel by its own first use
+        # first solve (:meth:`_ready`); the coordination kernel by its own first use; each
+        # other entry of the kernels where first called (:meth:`_run`)
         self._checked = False
+        self._entries: set[str] = set()
 
     @property
     def _method(self) -> int:
@@ -273,7 +275,7 @@ class KernelSolver(StartSettings, BackendBase):
         CasADi formulation (:meth:`_check_formulation`), once per solver."""
         if not self._checked:
             self._kernels = KS.kernels(self.n, self.N, self.specialise)
-            self._kernels.ensure_compiled()
+            self._kernels.ensure_compiled(("solve_rows",))  # the others where first called
             self._checked = True
             try:
                 self._check_formulation()
@@ -369,9 +371,14 @@ class KernelSolver(StartSettings, BackendBase):
         a forked child on Python threads, blocks of :data:`THREAD_BLOCK` in turn."""
         kernels = self._kernels
         threads = self._threads(days)
+        parallel = threads > 1 and multiprocessing.parent_process() is None
+        entry = rows + "_parallel" if parallel else rows
+        if entry not in self._entries and entry in kernels.ENTRIES:
+            kernels.ensure_compiled((entry,))  # loaded where first called
+            self._entries.add(entry)
         if threads <= 1:
             getattr(kernels, rows)(*args, 0, days)
-        elif multiprocessing.parent_process() is None:
+        elif parallel:
             threads = kernels.set_threads(threads)
             # blocks of whole groups of four, which the kernels solve at once
             block = -(-days // threads)

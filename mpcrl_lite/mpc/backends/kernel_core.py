@@ -2503,10 +2503,14 @@ def set_threads(threads: int) -> int:
 
 
 # ------------------------------------------------------------------ compilation, cache ----
-def warm_up() -> None:
-    """Run every kernel (both factorisations, cold and warm start, the sensitivity) on a
-    tiny problem (of the fixed sizes in a specialised copy), which compiles them or loads them
-    from numba's cache."""
+#: The compiled entries of the solver (:func:`warm_up` runs them all by default).
+ENTRIES = ("solve_rows", "solve_rows_parallel", "sensitivity_rows", "sensitivity_rows_parallel")
+
+
+def warm_up(entries: tuple[str, ...] = ENTRIES) -> None:
+    """Run the kernels ``entries`` (both factorisations, cold and warm start, both adjoints)
+    on a tiny problem (of the fixed sizes in a specialised copy), which compiles them or
+    loads them from numba's cache."""
     n, N = (FIXED_N, FIXED_HORIZON) if FIXED_N > 0 else (1, 2)
     opts = np.zeros(N_OPTS)
     opts[[O_TAU, O_TOL, O_MAX_ITER, O_P, O_HI, O_LO]] = (0.1, 1e-10, 50, 1.0, 0.9, 0.1)
@@ -2522,20 +2526,22 @@ def warm_up() -> None:
         x, lam, mu = np.zeros((1, nx)), np.empty((1, neq)), np.empty((1, nin))
         cost, action = np.empty(1), np.empty((1, n))
         iters, status = np.empty(1, np.int64), np.empty(1, np.int64)
-        for warm in (False, True):
-            solve_rows(P, x.copy(), warm, opts, ubar, stagew, n, N, method, x, lam, mu, cost,
-                       iters, status, action, 0, 1)
-        solve_rows_parallel(P, x.copy(), True, opts, ubar, stagew, n, N, method, x, lam, mu,
-                            cost, iters, status, action, 0, 1, 1)
+        solved = (P, x.copy(), True, opts, ubar, stagew, n, N, method, x, lam, mu, cost, iters,
+                  status, action, 0, 1)
+        for warm in (False, True):  # a solution for the sensitivities in any case
+            solve_rows(*solved[:2], warm, *solved[3:])
+        if "solve_rows_parallel" in entries:
+            solve_rows_parallel(*solved, 1)
         grad, cond, back = np.empty((1, 10 * n, n)), np.empty(1), np.empty(1)
         dsoc = np.empty((1, n, n))
         code = np.empty(1, np.int64)
         for structured in (False, True):
-            sensitivity_rows(P, x, lam, mu, np.ones(1, np.bool_), opts, ubar, stagew, n, N,
-                             method, structured, grad, dsoc, cond, back, code, 0, 1)
-            sensitivity_rows_parallel(P, x, lam, mu, np.ones(1, np.bool_), opts, ubar, stagew,
-                                      n, N, method, structured, grad, dsoc, cond, back, code,
-                                      0, 1, 1)
+            adjoint = (P, x, lam, mu, np.ones(1, np.bool_), opts, ubar, stagew, n, N, method,
+                       structured, grad, dsoc, cond, back, code, 0, 1)
+            if "sensitivity_rows" in entries:
+                sensitivity_rows(*adjoint)
+            if "sensitivity_rows_parallel" in entries:
+                sensitivity_rows_parallel(*adjoint, 1)
 
 
 def cache_dir() -> str:
@@ -2543,8 +2549,11 @@ def cache_dir() -> str:
     return jit.cache_dir(solve_rows)
 
 
-def ensure_compiled() -> None:
-    """Load the kernels from the cache or compile them (logging one line if it compiles)."""
-    jit.ensure_compiled((solve_rows, sensitivity_rows, solve_rows_parallel,
-                         sensitivity_rows_parallel), warm_up,
-                        "the MPC kernels (a minute or two)")
+def ensure_compiled(entries: tuple[str, ...] = ENTRIES) -> None:
+    """Load the kernels ``entries`` (all by default) from the cache or compile them
+    (logging one line if it compiles); ``solve_rows`` always, the others find their
+    solutions with it. A process loads only the entries it calls (each load takes tens of
+    milliseconds)."""
+    chosen = tuple(dict.fromkeys(("solve_rows", *entries)))
+    jit.ensure_compiled(tuple(globals()[name] for name in chosen),
+                        lambda: warm_up(chosen), "the MPC kernels (a minute or two)")
