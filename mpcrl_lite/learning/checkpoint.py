@@ -1,12 +1,14 @@
 r"""Checkpoints of a learning run: what is saved after every month, and the verified resume.
 
-After every month the run directory (:mod:`mpcrl_lite.learning.rundir`) gets one commit holding
-``history.json``, ``history.npz`` and ``checkpoint.json`` (months between the first and the last
-of a run append to the journal ``history.jsonl`` and keep ``history.json``, see
-:meth:`Checkpointing.save_checkpoint`); ``checkpoint.json`` has ``format`` (the
+After every month the run directory (:mod:`mpcrl_lite.learning.rundir`) gets one commit: the
+first and the last month of a run write ``history.json``, ``history.npz`` and
+``checkpoint.json``, every month between them appends one line to the journal
+``history.jsonl`` (the month's History entries, its arrays and :meth:`Checkpointing.month_state`,
+see :meth:`Checkpointing.save_checkpoint`). ``checkpoint.json`` has ``format`` (the
 learner's), ``months_done``, ``theta``, the optimizer state (``updater``, or ``updaters``
 per battery), the generator state ``rng``, the configurations and ``prices``, a fingerprint of
-the month's prices (:func:`prices_fingerprint`). :meth:`Learner.load_checkpoint` verifies
+the month's prices (:func:`prices_fingerprint`); the journal's last line, where there is one,
+holds the newer ``months_done``, learner state and ``rng``. :meth:`Learner.load_checkpoint` verifies
 everything -- checksums, formats, the learner kind, months_done against the History and the
 manifest, every series one entry per month, the configurations, the prices -- before changing
 anything: a directory that does not verify is refused with one line, never half-resumed.
@@ -20,7 +22,7 @@ import json
 import logging
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import numpy as np
 
@@ -33,7 +35,7 @@ from .history import History
 from .outdir import RunDirError, RunDirMissing
 from .rundir import RECOVER
 
-__all__ = ["Checkpointing", "open_run", "parse_theta", "prices_fingerprint"]
+__all__ = ["JOURNAL_LIMIT", "Checkpointing", "open_run", "parse_theta", "prices_fingerprint"]
 
 log = logging.getLogger(__name__)
 
@@ -176,22 +178,29 @@ class Checkpointing:
         """The content of ``checkpoint.json``."""
         return {
             "format": self.FORMAT,
-            "months_done": self.history.months,
-            **self.learner_state(),
-            "rng": self.rng.bit_generator.state,
+            **self.month_state(),
             **self._config_dicts(),
             "prices": prices_fingerprint(self.prices),
         }
+
+    def month_state(self) -> dict[str, Any]:
+        """What changes from month to month in ``checkpoint.json`` (``months_done``, the
+        learner's state and ``rng``): the ``checkpoint`` of a journal line."""
+        return {"months_done": self.history.months, **self.learner_state(),
+                "rng": self.rng.bit_generator.state}
 
     def save_checkpoint(self, directory: str | Path, last: bool = True,
                         background: bool = False) -> None:
         """Commit the History and the checkpoint to ``directory`` (one atomic commit).
 
         With ``last=False`` (a month of a run that goes on) and a previous commit of this
-        learner in ``directory``, the months since that commit are appended to the journal
-        ``history.jsonl`` and ``history.json`` is kept (:mod:`mpcrl_lite.learning.rundir`): the
-        cost of a month does not grow with the months done. Otherwise (the default) the
-        whole History is written and the journal dropped.
+        learner in ``directory``, one line is appended to the journal ``history.jsonl``: the
+        months since that commit, the last month's arrays and :meth:`month_state`;
+        ``history.json``, ``history.npz`` and ``checkpoint.json`` are kept as they are
+        (:mod:`mpcrl_lite.learning.rundir`). The cost of a month does not grow with the
+        months done. Otherwise (the default), or once the journal holds
+        :data:`JOURNAL_LIMIT` bytes, the whole History and checkpoint are written and the
+        journal dropped.
 
         With ``background=True`` the files are built here and written by a thread
         (:func:`~mpcrl_lite.learning.rundir.commit_soon`) while the caller goes on; the next
@@ -199,29 +208,45 @@ class Checkpointing:
         """
         self.wait_for_checkpoint()
         directory = Path(directory)
-        previous, self._last_commit = getattr(self, "_last_commit", None), None
-        checkpoint = jsonio.dumps(self.checkpoint_state())
-        common: dict[str, Any] = {"kind": self.KIND, "months_done": self.history.months,
-                                  "configs_hash": self.configs_hash()}
+        previous: _Commit | None = getattr(self, "_last_commit", None)
+        self._last_commit = None
         history = self.history
-        if not last and previous is not None and previous[0] == directory \
-                and previous[1] is history and rundir.HISTORY_JSON in previous[2]["files"] \
-                and rundir.manifest_of(directory) == previous[2]:
-            files = {rundir.HISTORY_NPZ: history.npz_bytes(compress=False),
-                     rundir.CHECKPOINT: checkpoint, **self.extra_files()}
-            common.update(previous=previous[2], keep=[rundir.HISTORY_JSON],
-                          append={rundir.JOURNAL: history.journal_record(previous[3])})
+        extra = self.extra_files()
+        common: dict[str, Any] = {"kind": self.KIND, "months_done": history.months,
+                                  "configs_hash": self.configs_hash()}
+        goes_on = not last and previous is not None and previous.directory == directory \
+            and previous.history is history
+        if goes_on and not extra and previous.journal is not None \
+                and previous.journal < JOURNAL_LIMIT:
+            line, payload = history.journal_parts(previous.lengths,
+                                                  {"checkpoint": self.month_state()})
+            size = rundir.append_month(directory, line, months_done=history.months,
+                                       payload=payload)
+            self._last_commit = previous._replace(lengths=history.series_lengths(),
+                                                  journal=size)
+            return
+        files_before = previous.manifest["files"] if goes_on else {}
+        if goes_on and extra and set(_KEPT) <= set(files_before) \
+                and files_before.get(rundir.JOURNAL, {}).get("size", 0) < JOURNAL_LIMIT \
+                and rundir.manifest_of(directory) == previous.manifest:
+            # files of the learner's own beside the checkpoint: each month a commit of them
+            # and of the journal's line through the manifest
+            files = extra
+            line = history.journal_record(previous.lengths, {"checkpoint": self.month_state()})
+            common.update(previous=previous.manifest, keep=list(_KEPT),
+                          append={rundir.JOURNAL: line})
         else:
-            files = history.to_files()
-            files[rundir.CHECKPOINT] = checkpoint
-            files.update(self.extra_files())
+            files = history.to_files(compress=last)  # a run's first: replaced at its end
+            files[rundir.CHECKPOINT] = jsonio.dumps(self.checkpoint_state())
+            files.update(extra)
+            common["journal"] = not last and not extra
         lengths = history.series_lengths()
         if background:
             self._pending_commit = (rundir.commit_soon(directory, files, **common), history,
                                     lengths)
         else:
             manifest = rundir.commit(directory, files, **common)
-            self._last_commit = (directory, history, manifest, lengths)
+            self._last_commit = _Commit.of(directory, history, manifest, lengths)
 
     def wait_for_checkpoint(self) -> None:
         """Wait for a checkpoint written in the background (:meth:`save_checkpoint`) and
@@ -232,7 +257,7 @@ class Checkpointing:
         self._pending_commit = None
         commit, history, lengths = pending
         manifest = commit.result()
-        self._last_commit = (commit.directory, history, manifest, lengths)
+        self._last_commit = _Commit.of(commit.directory, history, manifest, lengths)
 
     def after_resume(self) -> None:
         """What a resumed run makes before its next month (nothing here; the centralized
@@ -270,9 +295,11 @@ class Checkpointing:
         missing = [k for k in self.checkpoint_state() if k not in state and k not in _LATER_KEYS]
         if missing:
             raise RunDirError(f"{where} lacks {', '.join(map(repr, missing))}; {RECOVER}")
+        if run.files.get(rundir.JOURNAL):
+            state = self._with_journal_state(state, run.files[rundir.JOURNAL], directory)
         saved = self._check_configs(state, directory, where)
         self._check_prices(state.get("prices"), directory, where)
-        history = History.from_files(run.files, directory)
+        history = History.from_files(run.files, directory, run.payload)
         months_done = state["months_done"]
         if isinstance(months_done, bool) or not isinstance(months_done, int) or months_done < 0:
             raise RunDirError(f"{where}: months_done={months_done!r}, expected an integer >= 0; "
@@ -305,6 +332,26 @@ class Checkpointing:
         self.rng.bit_generator.state = rng.bit_generator.state
         apply()
         apply_files()
+
+    def _with_journal_state(self, state: dict[str, Any], journal: bytes,
+                            directory: Path) -> dict[str, Any]:
+        """``checkpoint.json``'s ``state`` updated by the journal's last line, whose
+        ``checkpoint`` (:meth:`month_state`) is the newer (journals written before it
+        existed have none: their ``checkpoint.json`` was written with every month)."""
+        where = directory / rundir.JOURNAL
+        try:
+            line = json.loads(journal.rstrip(b"\n").rsplit(b"\n", 1)[-1])
+        except ValueError as err:
+            raise RunDirError(f"{where}: the last line is not valid JSON ({err}); {RECOVER}") \
+                from None
+        newer = line.get("checkpoint") if isinstance(line, dict) else None
+        if newer is None:
+            return state
+        known = set(self.month_state())
+        if not isinstance(newer, dict) or set(newer) != known:
+            raise RunDirError(f"{where}: the last line's checkpoint is not an object with "
+                              f"{', '.join(sorted(known))}; {RECOVER}")
+        return {**state, **newer}
 
     def _check_kind(self, kind: str | None, directory: Path, source: str) -> None:
         if kind is not None and kind != self.KIND:
@@ -353,6 +400,31 @@ class Checkpointing:
                 f"config: {'; '.join(fields)} (resume with the run's settings, or start over "
                 "with --force / force=True)")
         return saved
+
+
+#: The files a month appended to the journal keeps from the commit before it.
+_KEPT = (rundir.HISTORY_JSON, rundir.HISTORY_NPZ, rundir.CHECKPOINT)
+#: The journal's size (bytes) from which the next month writes the whole History anew
+#: (a line is about 230 kB with the month's arrays: about 290 months).
+JOURNAL_LIMIT = 64 * 2**20
+
+class _Commit(NamedTuple):
+    """A learner's last commit: where, of which History, the manifest written, the series'
+    lengths then (what the next journal line continues from) and the size of the journal
+    that :func:`rundir.append_month` continues (None if the commit listed none)."""
+
+    directory: Path
+    history: History
+    manifest: dict[str, Any]
+    lengths: dict[str, int]
+    journal: int | None
+
+    @classmethod
+    def of(cls, directory: Path, history: History, manifest: dict[str, Any],
+           lengths: dict[str, int]) -> _Commit:
+        entry = manifest["files"].get(rundir.JOURNAL)
+        return cls(directory, history, manifest, lengths,
+                   entry["size"] if entry is not None and "token" in entry else None)
 
 
 #: Keys of ``checkpoint.json`` added after checkpoints existed (an older one lacks them).

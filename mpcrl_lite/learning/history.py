@@ -22,6 +22,7 @@ month, the arrays of the first and last month present) and refuses them otherwis
 
 from __future__ import annotations
 
+import base64
 import io
 import json
 import math
@@ -268,19 +269,58 @@ class History:
         """The length of every stored series (what :meth:`journal_record` continues from)."""
         return {k: len(getattr(self, k)) for k in self.STORED_SERIES}
 
-    def journal_record(self, since: Mapping[str, int]) -> bytes:
+    def journal_record(self, since: Mapping[str, int],
+                       extra: Mapping[str, Any] | None = None) -> bytes:
         """One line of ``history.jsonl``: the entries of every series after ``since`` (as
-        :meth:`series_lengths` gave it), ``theta_final`` and ``backend``, as strict JSON.
+        :meth:`series_lengths` gave it), ``theta_final``, ``backend``, the entries of
+        ``extra`` (a learner's state, see :mod:`mpcrl_lite.learning.checkpoint`) and the
+        last month's arrays (``last_month``: per array of
+        :data:`~mpcrl_lite.sim.record.RECORD_ARRAYS` its ``dtype``, ``shape`` and the base64
+        of its C-ordered bytes), as strict JSON.
 
         Read back by :meth:`from_files`, ``history.json`` and its journal give the same
-        History as ``history.json`` written whole (:meth:`to_files`)."""
+        History as ``history.json`` and ``history.npz`` written whole (:meth:`to_files`):
+        the journal's last line holds the last month, ``history.npz`` the first."""
         record = {
             "months": self.months,
             "theta_final": self.theta_final,
             "backend": self.backend,
             "series": {k: getattr(self, k)[since[k]:] for k in self.STORED_SERIES},
+            **(extra or {}),
         }
-        return jsonio.dumps(record, indent=None) + b"\n"
+        line = jsonio.dumps(record, indent=None)
+        if self.last_month is not None:  # spliced in: base64 needs no escaping, and
+            # json.dumps would scan the 220 kB of it for characters to escape
+            line = line[:-1] + b',"last_month":' + _arrays_json(self.last_month) + b"}"
+        return line + b"\n"
+
+    def journal_parts(self, since: Mapping[str, int], extra: Mapping[str, Any] | None = None
+                      ) -> tuple[bytes, list[memoryview]]:
+        """:meth:`journal_record` as a line and a payload (the run directory's appended
+        months, :func:`~mpcrl_lite.learning.rundir.append_month`): the JSON record without its
+        newline, whose ``last_month`` gives each array's ``dtype``, ``shape`` and ``offset``
+        in the payload, and the payload, the arrays' bytes one after the other (not copied).
+        :meth:`from_files` reads them back with the payload given."""
+        record = {
+            "months": self.months,
+            "theta_final": self.theta_final,
+            "backend": self.backend,
+            "series": {k: getattr(self, k)[since[k]:] for k in self.STORED_SERIES},
+            **(extra or {}),
+        }
+        line = jsonio.dumps(record, indent=None)
+        payload: list[memoryview] = []
+        if self.last_month is not None:
+            parts, offset = [], 0
+            for name in RECORD_ARRAYS:
+                value = np.ascontiguousarray(getattr(self.last_month, name))
+                parts.append(b'"%s":{"dtype":"%s","shape":%s,"offset":%d}' % (
+                    name.encode(), value.dtype.str.encode(),
+                    json.dumps(list(value.shape)).encode(), offset))
+                payload.append(memoryview(value).cast("B"))
+                offset += value.nbytes
+            line = line[:-1] + b',"last_month":{' + b",".join(parts) + b"}}"
+        return line, payload
 
     def npz_bytes(self, compress: bool = True) -> bytes:
         """The content of ``history.npz`` (the first and last month's arrays); ``compress=False``
@@ -294,8 +334,9 @@ class History:
         (np.savez_compressed if compress else np.savez)(buffer, **arrays)
         return buffer.getvalue()
 
-    def to_files(self) -> dict[str, bytes]:
-        """The contents of ``history.json`` and ``history.npz``."""
+    def to_files(self, compress: bool = True) -> dict[str, bytes]:
+        """The contents of ``history.json`` and ``history.npz`` (see :meth:`npz_bytes` for
+        ``compress``)."""
         meta = {
             "format": self.FORMAT,
             **self.configs(),
@@ -304,7 +345,8 @@ class History:
             **{k: getattr(self, k) for k in self.STORED_SERIES},
             **({"prices_origin": dict(self.prices_origin)} if self.prices_origin else {}),
         }
-        return {rundir.HISTORY_JSON: jsonio.dumps(meta), rundir.HISTORY_NPZ: self.npz_bytes()}
+        return {rundir.HISTORY_JSON: jsonio.dumps(meta),
+                rundir.HISTORY_NPZ: self.npz_bytes(compress)}
 
     def save(self, directory: str | Path) -> Path:
         """Write ``history.json`` and ``history.npz`` into ``directory`` as one commit
@@ -341,7 +383,7 @@ class History:
         """
         run = rundir.read(directory, [rundir.HISTORY_JSON, rundir.HISTORY_NPZ, rundir.JOURNAL],
                           optional=[rundir.HISTORY_NPZ, rundir.JOURNAL])
-        history = cls.from_files(run.files, Path(directory))
+        history = cls.from_files(run.files, Path(directory), run.payload)
         if run.months_done is not None and run.months_done != history.months:
             raise RunDirError(
                 f"{Path(directory) / rundir.MANIFEST} records {run.months_done} months but "
@@ -350,9 +392,11 @@ class History:
         return history
 
     @classmethod
-    def from_files(cls, files: Mapping[str, bytes], directory: Path | str = ".") -> History:
+    def from_files(cls, files: Mapping[str, bytes], directory: Path | str = ".",
+                   payload: bytes = b"") -> History:
         """Inverse of :meth:`to_files` (with the journal ``history.jsonl`` of a run in
-        progress, if ``files`` hold it), checked: a :class:`~mpcrl_lite.learning.outdir.RunDirError`
+        progress, if ``files`` hold it, and the ``payload`` of its last line,
+        :meth:`journal_parts`), checked: a :class:`~mpcrl_lite.learning.outdir.RunDirError`
         names the first problem found (``directory`` only names the files in messages)."""
         path = Path(directory) / rundir.HISTORY_JSON
         try:
@@ -364,8 +408,10 @@ class History:
                 f"{path} holds a {type(meta).__name__}, expected an object; {RECOVER}")
         if meta.get("format") != cls.FORMAT:
             raise RunDirError(f"{path}: format {meta.get('format')!r}, expected {cls.FORMAT!r}")
+        last_line: dict[str, Any] | None = None
         if files.get(rundir.JOURNAL):
-            _merge_journal(meta, files[rundir.JOURNAL], Path(directory) / rundir.JOURNAL)
+            last_line = _merge_journal(meta, files[rundir.JOURNAL],
+                                       Path(directory) / rundir.JOURNAL)
         missing = [k for k in ("system", "mpc", "learning", "theta_final", *cls.SERIES)
                    if k not in meta]
         if missing:
@@ -395,6 +441,10 @@ class History:
                    theta_final=_nan_for_null(theta_final), backend=str(meta.get("backend", "")),
                    prices_origin=dict(meta.get("prices_origin") or {}), **series)
         hist._load_months(files.get(rundir.HISTORY_NPZ), Path(directory) / rundir.HISTORY_NPZ)
+        if last_line is not None and "last_month" in last_line:
+            where = Path(directory) / rundir.JOURNAL
+            hist.last_month = hist._month_from_arrays(
+                _arrays_from_json(last_line["last_month"], where, payload), "last", where)
         return hist
 
     def _load_months(self, data: bytes | None, path: Path) -> None:
@@ -409,22 +459,26 @@ class History:
                 arrays = {k: npz[k] for k in npz.files}
         except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
             raise RunDirError(f"{path} cannot be read ({err}); {RECOVER}") from None
-        H, D, n = self.system.hours_per_day, self.learning.days_per_month, self.system.n
         for prefix in ("first", "last"):
-            names = [f"{prefix}_{k}" for k in RECORD_ARRAYS]
-            present = [k for k in names if k in arrays]
-            if not present:
+            if not any(f"{prefix}_{k}" in arrays for k in RECORD_ARRAYS):
                 if self.months:
                     raise RunDirError(
                         f"{path} lacks the {prefix} month's arrays but history.json records "
                         f"{self.months} months; {RECOVER}")
                 continue
-            if len(present) < len(names) or arrays[f"{prefix}_soc"].shape != (H + 1, D, n):
-                raise RunDirError(
-                    f"{path}: the {prefix} month's arrays are incomplete or not of shape "
-                    f"({H + 1}, {D}, {n}); {RECOVER}")
-            record = MonthRecord.from_arrays(arrays, prefix, self.system)
-            setattr(self, f"{prefix}_month", record)
+            setattr(self, f"{prefix}_month", self._month_from_arrays(arrays, prefix, path))
+
+    def _month_from_arrays(self, arrays: Mapping[str, np.ndarray], prefix: str,
+                           path: Path) -> MonthRecord:
+        """The month of ``arrays`` (keys ``{prefix}_soc`` ...), all of them there and of
+        this History's shape, else a :class:`RunDirError` naming ``path``."""
+        H, D, n = self.system.hours_per_day, self.learning.days_per_month, self.system.n
+        names = [f"{prefix}_{k}" for k in RECORD_ARRAYS]
+        if any(k not in arrays for k in names) or arrays[f"{prefix}_soc"].shape != (H + 1, D, n):
+            raise RunDirError(
+                f"{path}: the {prefix} month's arrays are incomplete or not of shape "
+                f"({H + 1}, {D}, {n}); {RECOVER}")
+        return MonthRecord.from_arrays(arrays, prefix, self.system)
 
 
 def _norm(grad: np.ndarray) -> float:
@@ -490,9 +544,63 @@ def _check_series(path: Path, series: dict[str, Any], n: int) -> None:
         raise RunDirError(f"{path}: eval_month holds months outside 0..{months - 1}; {RECOVER}")
 
 
-def _merge_journal(meta: dict[str, Any], data: bytes, path: Path) -> None:
+def _arrays_json(month: Record) -> bytes:
+    """A month's arrays as the JSON object of a journal line (see
+    :meth:`History.journal_record`)."""
+    parts = []
+    for name in RECORD_ARRAYS:
+        value = np.asarray(getattr(month, name))
+        parts.append(b'"%s":{"dtype":"%s","shape":%s,"data":"%s"}' % (
+            name.encode(), value.dtype.str.encode(), json.dumps(list(value.shape)).encode(),
+            base64.b64encode(value.tobytes())))
+    return b"{" + b",".join(parts) + b"}"
+
+
+#: The element types a journal's arrays may have (what :class:`Record` holds).
+_JOURNAL_DTYPES = ("<f8", "|b1")
+
+
+def _arrays_from_json(data: Any, path: Path, payload: bytes = b"") -> dict[str, np.ndarray]:
+    """Inverse of :func:`_arrays_json` and of :meth:`History.journal_parts`'s arrays (each
+    entry's ``data`` inline, or its ``offset`` in ``payload``; keys prefixed ``last_``),
+    checked: a :class:`RunDirError` naming ``path`` for anything that is not such an
+    object."""
+    arrays: dict[str, np.ndarray] = {}
+    for name in RECORD_ARRAYS:
+        entry = data.get(name) if isinstance(data, dict) else None
+        shape = entry.get("shape") if isinstance(entry, dict) else None
+        offset = entry.get("offset") if isinstance(entry, dict) else None
+        ok = (isinstance(entry, dict) and entry.get("dtype") in _JOURNAL_DTYPES
+              and (isinstance(entry.get("data"), str) or _natural(offset))
+              and isinstance(shape, list) and all(_natural(k) for k in shape))
+        if ok:
+            dtype = np.dtype(entry["dtype"])
+            size = dtype.itemsize * math.prod(shape)
+            if "data" in entry:
+                try:
+                    raw = base64.b64decode(entry["data"], validate=True)
+                except ValueError:
+                    ok = False
+            else:
+                raw = payload[offset:offset + size]
+        if ok:
+            ok = len(raw) == size
+        if not ok:
+            raise RunDirError(f"{path}: the last line's array {name!r} is malformed; {RECOVER}")
+        arrays[f"last_{name}"] = np.frombuffer(raw, dtype=dtype).reshape(shape).copy()
+    return arrays
+
+
+def _natural(value: Any) -> bool:
+    """An integer >= 0 (not a bool)."""
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+def _merge_journal(meta: dict[str, Any], data: bytes, path: Path) -> dict[str, Any] | None:
     """Add the journal's lines (:meth:`History.journal_record`) to ``history.json``'s
-    ``meta``; the merged series are checked as a whole file's afterwards."""
+    ``meta``; the merged series are checked as a whole file's afterwards. Returns the last
+    line (None if there is none)."""
+    record: Any = None
     for number, line in enumerate(data.splitlines(), start=1):
         try:
             record = json.loads(line)
@@ -511,6 +619,7 @@ def _merge_journal(meta: dict[str, Any], data: bytes, path: Path) -> None:
         if record.get("months") != len(meta.get("J", [])):
             raise RunDirError(f"{path}: line {number} records {record.get('months')!r} months, "
                               f"the series before it {len(meta.get('J', []))}; {RECOVER}")
+    return record
 
 
 def _nan_for_null(value: Any) -> Any:

@@ -189,15 +189,16 @@ def finish_checkpoint(learner: Learner) -> None:
 
 def close_month(learner: Learner, out: Path | None, last: bool = True) -> None:
     """What follows every month of :func:`run_months`: the warning on failed solves, the
-    checkpoint in ``out`` (``last=False`` for a month after which the run goes on: appended,
-    and written in the background unless the learner has callbacks, see
+    checkpoint in ``out`` (``last=False`` for a month after which the run goes on: a line
+    appended to the journal, or the whole files of a run's first month written in the
+    background unless the learner has callbacks, see
     :meth:`~mpcrl_lite.learning.checkpoint.Checkpointing.save_checkpoint`) and the learner's
     callbacks."""
     history = learner.history
     _warn_failed_solves(history)
     if out is not None:
-        # written while the next month computes, unless it is the last or a callback may
-        # look at the directory
+        # whole files are written while the next month computes, unless it is the last or
+        # a callback may look at the directory
         learner.save_checkpoint(out, last=last, background=not last and not learner.callbacks)
     for callback in learner.callbacks:
         callback(history.months - 1, history, learner)

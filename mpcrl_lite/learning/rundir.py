@@ -1,13 +1,13 @@
-r"""The run directory: the files of a learning run, one atomic commit point per month.
+r"""The run directory: the files of a learning run, one commit point per month.
 
 A run directory ``D`` holds, once a month has been committed::
 
-    D/manifest.json     the commit point (see below)
+    D/manifest.json     the commit point of the whole files (see below)
     D/history.json      the History's configurations and per-month series (readable JSON)
     D/history.npz       the History's arrays (first and last month), allow_pickle=False
     D/checkpoint.json   what a learner needs to continue (theta, optimizer and RNG state)
-    D/history.jsonl     while a run is going on: the months since history.json, one JSON
-                        line per commit (the History's journal, see below)
+    D/history.jsonl     while a run is going on: the months since the whole files, one line
+                        each (the journal, see below)
     D/critic.npz        with ``LearningConfig.critic_months > 1`` only: the critic's samples
                         of the earlier months its next fit uses
     D/summary.json      written by the ``learn`` command at the end (derived, not committed)
@@ -15,16 +15,17 @@ A run directory ``D`` holds, once a month has been committed::
 :meth:`History.save <mpcrl_lite.learning.history.History.save>` writes the same format without
 ``checkpoint.json`` (kind ``"history"``).
 
-How a month is committed (:func:`commit`)
------------------------------------------
-1. every file of the month is written under a **new** name in ``D/.run/`` and fsynced;
+How whole files are committed (:func:`commit`)
+----------------------------------------------
+1. every file of the commit is written under a **new** name in ``D/.run/`` and fsynced;
    nothing the last commit refers to is touched;
 2. ``D/manifest.json`` is replaced atomically (written as ``manifest.json.tmp``, fsynced,
    renamed, directory fsynced). **This rename is the commit.** The manifest carries
 
    =================  ============================================================
-   ``format``         ``"mpcrl_lite.Run/1"``, or ``"mpcrl_lite.Run/2"`` when a file is
-                      appended (a journal, below)
+   ``format``         ``"mpcrl_lite.Run/1"``, or ``"mpcrl_lite.Run/3"`` when it lists a
+                      journal (``"mpcrl_lite.Run/2"``, the previous version's journal
+                      without the months' states, is still read)
    ``kind``           ``"centralized"``, ``"decentralized"`` (a learner's run) or
                       ``"history"`` (a History on its own)
    ``months_done``    months recorded by the committed files
@@ -32,7 +33,8 @@ How a month is committed (:func:`commit`)
                       learning config without ``months``, which a resume may extend)
    ``files``          per user-visible name (``history.json`` ...): its ``sha256``,
                       ``size`` in bytes and ``staged`` (its name under ``.run/``); for
-                      an appended file ``append: true`` instead of ``staged``
+                      an appended file ``append: true`` instead of ``staged``, and for
+                      a journal that months are appended to a ``token``
    =================  ============================================================
 
 3. the user-visible names are then pointed at the new files (a hard link, or a copy where
@@ -43,20 +45,43 @@ are unreferenced and removed by the next writer); after step 2 the new month is 
 and a reader finds each file under its visible name or, if step 3 did not finish, under its
 staged name: :func:`read` accepts a file only if its sha256 matches the manifest.
 
-Appended files: O(1) per month
-------------------------------
-Rewriting the whole History every month costs in proportion to the months so far. A commit
-may instead **keep** entries of the previous manifest (a file written by an earlier commit,
-e.g. ``history.json`` of the run's first month, stays as it is) and **append** to a journal
-(:data:`JOURNAL`): the new bytes go after the journal's committed ``size`` (bytes beyond it,
-left by an interrupted writer, are cut first) and are fsynced before the manifest is written;
-the manifest's ``size`` and ``sha256`` then cover the journal's new length. The committed
-prefix is never touched, so step 1's promise holds: a kill before the rename leaves the
-previous commit readable, and :func:`read` gives the journal's first ``size`` bytes only if
-their sha256 matches. A commit that lists no journal (a whole History again) removes a
-journal left from before. The learners append every month but the first and the last of a
-call (:meth:`~mpcrl_lite.learning.checkpoint.Checkpointing.save_checkpoint`), so a finished
-run holds no journal and reads as format 1.
+Months appended without a manifest: O(1) per month
+--------------------------------------------------
+Rewriting the whole History every month costs in proportion to the months so far, and even
+a commit of a few files costs milliseconds of writes and fsyncs against a month that takes
+about 20. The learners' commit of a run's first month (and of the first after a resume)
+therefore lists an empty journal (:data:`JOURNAL`) with a random ``token``
+(``journal=True``), and every later month but the last is **one line appended** to it
+(:func:`append_month`), leaving the manifest and the other files as they are::
+
+    {"sha256":"<64 hex>","previous":"<64 hex>","token":"<16 hex>","months_done":M,"payload":P,"record":{...}}
+    <P bytes>
+
+``sha256`` is that of the line after its ``",`` (so of everything else in it) and of the
+``P`` bytes of payload that follow its newline, ``previous`` the ``sha256`` of the line
+before (of the empty journal for the first), ``token`` the manifest's and ``M`` the month
+the line commits; ``record`` (JSON) and the payload are what the learner appends (the month's
+History entries and state, and the month's arrays as raw bytes, see
+:meth:`~mpcrl_lite.learning.checkpoint.Checkpointing.save_checkpoint`). **Writing the
+payload's last byte is the month's commit.** :func:`read` takes the lines in order while each one
+verifies and follows the one before; the first that does not is a write the process did not
+finish (it can only be the last: the next append cuts it off), and a whole line of the same
+token after it is a changed journal, refused. Lines of another token are those of an earlier
+commit's journal, ignored and cut by the next append. :attr:`Run.months_done` is the last
+month the lines commit.
+
+A line survives the process being killed as soon as it is written; it is fsynced when
+:data:`SYNC_EVERY_S` seconds have passed since the journal's last fsync, so a power cut can
+take the months of the last few seconds, never the directory's consistency (a line only
+counts if it verifies). The last month of a run (and of each call) writes the whole files
+again, fsynced, and drops the journal, so a finished run holds none and reads as format 1.
+
+A commit may also **keep** entries of the previous manifest and **append** to the journal
+through the manifest (:func:`commit` with ``previous``, ``keep`` and ``append``; a learner
+with files of its own, :data:`CRITIC`, commits its months so): the new bytes go after the
+journal's committed ``size`` (bytes beyond it, left by an interrupted writer, are cut first)
+and are fsynced before the manifest is written; the manifest's ``size`` and ``sha256`` then
+cover the journal's new length.
 
 Commits in the background
 -------------------------
@@ -92,6 +117,7 @@ import hashlib
 import json
 import os
 import re
+import time
 from collections.abc import Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -102,15 +128,20 @@ from . import durable
 from .durable import RunWriteError
 from .outdir import RunDirError, RunDirMissing
 
-__all__ = ["APPENDABLE", "CHECKPOINT", "CRITIC", "FORMAT", "FORMATS", "FORMAT_APPEND", "HISTORY_JSON",
-           "HISTORY_NPZ", "JOURNAL", "KINDS", "MANIFEST", "RECOVER", "STAGING", "SUMMARY",
-           "Contents", "Run", "clear", "commit", "commit_soon", "config_sha256", "inspect",
-           "manifest_of", "read"]
+__all__ = ["APPENDABLE", "CHECKPOINT", "CRITIC", "FORMAT", "FORMATS", "FORMAT_APPEND",
+           "FORMAT_APPEND_2", "HISTORY_JSON", "HISTORY_NPZ", "JOURNAL", "KINDS", "MANIFEST", "RECOVER", "STAGING", "SUMMARY",
+           "SYNC_EVERY_S", "Contents", "Run", "append_month", "clear", "commit", "commit_soon",
+           "config_sha256", "inspect", "manifest_of", "read"]
 
 FORMAT = "mpcrl_lite.Run/1"
-#: The manifest's format when it lists an appended file (readers of format 1 refuse it).
-FORMAT_APPEND = "mpcrl_lite.Run/2"
-FORMATS = (FORMAT, FORMAT_APPEND)
+#: The manifest's format when it lists an appended file (readers of formats 1 and 2 refuse
+#: it): the journal's last line may hold a state newer than ``history.npz`` and
+#: ``checkpoint.json`` (:mod:`mpcrl_lite.learning.checkpoint`).
+FORMAT_APPEND = "mpcrl_lite.Run/3"
+#: The appending format of the previous version (its journal lines hold the History's
+#: series only; ``history.npz`` and ``checkpoint.json`` were written with every month).
+FORMAT_APPEND_2 = "mpcrl_lite.Run/2"
+FORMATS = (FORMAT, FORMAT_APPEND_2, FORMAT_APPEND)
 MANIFEST = "manifest.json"
 HISTORY_JSON = "history.json"
 HISTORY_NPZ = "history.npz"
@@ -132,8 +163,19 @@ RUN_FILES = (HISTORY_JSON, HISTORY_NPZ, CHECKPOINT, JOURNAL, CRITIC)
 #: How to recover from a directory that does not verify (appended to the error messages).
 RECOVER = "restore the directory from a backup, or start over in it with --force (force=True)"
 
+#: At most how many seconds the months appended by :func:`append_month` wait for their
+#: fsync (see "Months appended without a manifest" in the module docstring).
+SYNC_EVERY_S = 5.0
+
 _STAGED = re.compile(r"^\d{6,}-[0-9a-f]{8}-[A-Za-z0-9_.]+$")
 _HEX64 = re.compile(r"^[0-9a-f]{64}$")
+_TOKEN = re.compile(r"^[0-9a-f]{16}$")
+#: How a line appended by :func:`append_month` starts: its sha256 follows, then ``",`` and
+#: the body the sha256 is of.
+_LINE_HEAD = b'{"sha256":"'
+_LINE_BODY = len(_LINE_HEAD) + 64 + 2
+_LINE_RECORD = b',"record":'
+_EMPTY_SHA256 = hashlib.sha256(b"").hexdigest()
 
 
 #: Configuration fields added after run directories existed, with the value the older runs
@@ -233,6 +275,7 @@ def commit(
     previous: Mapping[str, Any] | None = None,
     keep: Sequence[str] = (),
     append: Mapping[str, bytes] | None = None,
+    journal: bool = False,
 ) -> dict[str, Any]:
     """Commit ``files`` (visible name -> content) as the directory's new state.
 
@@ -246,6 +289,9 @@ def commit(
     it); the names in ``keep`` keep their entries from it, unchanged, and ``append`` (name
     among :data:`APPENDABLE` -> bytes) adds bytes after an appended file's committed size
     (or starts the file when ``previous`` does not list it as appended).
+
+    ``journal=True`` lists an empty journal (:data:`JOURNAL`) with a new ``token``, which
+    :func:`append_month` then appends months to without a manifest.
     """
     durable.settle(directory)
     if kind not in KINDS:
@@ -261,9 +307,11 @@ def commit(
                          f"among {APPENDABLE}")
     old_files = previous["files"] if previous is not None else {}
     missing = [name for name in keep if name not in old_files]
-    if missing or (set(keep) | set(append)) & set(files) or set(keep) & set(append):
-        raise ValueError(f"keep={list(keep)}, append={sorted(append)}: expected names of the "
-                         "previous commit, each in one of files, keep and append")
+    if missing or (set(keep) | set(append)) & set(files) or set(keep) & set(append) or (
+            journal and JOURNAL in {*files, *keep, *append}):
+        raise ValueError(f"keep={list(keep)}, append={sorted(append)}, journal={journal}: "
+                         "expected names of the previous commit, each in one of files, keep "
+                         "and append (and the journal in none of them with journal=True)")
     directory = Path(directory)
     staging = directory / STAGING
     token = os.urandom(4).hex()
@@ -287,6 +335,7 @@ def commit(
                              "append": True}
             hashes[path] = (size + len(data), entries[name]["sha256"], digest)
         if files:
+            _tidy.discard(directory)
             if not staging.is_dir():
                 staging.mkdir()
                 durable.wrote()
@@ -296,8 +345,11 @@ def commit(
                 durable.write_file(directory / staged, data)
                 entries[name] = {"sha256": _sha256(data), "size": len(data), "staged": staged}
             durable.fsync_dir(staging)
+        if journal:
+            entries[JOURNAL] = {"sha256": _EMPTY_SHA256, "size": 0, "append": True,
+                                "token": os.urandom(8).hex()}
         manifest = {
-            "format": FORMAT_APPEND if append else FORMAT,
+            "format": FORMAT_APPEND if append or journal else FORMAT,
             "kind": kind,
             "months_done": months_done,
             "config_sha256": configs_hash,
@@ -306,6 +358,7 @@ def commit(
         durable.write_file(tmp, dumps(manifest))
         durable.replace(tmp, directory / MANIFEST)  # the commit
     except OSError as err:
+        _tidy.discard(directory)
         for path in [*written, tmp]:
             try:
                 path.unlink(missing_ok=True)
@@ -321,8 +374,121 @@ def commit(
         if path.parent == directory:
             del _appended[path]
     _appended.update(hashes)
+    _tails.pop(directory, None)
+    if journal:
+        _tails[directory] = _Tail(entries[JOURNAL]["token"], 0, _EMPTY_SHA256, months_done)
     _publish(directory, manifest, dict(files), written=set(files))
     return manifest
+
+
+# -- months appended without a manifest ----------------------------------------------------
+@dataclass
+class _Tail:
+    """Where :func:`append_month` continues a directory's journal: the manifest's
+    ``token``, the end of the journal's committed bytes, the sha256 of its last line (the
+    empty file's at first), the months committed, and when the journal was last fsynced."""
+
+    token: str
+    offset: int
+    last: str
+    months_done: int
+    synced: float = field(default_factory=time.monotonic)
+
+
+#: The journals this process's commits listed with a token, by directory.
+_tails: dict[Path, _Tail] = {}
+
+
+def _month_line(record: bytes, payload: Sequence[Any], token: str, previous: str,
+                months_done: int) -> tuple[bytes, str]:
+    """A month's line followed by its payload (see the module docstring), and its sha256."""
+    size = sum(memoryview(part).nbytes for part in payload)
+    body = b'"previous":"%s","token":"%s","months_done":%d,"payload":%d%s%s}\n' % (
+        previous.encode(), token.encode(), months_done, size, _LINE_RECORD, record)
+    digest = hashlib.sha256(body)
+    for part in payload:
+        digest.update(part)
+    hexdigest = digest.hexdigest()
+    return b"".join([_LINE_HEAD, hexdigest.encode(), b'",', body, *payload]), hexdigest
+
+
+def _read_line(whole: bytes, start: int) -> tuple[dict[str, Any], bytes, bytes, str, int] | None:
+    """The line of :func:`append_month` at ``start`` of ``whole``, if it is one whose
+    sha256 matches: its head (``previous``, ``token``, ``months_done``, ``payload``), its
+    record, its payload, its sha256 and where the next line starts; else None."""
+    end = whole.find(b"\n", start)
+    if end < 0 or not whole.startswith(_LINE_HEAD, start) \
+            or whole[start + _LINE_BODY - 2:start + _LINE_BODY] != b'",' \
+            or whole[end - 1:end] != b"}":
+        return None
+    body = whole[start + _LINE_BODY:end + 1]
+    split = body.find(_LINE_RECORD)
+    try:
+        head = json.loads(b"{" + body[:split] + b"}") if split > 0 else None
+    except ValueError:
+        return None
+    size = head.get("payload") if isinstance(head, dict) else None
+    if isinstance(size, bool) or not isinstance(size, int) or size < 0 \
+            or end + 1 + size > len(whole):
+        return None
+    payload = whole[end + 1:end + 1 + size]
+    digest = hashlib.sha256(body)
+    digest.update(payload)
+    if digest.hexdigest().encode() != whole[start + len(_LINE_HEAD):start + _LINE_BODY - 2]:
+        return None
+    return head, body[split + len(_LINE_RECORD):-2], payload, digest.hexdigest(), end + 1 + size
+
+
+def append_month(directory: str | os.PathLike, record: bytes, *, months_done: int,
+                 payload: Sequence[Any] = ()) -> int:
+    """Commit month ``months_done`` by appending one line (``record``, one line of JSON, and
+    the bytes of ``payload``, buffers written one after the other) to the journal the
+    directory's last commit by this process listed (``journal=True`` of :func:`commit`);
+    returns the journal's size in bytes.
+
+    The line is fsynced if :data:`SYNC_EVERY_S` seconds have passed since the journal's last
+    fsync (see the module docstring). Raises :class:`RunWriteError` if the write fails (the
+    months before stay committed) and ValueError without such a journal or when
+    ``months_done`` does not follow the last month committed.
+    """
+    durable.settle(directory)
+    directory = Path(directory)
+    tail = _tails.get(directory)
+    if tail is None:
+        raise ValueError(f"{directory}: no commit of this process lists a journal to append "
+                         "to (commit with journal=True first)")
+    if isinstance(months_done, bool) or not isinstance(months_done, int) \
+            or months_done != tail.months_done + 1:
+        raise ValueError(f"months_done={months_done!r}: expected {tail.months_done + 1}, the "
+                         "month after the last one committed")
+    if b"\n" in record:
+        raise ValueError("record: expected one line of JSON (it holds a newline)")
+    line, digest = _month_line(record, payload, tail.token, tail.last, months_done)
+    sync = time.monotonic() - tail.synced >= SYNC_EVERY_S
+    try:
+        durable.append_file(directory / JOURNAL, tail.offset, line, sync=sync)
+        if sync:
+            durable.fsync_dir(directory)  # the journal's name, if this append made it
+    except OSError as err:
+        raise RunWriteError(
+            err.errno,
+            f"could not write month {months_done} to {directory}: {durable.reason(err)}; the "
+            "months before it are kept (free the space or fix the permissions, then resume)",
+        ) from err
+    tail.offset += len(line)
+    tail.last, tail.months_done = digest, months_done
+    if sync:
+        tail.synced = time.monotonic()
+    return tail.offset
+
+
+#: The visible names this process pointed at committed files and the sha256 they then
+#: held, so that a commit keeping a file does not read and hash it again (the directory's
+#: lock keeps other writers out; :func:`clear` forgets a directory's names).
+_published: dict[Path, str] = {}
+#: The directories whose last publish by this process removed every staged and temporary
+#: file, and that no commit has staged files in since.
+_tidy: set[Path] = set()
 
 
 def _publish(directory: Path, manifest: Mapping[str, Any], data: Mapping[str, bytes],
@@ -333,13 +499,25 @@ def _publish(directory: Path, manifest: Mapping[str, Any], data: Mapping[str, by
     files). ``written`` names the files the commit has just staged."""
     try:
         durable.fsync_dir(directory)
+        if not written and directory in _tidy and all(
+                entry.get("append") or _published.get(directory / name) == entry["sha256"]
+                for name, entry in manifest["files"].items()):
+            # a month appended by this process, every other file where its last publish
+            # put it: nothing staged, nothing left over (the publish before removed them)
+            _remove_leftovers(directory, [n for n in APPENDABLE if n not in manifest["files"]],
+                              staged=False)
+            return
+        _tidy.discard(directory)
         for name, entry in manifest["files"].items():
             target = directory / name
             # a file the commit has just staged is pointed at anew (its visible name holds an
             # earlier content, so reading and hashing it first would only cost time); any
             # other only where its visible name does not hold it (an earlier publish failed)
-            if entry.get("append") or (name not in written
-                                       and _file_sha256(target) == entry["sha256"]):
+            if entry.get("append"):
+                continue
+            if name not in written and (_published.get(target) == entry["sha256"]
+                                        or _file_sha256(target) == entry["sha256"]):
+                _published[target] = entry["sha256"]
                 continue
             staged = directory / entry["staged"]
             if not staged.exists():
@@ -352,8 +530,10 @@ def _publish(directory: Path, manifest: Mapping[str, Any], data: Mapping[str, by
             except OSError:  # no hard links on this file system: a copy
                 durable.write_file(tmp, data[name] if name in data else staged.read_bytes())
             durable.replace(tmp, target)
+            _published[target] = entry["sha256"]
         durable.fsync_dir(directory)
         _remove_leftovers(directory, [n for n in APPENDABLE if n not in manifest["files"]])
+        _tidy.add(directory)
     except OSError:
         return
 
@@ -365,10 +545,16 @@ def _file_sha256(path: Path) -> str | None:
         return None
 
 
-def _remove_leftovers(directory: Path, unlisted: Iterable[str] = ()) -> None:
+def _remove_leftovers(directory: Path, unlisted: Iterable[str] = (), staged: bool = True
+                      ) -> None:
     """Remove the staged files and the temporary files of interrupted writers (called once
     every visible name holds the committed content), and the files ``unlisted`` (appended
-    files the manifest no longer lists)."""
+    files the manifest no longer lists). ``staged=False``: the manifest's temporary file
+    and ``unlisted`` only (a commit that staged nothing after one that removed the rest)."""
+    if not staged:
+        for name in (MANIFEST + ".tmp", *unlisted):
+            durable.unlink(directory / name)
+        return
     staging = directory / STAGING
     if staging.is_dir():
         for path in sorted(staging.iterdir()):
@@ -388,6 +574,10 @@ def clear(directory: str | os.PathLike, others: Iterable[str] = ()) -> None:
     that an interruption never leaves something that reads as a run of mixed origins."""
     durable.settle(directory)
     directory = Path(directory)
+    for name in RUN_FILES:
+        _published.pop(directory / name, None)
+    _tidy.discard(directory)
+    _tails.pop(directory, None)
     durable.unlink(directory / MANIFEST)
     durable.fsync_dir(directory)
     for name in (*RUN_FILES, *others):
@@ -407,6 +597,10 @@ class Run:
     directory: Path
     manifest: dict[str, Any] | None
     files: dict[str, bytes]
+    #: The months the journal's appended lines commit (:func:`append_month`), if any.
+    appended_months: int | None = None
+    #: The payload of the journal's last appended line (empty if there is none).
+    payload: bytes = b""
 
     @property
     def legacy(self) -> bool:
@@ -420,7 +614,10 @@ class Run:
 
     @property
     def months_done(self) -> int | None:
-        """The manifest's months_done (None for a legacy directory)."""
+        """The months committed: the manifest's months_done, or the last month its journal's
+        appended lines commit (None for a legacy directory)."""
+        if self.appended_months is not None:
+            return self.appended_months
         return None if self.manifest is None else self.manifest["months_done"]
 
 
@@ -455,7 +652,10 @@ def _load_manifest(directory: Path) -> dict[str, Any]:
         )
         if ok and entry.get("append") is True:
             ok = name in APPENDABLE and "staged" not in entry and entry["size"] >= 0 \
-                and manifest["format"] == FORMAT_APPEND
+                and manifest["format"] in (FORMAT_APPEND, FORMAT_APPEND_2)
+            if ok and "token" in entry:
+                ok = manifest["format"] == FORMAT_APPEND and isinstance(entry["token"], str) \
+                    and _TOKEN.match(entry["token"]) is not None
         elif ok:
             ok = (isinstance(entry.get("staged"), str)
                   and entry["staged"].startswith(STAGING + "/")
@@ -505,6 +705,14 @@ def read(
         return _read_legacy(directory, names, optional)
     manifest = _load_manifest(directory)
     files: dict[str, bytes] = {}
+    appended_months, payload = None, b""
+    journal = manifest["files"].get(JOURNAL)
+    if journal is not None and "token" in journal and JOURNAL not in names:
+        names = [*names, JOURNAL]  # its lines may commit months: months_done needs them
+        optional = [*optional, JOURNAL]
+        unasked = True
+    else:
+        unasked = False
     for name in names:
         entry = manifest["files"].get(name)
         if entry is None:
@@ -519,11 +727,20 @@ def read(
         for candidate in candidates:
             try:
                 data = candidate.read_bytes()
+            except FileNotFoundError:
+                if appended and entry["size"] == 0:  # nothing appended yet
+                    files[name] = b""
+                    break
+                continue
             except OSError:
                 continue
+            whole = data
             if appended:  # bytes after the committed size are an interrupted append's
                 data = data[: entry["size"]] if len(data) >= entry["size"] else b""
             if _sha256(data) == entry["sha256"] and len(data) == entry["size"]:
+                if "token" in entry:
+                    data, appended_months, payload = _with_appended_months(
+                        data, whole, entry, manifest["months_done"], directory / name)
                 files[name] = data
                 break
         else:
@@ -532,9 +749,41 @@ def read(
                 f"{directory / name} {state} in {MANIFEST} (damaged or changed after the run "
                 f"wrote it); {RECOVER}"
             )
+    if unasked:
+        files.pop(JOURNAL, None)
     if repair:
         _publish(directory, manifest, {**files})
-    return Run(directory, manifest, files)
+    return Run(directory, manifest, files, appended_months, payload)
+
+
+def _with_appended_months(prefix: bytes, whole: bytes, entry: Mapping[str, Any],
+                          months_done: int, path: Path) -> tuple[bytes, int | None, bytes]:
+    """The committed ``prefix`` of a journal followed by the records of the lines
+    :func:`append_month` committed after it (read from ``whole``, the file), the last month
+    they commit (None if there is none) and the last line's payload.
+
+    The lines are taken in order while each one verifies; the first that does not ends them
+    (a write the process did not finish: it can only be the last). A line after it that
+    verifies on its own means that a committed line was changed: a :class:`RunDirError`."""
+    token = entry["token"]
+    records, payload = [], b""
+    previous, month, start = entry["sha256"], months_done, len(prefix)
+    while (found := _read_line(whole, start)) is not None and found[0] == {
+            "previous": previous, "token": token, "months_done": month + 1,
+            "payload": len(found[2])}:
+        records.append(found[1] + b"\n")
+        payload, previous, month, start = found[2], found[3], month + 1, found[4]
+    # what follows is a write the process did not finish, or lines of an earlier commit
+    # (another token); a whole line of this commit's that did not fit is a changed one
+    later = whole.find(_LINE_HEAD, start)
+    while later >= 0:
+        found = _read_line(whole, later)
+        if found is not None and found[0].get("token") == token:
+            raise RunDirError(
+                f"{path} does not match its sha256 after line {len(records)} (damaged or "
+                f"changed after the run wrote it); {RECOVER}")
+        later = whole.find(_LINE_HEAD, later + 1)
+    return prefix + b"".join(records), (month if records else None), payload
 
 
 def _read_legacy(directory: Path, names: Sequence[str], optional: Sequence[str]) -> Run:

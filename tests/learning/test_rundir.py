@@ -326,3 +326,99 @@ def test_a_report_notebook_that_fails_is_not_left_as_the_result(tmp_path, monkey
         report.run_report(tmp_path / "r", profile="ci", notebooks=[name.stem])
     names = sorted(p.name for p in (tmp_path / "r").iterdir())
     assert names == [f"{name.stem}.failed.ipynb"]
+
+
+# -- months appended without a manifest ------------------------------------------------------
+def journal_commit(directory: Path, months: int = 1) -> dict:
+    return rundir.commit(directory, FILES, kind="centralized", months_done=months,
+                         configs_hash="0" * 64, journal=True)
+
+
+def test_appended_months_count_line_by_line(tmp_path):
+    manifest = journal_commit(tmp_path)
+    entry = manifest["files"][rundir.JOURNAL]
+    assert manifest["format"] == rundir.FORMAT_APPEND and entry["size"] == 0
+    assert rundir.read(tmp_path, ["history.json"]).months_done == 1
+    sizes = [rundir.append_month(tmp_path, b'{"m": %d}' % m, months_done=m) for m in (2, 3, 4)]
+    assert sizes == sorted(sizes) and sizes[-1] == (tmp_path / rundir.JOURNAL).stat().st_size
+    # the manifest is the first month's; the lines commit the others
+    assert json.loads((tmp_path / "manifest.json").read_text()) == manifest
+    run = rundir.read(tmp_path, ["history.json", rundir.JOURNAL])
+    assert run.months_done == 4 and run.manifest["months_done"] == 1
+    assert run.files[rundir.JOURNAL] == b'{"m": 2}\n{"m": 3}\n{"m": 4}\n'
+    # asked for other files only, the months are still the lines'
+    assert rundir.read(tmp_path, ["history.json"]).months_done == 4
+    assert rundir.JOURNAL not in rundir.read(tmp_path, ["history.json"]).files
+    # each line carries its own sha256 and the one of the line before it
+    lines = (tmp_path / rundir.JOURNAL).read_bytes().splitlines()
+    heads = [json.loads(line) for line in lines]
+    assert [h["months_done"] for h in heads] == [2, 3, 4]
+    assert heads[0]["previous"] == hashlib.sha256(b"").hexdigest()
+    assert [h["previous"] for h in heads[1:]] == [h["sha256"] for h in heads[:-1]]
+    assert {h["token"] for h in heads} == {entry["token"]}
+
+
+def test_append_month_refuses_what_does_not_follow(tmp_path):
+    with pytest.raises(ValueError, match="journal=True"):
+        rundir.append_month(tmp_path, b"{}", months_done=2)
+    commit(tmp_path)  # a commit without a journal
+    with pytest.raises(ValueError, match="journal=True"):
+        rundir.append_month(tmp_path, b"{}", months_done=2)
+    journal_commit(tmp_path, months=3)
+    for bad in (3, 5, True):
+        with pytest.raises(ValueError, match="expected 4"):
+            rundir.append_month(tmp_path, b"{}", months_done=bad)
+    with pytest.raises(ValueError, match="newline"):
+        rundir.append_month(tmp_path, b"{}\n{}", months_done=4)
+    assert not (tmp_path / rundir.JOURNAL).exists()  # nothing written by a refused call
+    rundir.append_month(tmp_path, b"{}", months_done=4)
+    rundir.clear(tmp_path)
+    with pytest.raises(ValueError, match="journal=True"):
+        rundir.append_month(tmp_path, b"{}", months_done=5)
+
+
+def test_lines_of_an_earlier_commit_are_ignored_then_cut(tmp_path):
+    journal_commit(tmp_path)
+    for m in (2, 3):
+        rundir.append_month(tmp_path, b'{"old": %d}' % m, months_done=m)
+    journal_commit(tmp_path, months=3)  # a new token: the old lines are not this commit's
+    run = rundir.read(tmp_path, [rundir.JOURNAL])
+    assert run.months_done == 3 and run.files[rundir.JOURNAL] == b""
+    rundir.append_month(tmp_path, b'{"new": 4}', months_done=4)
+    assert b"old" not in (tmp_path / rundir.JOURNAL).read_bytes()
+    assert rundir.read(tmp_path, [rundir.JOURNAL]).files[rundir.JOURNAL] == b'{"new": 4}\n'
+    commit(tmp_path, months=4)  # whole files without a journal: it goes
+    assert not (tmp_path / rundir.JOURNAL).exists()
+    assert rundir.read(tmp_path, ["history.json"]).months_done == 4
+
+
+@pytest.mark.parametrize("every", [0.0, 3600.0])
+def test_appended_months_are_fsynced_at_most_every_few_seconds(tmp_path, monkeypatch, every):
+    monkeypatch.setattr(rundir, "SYNC_EVERY_S", every)
+    journal_commit(tmp_path)
+    synced = []
+    real = os.fsync
+    monkeypatch.setattr(os, "fsync", lambda fd: (synced.append(fd), real(fd))[1])
+    for m in (2, 3, 4):
+        rundir.append_month(tmp_path, b"{}", months_done=m)
+    # every append then the file and its directory; or none within the hour
+    assert len(synced) == (6 if every == 0.0 else 0)
+
+
+def test_a_full_disk_during_an_append_keeps_the_months_before(tmp_path, monkeypatch):
+    journal_commit(tmp_path)
+    rundir.append_month(tmp_path, b'{"m": 2}', months_done=2)
+    real = os.pwrite
+
+    def full(fd, data, offset):
+        real(fd, bytes(data)[:5], offset)  # part of the line reached the disk
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "pwrite", full)
+    with pytest.raises(RunWriteError, match="month 3 .* months before it are kept"):
+        rundir.append_month(tmp_path, b'{"m": 3}', months_done=3)
+    monkeypatch.undo()
+    run = rundir.read(tmp_path, [rundir.JOURNAL])
+    assert run.months_done == 2 and run.files[rundir.JOURNAL] == b'{"m": 2}\n'
+    rundir.append_month(tmp_path, b'{"m": 3}', months_done=3)  # the torn bytes are cut
+    assert rundir.read(tmp_path, [rundir.JOURNAL]).months_done == 3

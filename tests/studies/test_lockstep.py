@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 
 from mpcrl_lite import LearningConfig, SystemConfig
+from mpcrl_lite.learning import rundir
 from mpcrl_lite.learning.experiment import Experiment
+from mpcrl_lite.learning.history import History
 from mpcrl_lite.sim.closed_loop import MPCPolicy, RunBlocks, run_month, simulate
 from mpcrl_lite.studies import lockstep
 from mpcrl_lite.studies.lockstep import group_key, run_lockstep, split_record
@@ -199,8 +201,8 @@ def test_one_failing_run_does_not_stop_the_others(tmp_path):
     assert results[0].months == 3
     assert_same(comparable(runs[0]), alone[0])
     # the run that failed after its checkpoint keeps its last good month
-    saved = json.loads((tmp_path / "2" / "checkpoint.json").read_text())
-    assert saved["months_done"] == 2
+    assert rundir.read(tmp_path / "2", ["checkpoint.json"]).months_done == 2
+    assert History.load(tmp_path / "2").J == runs[2].history.J
 
 
 def test_lockstep_rejects_bad_input(tmp_path):
