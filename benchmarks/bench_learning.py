@@ -13,6 +13,9 @@ read them under load).
   evaluation months of ``LearningConfig.eval_every``) in a fresh interpreter; wall time of
   ``run`` and the process's peak resident set size (``ru_maxrss``), so the peak is this
   run's own. ``eval_every=0`` gives the learning alone.
+* **checkpoints** -- the paper's run (one evaluation draw) with a run directory and without,
+  alternating in one interpreter: the share of its wall time spent committing months
+  (:func:`checkpoint_share`), and a month's time with and without the directory.
 * **cold start** -- a fresh interpreter, from its launch to the first solved MPC (import
   mpcrl_lite, build the formulation and the default back-end, solve one problem); the
   median of a few launches. The time to the first sensitivity is reported too.
@@ -41,6 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import BENCH_DIR, median, python_env, run_json
 
 __all__ = [
+    "checkpoint_share",
     "cold_start",
     "learning_step",
     "main",
@@ -177,6 +181,63 @@ def paper_experiment(months: int = 100, warm_start: bool = True,
     out["paper_experiment_cpu_s"] = out["run_cpu_s"] * (100 / months)
     out["extrapolated"] = months != 100
     return out
+
+
+# -- checkpoints -----------------------------------------------------------------------------
+_CHECKPOINT_CODE = r"""
+import json, tempfile, time
+from pathlib import Path
+from mpcrl_lite.config import LearningConfig
+from mpcrl_lite.learning.checkpoint import Checkpointing
+from mpcrl_lite.learning.experiment import Experiment
+spent = [0.0]
+save = Checkpointing.save_checkpoint
+def timed(self, *args, **kwargs):
+    t = time.perf_counter()
+    try:
+        return save(self, *args, **kwargs)
+    finally:
+        spent[0] += time.perf_counter() - t
+Checkpointing.save_checkpoint = timed
+def run(out):
+    exp = Experiment(learning=LearningConfig(months={months}, eval_draws=1))
+    exp.run(months=1, progress=False)  # the kernels loaded, the first month's set-up done
+    spent[0] = 0.0
+    t, c = time.perf_counter(), time.process_time()
+    exp.run(progress=False, out=out)
+    return time.perf_counter() - t, time.process_time() - c
+walls, cpus, shares = {{"with": [], "without": []}}, {{"with": [], "without": []}}, []
+with tempfile.TemporaryDirectory() as tmp:
+    for trial in range({trials}):
+        for kind in ("without", "with"):
+            wall, cpu = run(str(Path(tmp) / f"run{{trial}}") if kind == "with" else None)
+            walls[kind].append(wall)
+            cpus[kind].append(cpu)
+            if kind == "with":
+                shares.append(spent[0] / wall)
+print(json.dumps({{"walls": walls, "cpus": cpus, "shares": shares, "months": {months}}}))
+"""
+
+
+def checkpoint_share(months: int = 100, trials: int = 3) -> dict:
+    """The monthly checkpoints of the paper's run (one evaluation draw) in a fresh
+    interpreter: the same run with a run directory and without, alternating, ``trials``
+    times. Reports the share of the run's wall time spent in
+    :meth:`~mpcrl_lite.learning.checkpoint.Checkpointing.save_checkpoint` (median and
+    largest), and the months' wall and CPU time with and without the directory (medians;
+    their difference is what the checkpoints cost the run, waits and contention
+    included)."""
+    out = run_json(_CHECKPOINT_CODE.format(months=months, trials=trials), timeout=3600)
+    per_month = {kind: median(out["walls"][kind]) / (months - 1) * 1e3 for kind in out["walls"]}
+    cpu_month = {kind: median(out["cpus"][kind]) / (months - 1) * 1e3 for kind in out["cpus"]}
+    return {
+        "checkpoint_share": median(out["shares"]), "checkpoint_share_max": max(out["shares"]),
+        "month_ms_with_dir": per_month["with"], "month_ms_without_dir": per_month["without"],
+        "month_cpu_ms_with_dir": cpu_month["with"],
+        "month_cpu_ms_without_dir": cpu_month["without"],
+        "checkpoint_ms_per_month": per_month["with"] - per_month["without"],
+        "months": months, "trials": trials,
+    }
 
 
 # -- cold start ----------------------------------------------------------------------------

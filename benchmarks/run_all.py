@@ -50,6 +50,8 @@ TARGETS = {
     "paper_command_10_draws_s": ("<=", 5.0),
     "tune_s": ("<=", 120.0),
     "q_month_ratio": ("<=", 2.0),
+    # the paper's run with its run directory: the share of its time in the monthly commits
+    "checkpoint_share": ("<=", 0.05),
 }
 
 #: Where ``make bench`` writes its files (git-ignored; nothing tracked is rewritten).
@@ -135,6 +137,17 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
     _log("paper experiment, learning only (eval_every=0)")
     paper_learn = _try("paper experiment (eval_every=0)",
                        lambda: bench_learning.paper_experiment(months=months, eval_every=0))
+
+    _log("monthly checkpoints: the paper's run with a run directory and without")
+    checkpoints = _try("checkpoint share", lambda: bench_learning.checkpoint_share(
+        months=6 if quick else 100, trials=1 if quick else 3))
+    if checkpoints is not None:
+        _log(f"checkpoints: {100 * checkpoints['checkpoint_share']:.1f} % of the run "
+             f"(largest {100 * checkpoints['checkpoint_share_max']:.1f} %); a month "
+             f"{checkpoints['month_ms_with_dir']:.1f} ms with the directory, "
+             f"{checkpoints['month_ms_without_dir']:.1f} ms without (cpu "
+             f"{checkpoints['month_cpu_ms_with_dir']:.1f} / "
+             f"{checkpoints['month_cpu_ms_without_dir']:.1f})")
 
     _log("a Q-learning month beside a DPG month (alternating, one process)")
     qmonth = _try("Q-learning month", lambda: _sub(f"q_month(months={1 if quick else 6})"))
@@ -260,6 +273,10 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
     for key in ("q_month_s", "q_month_cpu_s", "dpg_month_s", "dpg_month_cpu_s", "q_month_ratio",
                 "q_month_ratio_cpu"):
         result[key] = None if qmonth is None else qmonth[key]
+    for key in ("checkpoint_share", "checkpoint_share_max", "month_ms_with_dir",
+                "month_ms_without_dir", "month_cpu_ms_with_dir", "month_cpu_ms_without_dir",
+                "checkpoint_ms_per_month"):
+        result[key] = None if checkpoints is None else checkpoints[key]
     search = search or {}
     for key in ("tune_s", "tune_cpu_s", "tune_heldout_s", "one_at_a_time_s",
                 "one_at_a_time_cpu_s", "tune_speedup_vs_one_at_a_time"):
@@ -278,6 +295,7 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
         "kernel_one_thread_cpu_us_per_problem": result["kernel_one_thread_cpu_us_per_problem"],
         "decentralized_n20_s_per_month": result["decentralized_n20_s_per_month"],
         "q_month_ratio": result["q_month_ratio"],
+        "checkpoint_share": result["checkpoint_share"],
         **{key: result[key] for key in ("startup_import_s", "startup_experiment_s",
                                         "paper_command_1_draw_s", "paper_command_10_draws_s")},
     }
@@ -296,6 +314,7 @@ def run(quick: bool = False, skip_mpcrl: bool = False) -> dict:
         "paper_default_eval": paper_draws,
         "paper_learning_only": paper_learn, "cold": cold, "kernel": kernel,
         "decentralized": dec, "study": study, "commands": commands, "q_month": qmonth,
+        "checkpoints": checkpoints,
         "figure": None if figure is None else str(figure),
     }
     result["total_s"] = time.perf_counter() - t_start
