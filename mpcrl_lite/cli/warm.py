@@ -5,7 +5,8 @@ compiler: the MPC back-end (:mod:`mpcrl_lite.mpc.backends.kernel_core`), the exp
 (:mod:`mpcrl_lite.sim.exploration_kernel`), the month of the closed loop
 (:mod:`mpcrl_lite.sim.compiled_month`, for the generic kernels and the paper's sizes) and the
 coordination rounds of the decentralized learner
-(:mod:`mpcrl_lite.decentralized.coordination_kernel`). Each loads its kernels on
+(:mod:`mpcrl_lite.decentralized.coordination_kernel`) and the first stage of the Q-learner's MPC
+(:mod:`mpcrl_lite.mpc.q_stage_kernel`). Each loads its kernels on
 first use anyway; this only moves the wait ahead: from an empty cache about five minutes of
 CPU, three on two cores (176 s on 2026-12-07; the generic kernels with the exploration, the
 coordination rounds and their compiled month in one process, each size's copy of the MPC
@@ -24,6 +25,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 from .._util.workers import end_with_parent
 from ..decentralized import coordination_kernel
+from ..mpc import q_stage_kernel
 from ..mpc.backends import kernel, kernel_sizes
 from ..sim import compiled_month, exploration_kernel
 
@@ -49,6 +51,7 @@ def _compile(group: str) -> float:
         kernel.K.ensure_compiled()
         exploration_kernel.ensure_compiled()
         coordination_kernel.ensure_compiled()
+        q_stage_kernel.ensure_compiled()
         _warm_month(2, 4)
     else:
         n, N = (int(v) for v in group.split("x"))

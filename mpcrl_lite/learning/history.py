@@ -345,7 +345,7 @@ class History:
             **{k: getattr(self, k) for k in self.STORED_SERIES},
             **({"prices_origin": dict(self.prices_origin)} if self.prices_origin else {}),
         }
-        return {rundir.HISTORY_JSON: jsonio.dumps(meta),
+        return {rundir.HISTORY_JSON: jsonio.dumps_by_key(meta),
                 rundir.HISTORY_NPZ: self.npz_bytes(compress)}
 
     def save(self, directory: str | Path) -> Path:

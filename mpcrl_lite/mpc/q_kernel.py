@@ -28,6 +28,7 @@ import numpy as np
 from scipy.sparse import csr_matrix
 
 from ..config import MPCConfig
+from . import q_stage_kernel
 from .backends.kernel import KernelSolver
 from .formulation import MPC
 from .solution import BatchSolution
@@ -38,6 +39,9 @@ __all__ = ["FixedActionKernel"]
 _STAGE0_MAX_ITER = 100
 #: Stop when the Newton decrement of the first-stage problem is below this (relative).
 _STAGE0_TOL = 1e-15
+#: The first stage's Newton iteration compiled (:mod:`mpcrl_lite.mpc.q_stage_kernel`, the same
+#: bits); False runs its numpy form, the reference.
+COMPILED = True
 
 
 class FixedActionKernel:
@@ -159,12 +163,22 @@ def _first_stage(c: np.ndarray, a: np.ndarray, U: np.ndarray, P: float, tau: flo
     s = np.where(feasible[:, None], lo + t[:, None] * width, 0.5 * U)
     A = a.sum(1)
     done = ~feasible
-    with np.errstate(divide="ignore", invalid="ignore"):  # rows already done may be nan
-        return _newton(s, c, a, A, U, P, tau, done, feasible)
+    if not COMPILED or a.shape[1] >= 8:  # numpy sums eight or more in another order
+        with np.errstate(divide="ignore", invalid="ignore"):  # rows already done may be nan
+            return _newton_numpy(s, c, a, A, U, P, tau, done, feasible)
+    q_stage_kernel.ensure_compiled()
+    s = np.array(s, dtype=float, order="C")
+    q_stage_kernel.newton_rows(s, np.ascontiguousarray(c, dtype=float),
+                               np.ascontiguousarray(a, dtype=float),
+                               np.ascontiguousarray(A, dtype=float),
+                               np.ascontiguousarray(U, dtype=float), float(P), float(tau), done,
+                               _STAGE0_MAX_ITER, _STAGE0_TOL)
+    return s, done & feasible
 
 
-def _newton(s, c, a, A, U, P, tau, done, feasible):
-    """The damped Newton iteration of :func:`_first_stage` from ``s``."""
+def _newton_numpy(s, c, a, A, U, P, tau, done, feasible):
+    """The damped Newton iteration of :func:`_first_stage` from ``s``, in numpy: the
+    reference of the compiled :func:`~mpcrl_lite.mpc.q_stage_kernel.newton_rows`."""
     for _ in range(_STAGE0_MAX_ITER):
         gb, gs = P - (s.sum(1) + A), P - s.sum(1)
         grad = (c - tau * (1 / s - 1 / (U - s) + 1 / (s + a) - 1 / (U - s - a))

@@ -62,3 +62,16 @@ def test_every_non_finite_number_is_null(bad):
 def test_what_json_cannot_hold_is_named():
     with pytest.raises(TypeError, match="set"):
         jsonio.dumps({"a": {1, 2}})
+
+
+def test_dumps_by_key_is_the_same_json_a_key_per_line():
+    rng = np.random.default_rng(3)
+    data = {"format": "x", "J": [1.5, math.nan, np.float64(2.0)], "theta": rng.standard_normal(
+        (4, 3)), "nested": {"a": (1, np.int64(2))}, "empty": []}
+    text = jsonio.dumps_by_key(data)
+    assert json.loads(text) == json.loads(jsonio.dumps(data))
+    lines = text.split(b"\n")
+    assert lines[0] == b"{" and lines[-1] == b"}" and len(lines) == len(data) + 2
+    assert [json.loads(b"{" + line.rstrip(b",") + b"}") for line in lines[1:-1]] == [
+        {k: v} for k, v in json.loads(text).items()]
+    assert jsonio.dumps_by_key({}) == b"{}" and json.loads(jsonio.dumps_by_key({})) == {}
