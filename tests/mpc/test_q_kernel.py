@@ -49,7 +49,7 @@ def test_the_compiled_first_stage_is_the_numpy_one(monkeypatch, n, seed, tau):
 
 
 def test_a_batch_done_at_once_is_left_as_it_is():
-    c, a, U, P, feasible = rows(np.random.default_rng(5), 20, 3)
+    c, a, U, P, _ = rows(np.random.default_rng(5), 20, 3)
     none = np.zeros(len(c), dtype=bool)
     s, ok = q_kernel._first_stage(c, a, U, P, 0.1, none)
     assert not ok.any()
