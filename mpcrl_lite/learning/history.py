@@ -281,14 +281,7 @@ class History:
         Read back by :meth:`from_files`, ``history.json`` and its journal give the same
         History as ``history.json`` and ``history.npz`` written whole (:meth:`to_files`):
         the journal's last line holds the last month, ``history.npz`` the first."""
-        record = {
-            "months": self.months,
-            "theta_final": self.theta_final,
-            "backend": self.backend,
-            "series": {k: getattr(self, k)[since[k]:] for k in self.STORED_SERIES},
-            **(extra or {}),
-        }
-        line = jsonio.dumps(record, indent=None)
+        line = self._journal_json(since, extra)
         if self.last_month is not None:  # spliced in: base64 needs no escaping, and
             # json.dumps would scan the 220 kB of it for characters to escape
             line = line[:-1] + b',"last_month":' + _arrays_json(self.last_month) + b"}"
@@ -301,14 +294,7 @@ class History:
         newline, whose ``last_month`` gives each array's ``dtype``, ``shape`` and ``offset``
         in the payload, and the payload, the arrays' bytes one after the other (not copied).
         :meth:`from_files` reads them back with the payload given."""
-        record = {
-            "months": self.months,
-            "theta_final": self.theta_final,
-            "backend": self.backend,
-            "series": {k: getattr(self, k)[since[k]:] for k in self.STORED_SERIES},
-            **(extra or {}),
-        }
-        line = jsonio.dumps(record, indent=None)
+        line = self._journal_json(since, extra)
         payload: list[memoryview] = []
         if self.last_month is not None:
             parts, offset = [], 0
@@ -321,6 +307,18 @@ class History:
                 offset += value.nbytes
             line = line[:-1] + b',"last_month":{' + b",".join(parts) + b"}}"
         return line, payload
+
+    def _journal_json(self, since: Mapping[str, int], extra: Mapping[str, Any] | None
+                      ) -> bytes:
+        """A journal line's JSON object without the last month's arrays."""
+        record = {
+            "months": self.months,
+            "theta_final": self.theta_final,
+            "backend": self.backend,
+            "series": {k: getattr(self, k)[since[k]:] for k in self.STORED_SERIES},
+            **(extra or {}),
+        }
+        return jsonio.dumps(record, indent=None)
 
     def npz_bytes(self, compress: bool = True) -> bytes:
         """The content of ``history.npz`` (the first and last month's arrays); ``compress=False``
