@@ -346,3 +346,28 @@ def test_the_run_directory_appends_and_keeps(tmp_path):
     rundir.commit(tmp_path, base, months_done=5, **options)
     assert not (tmp_path / rundir.JOURNAL).exists()
     assert json.loads((tmp_path / "manifest.json").read_text())["format"] == rundir.FORMAT
+
+
+def test_a_critic_of_several_months_commits_its_months_through_the_manifest(tmp_path):
+    """A learner with files of its own (the critic's earlier months, ``critic.npz``) commits
+    every month through the manifest, its journal line with the arrays inline; each month's
+    directory reads back as that month and resumes to the uninterrupted results."""
+    out, seen = tmp_path / "run", []
+    learning = LearningConfig(days_per_month=2, months=5, seed=3, critic_months=2)
+    run = Experiment(SMALL, MPCConfig(), learning, callbacks=[snapshots(tmp_path, out, seen)])
+    run.run(out=out, progress=False)
+    for months, (copy, history) in enumerate(seen, start=1):
+        manifest = json.loads((copy / "manifest.json").read_text())
+        assert manifest["months_done"] == months and rundir.CRITIC in manifest["files"]
+        journal = manifest["files"].get(rundir.JOURNAL)
+        assert (journal is not None) is (months not in (1, 5))
+        if journal is not None:  # through the manifest: no token, lines of plain JSON
+            assert "token" not in journal
+            lines = (copy / rundir.JOURNAL).read_bytes().splitlines()
+            assert len(lines) == months - 1
+            assert "data" in json.loads(lines[-1])["last_month"]["soc"]
+        assert_same_history(History.load(copy), history)
+    middle = seen[2][0]
+    resumed = Experiment(SMALL, MPCConfig(), learning)
+    resumed.run(out=middle, resume=True, progress=False)
+    assert_same_history_but_timings(History.load(middle), run.history)
