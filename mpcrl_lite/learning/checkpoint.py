@@ -406,7 +406,7 @@ class Checkpointing:
 #: The files a month appended to the journal keeps from the commit before it.
 _KEPT = (rundir.HISTORY_JSON, rundir.HISTORY_NPZ, rundir.CHECKPOINT)
 #: The journal's size (bytes) from which the next month writes the whole History anew
-#: (a line is about 230 kB with the month's arrays: about 290 months).
+#: (a line is about 170 kB with the month's arrays: about 390 months).
 JOURNAL_LIMIT = 64 * 2**20
 
 class _Commit(NamedTuple):

@@ -371,3 +371,28 @@ def test_a_critic_of_several_months_commits_its_months_through_the_manifest(tmp_
     resumed = Experiment(SMALL, MPCConfig(), learning)
     resumed.run(out=middle, resume=True, progress=False)
     assert_same_history_but_timings(History.load(middle), run.history)
+
+
+def test_a_long_journal_is_folded_into_the_whole_files(tmp_path, monkeypatch):
+    """Past JOURNAL_LIMIT bytes the next month writes the whole files with a new, empty
+    journal: months then alternate here (a limit of one byte), and every directory still
+    reads back as its month."""
+    from mpcrl_lite.learning import checkpoint
+
+    monkeypatch.setattr(checkpoint, "JOURNAL_LIMIT", 1)
+    out, seen = tmp_path / "run", []
+    learning = LearningConfig(days_per_month=1, months=6, seed=4)
+    run = Experiment(SMALL, MPCConfig(), learning, callbacks=[snapshots(tmp_path, out, seen)])
+    run.run(out=out, progress=False)
+    tokens = []
+    for months, (copy, history) in enumerate(seen, start=1):
+        manifest = json.loads((copy / "manifest.json").read_text())
+        # whole files at months 1, 3, 5 (and the last), a line appended at 2 and 4
+        assert manifest["months_done"] == (months if months % 2 or months == 6 else months - 1)
+        if months < 6:
+            tokens.append(manifest["files"][rundir.JOURNAL]["token"])
+        assert_same_history(History.load(copy), history)
+    assert len(set(tokens)) == 3
+    reference = Experiment(SMALL, MPCConfig(), learning)
+    reference.run(progress=False)
+    assert_same_history_but_timings(History.load(out), reference.history)
