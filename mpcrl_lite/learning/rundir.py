@@ -70,9 +70,10 @@ token after it is a changed journal, refused. Lines of another token are those o
 commit's journal, ignored and cut by the next append. :attr:`Run.months_done` is the last
 month the lines commit.
 
-A line survives the process being killed as soon as it is written; it is fsynced when
-:data:`SYNC_EVERY_S` seconds have passed since the journal's last fsync, so a power cut can
-take the months of the last few seconds, never the directory's consistency (a line only
+A line survives the process being killed as soon as it is written; it is fsynced with the
+first line appended :data:`SYNC_EVERY_S` seconds or more after the journal's last fsync, so a
+power cut can take the months of the last few seconds (and of the month then running), never
+the directory's consistency (a line only
 counts if it verifies). The last month of a run (and of each call) writes the whole files
 again, fsynced, and drops the journal, so a finished run holds none and reads as format 1.
 
