@@ -281,10 +281,7 @@ class History:
         Read back by :meth:`from_files`, ``history.json`` and its journal give the same
         History as ``history.json`` and ``history.npz`` written whole (:meth:`to_files`):
         the journal's last line holds the last month, ``history.npz`` the first."""
-        line = self._journal_json(since, extra)
-        if self.last_month is not None:  # spliced in: base64 needs no escaping, and
-            # json.dumps would scan the 220 kB of it for characters to escape
-            line = line[:-1] + b',"last_month":' + _arrays_json(self.last_month) + b"}"
+        line, _ = self._journal_line(since, extra, inline=True)
         return line + b"\n"
 
     def journal_parts(self, since: Mapping[str, int], extra: Mapping[str, Any] | None = None
@@ -294,23 +291,12 @@ class History:
         newline, whose ``last_month`` gives each array's ``dtype``, ``shape`` and ``offset``
         in the payload, and the payload, the arrays' bytes one after the other (not copied).
         :meth:`from_files` reads them back with the payload given."""
-        line = self._journal_json(since, extra)
-        payload: list[memoryview] = []
-        if self.last_month is not None:
-            parts, offset = [], 0
-            for name in RECORD_ARRAYS:
-                value = np.ascontiguousarray(getattr(self.last_month, name))
-                parts.append(b'"%s":{"dtype":"%s","shape":%s,"offset":%d}' % (
-                    name.encode(), value.dtype.str.encode(),
-                    json.dumps(list(value.shape)).encode(), offset))
-                payload.append(memoryview(value).cast("B"))
-                offset += value.nbytes
-            line = line[:-1] + b',"last_month":{' + b",".join(parts) + b"}}"
-        return line, payload
+        return self._journal_line(since, extra, inline=False)
 
-    def _journal_json(self, since: Mapping[str, int], extra: Mapping[str, Any] | None
-                      ) -> bytes:
-        """A journal line's JSON object without the last month's arrays."""
+    def _journal_line(self, since: Mapping[str, int], extra: Mapping[str, Any] | None,
+                      inline: bool) -> tuple[bytes, list[memoryview]]:
+        """A journal line without its newline, the last month's arrays in it (``inline``)
+        or in the payload returned."""
         record = {
             "months": self.months,
             "theta_final": self.theta_final,
@@ -318,7 +304,12 @@ class History:
             "series": {k: getattr(self, k)[since[k]:] for k in self.STORED_SERIES},
             **(extra or {}),
         }
-        return jsonio.dumps(record, indent=None)
+        line = jsonio.dumps(record, indent=None)
+        if self.last_month is None:
+            return line, []
+        # spliced in: the arrays need no escaping, and json.dumps would scan them for it
+        arrays, payload = _month_arrays(self.last_month, inline)
+        return line[:-1] + b',"last_month":' + arrays + b"}", payload
 
     def npz_bytes(self, compress: bool = True) -> bytes:
         """The content of ``history.npz`` (the first and last month's arrays); ``compress=False``
@@ -542,16 +533,24 @@ def _check_series(path: Path, series: dict[str, Any], n: int) -> None:
         raise RunDirError(f"{path}: eval_month holds months outside 0..{months - 1}; {RECOVER}")
 
 
-def _arrays_json(month: Record) -> bytes:
-    """A month's arrays as the JSON object of a journal line (see
-    :meth:`History.journal_record`)."""
-    parts = []
+def _month_arrays(month: Record, inline: bool) -> tuple[bytes, list[memoryview]]:
+    """A month's arrays as a journal line's ``last_month`` object: per array of
+    :data:`~mpcrl_lite.sim.record.RECORD_ARRAYS` its ``dtype``, ``shape`` and either the base64
+    of its C-ordered bytes (``data``, ``inline``) or their ``offset`` in the payload returned
+    (the arrays' bytes one after the other, not copied)."""
+    parts, payload, offset = [], [], 0
     for name in RECORD_ARRAYS:
-        value = np.asarray(getattr(month, name))
-        parts.append(b'"%s":{"dtype":"%s","shape":%s,"data":"%s"}' % (
+        value = np.ascontiguousarray(getattr(month, name))
+        if inline:
+            where = b'"data":"%s"' % base64.b64encode(value.tobytes())
+        else:
+            where = b'"offset":%d' % offset
+            payload.append(memoryview(value).cast("B"))
+            offset += value.nbytes
+        parts.append(b'"%s":{"dtype":"%s","shape":%s,%s}' % (
             name.encode(), value.dtype.str.encode(), json.dumps(list(value.shape)).encode(),
-            base64.b64encode(value.tobytes())))
-    return b"{" + b",".join(parts) + b"}"
+            where))
+    return b"{" + b",".join(parts) + b"}", payload
 
 
 #: The element types a journal's arrays may have (what :class:`Record` holds).
@@ -559,10 +558,9 @@ _JOURNAL_DTYPES = ("<f8", "|b1")
 
 
 def _arrays_from_json(data: Any, path: Path, payload: bytes = b"") -> dict[str, np.ndarray]:
-    """Inverse of :func:`_arrays_json` and of :meth:`History.journal_parts`'s arrays (each
-    entry's ``data`` inline, or its ``offset`` in ``payload``; keys prefixed ``last_``),
-    checked: a :class:`RunDirError` naming ``path`` for anything that is not such an
-    object."""
+    """Inverse of :func:`_month_arrays` (each entry's ``data`` inline, or its ``offset`` in
+    ``payload``; keys prefixed ``last_``), checked: a :class:`RunDirError` naming ``path`` for
+    anything that is not such an object."""
     arrays: dict[str, np.ndarray] = {}
     for name in RECORD_ARRAYS:
         entry = data.get(name) if isinstance(data, dict) else None
