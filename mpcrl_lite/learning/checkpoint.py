@@ -216,14 +216,12 @@ class Checkpointing:
                                   "configs_hash": self.configs_hash()}
         goes_on = not last and previous is not None and previous.directory == directory \
             and previous.history is history
-        if goes_on and not extra and previous.journal is not None \
-                and previous.journal < JOURNAL_LIMIT:
+        appended = rundir.appended_size(directory) if goes_on and not extra else None
+        if appended is not None and appended < JOURNAL_LIMIT:
             line, payload = history.journal_parts(previous.lengths,
                                                   {"checkpoint": self.month_state()})
-            size = rundir.append_month(directory, line, months_done=history.months,
-                                       payload=payload)
-            self._last_commit = previous._replace(lengths=history.series_lengths(),
-                                                  journal=size)
+            rundir.append_month(directory, line, months_done=history.months, payload=payload)
+            self._last_commit = previous._replace(lengths=history.series_lengths())
             return
         files_before = previous.manifest["files"] if goes_on else {}
         if goes_on and extra and set(_KEPT) <= set(files_before) \
@@ -247,7 +245,7 @@ class Checkpointing:
                                     lengths)
         else:
             manifest = rundir.commit(directory, files, **common)
-            self._last_commit = _Commit.of(directory, history, manifest, lengths)
+            self._last_commit = _Commit(directory, history, manifest, lengths)
 
     def wait_for_checkpoint(self) -> None:
         """Wait for a checkpoint written in the background (:meth:`save_checkpoint`) and
@@ -258,7 +256,7 @@ class Checkpointing:
         self._pending_commit = None
         commit, history, lengths = pending
         manifest = commit.result()
-        self._last_commit = _Commit.of(commit.directory, history, manifest, lengths)
+        self._last_commit = _Commit(commit.directory, history, manifest, lengths)
 
     def after_resume(self) -> None:
         """What a resumed run makes before its next month (nothing here; the centralized
@@ -410,22 +408,13 @@ _KEPT = (rundir.HISTORY_JSON, rundir.HISTORY_NPZ, rundir.CHECKPOINT)
 JOURNAL_LIMIT = 64 * 2**20
 
 class _Commit(NamedTuple):
-    """A learner's last commit: where, of which History, the manifest written, the series'
-    lengths then (what the next journal line continues from) and the size of the journal
-    that :func:`rundir.append_month` continues (None if the commit listed none)."""
+    """A learner's last commit: where, of which History, the manifest written and the
+    series' lengths then (what the next journal line continues from)."""
 
     directory: Path
     history: History
     manifest: dict[str, Any]
     lengths: dict[str, int]
-    journal: int | None
-
-    @classmethod
-    def of(cls, directory: Path, history: History, manifest: dict[str, Any],
-           lengths: dict[str, int]) -> _Commit:
-        entry = manifest["files"].get(rundir.JOURNAL)
-        return cls(directory, history, manifest, lengths,
-                   entry["size"] if entry is not None and "token" in entry else None)
 
 
 #: Keys of ``checkpoint.json`` added after checkpoints existed (an older one lacks them).

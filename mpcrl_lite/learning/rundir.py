@@ -131,7 +131,7 @@ from .outdir import RunDirError, RunDirMissing
 
 __all__ = ["APPENDABLE", "CHECKPOINT", "CRITIC", "FORMAT", "FORMATS", "FORMAT_APPEND",
            "FORMAT_APPEND_2", "HISTORY_JSON", "HISTORY_NPZ", "JOURNAL", "KINDS", "MANIFEST", "RECOVER", "STAGING", "SUMMARY",
-           "SYNC_EVERY_S", "Contents", "Run", "append_month", "clear", "commit", "commit_soon",
+           "SYNC_EVERY_S", "Contents", "Run", "append_month", "appended_size", "clear", "commit", "commit_soon",
            "config_sha256", "inspect", "manifest_of", "read"]
 
 FORMAT = "mpcrl_lite.Run/1"
@@ -336,7 +336,6 @@ def commit(
                              "append": True}
             hashes[path] = (size + len(data), entries[name]["sha256"], digest)
         if files:
-            _tidy.discard(directory)
             if not staging.is_dir():
                 staging.mkdir()
                 durable.wrote()
@@ -359,7 +358,6 @@ def commit(
         durable.write_file(tmp, dumps(manifest))
         durable.replace(tmp, directory / MANIFEST)  # the commit
     except OSError as err:
-        _tidy.discard(directory)
         for path in [*written, tmp]:
             try:
                 path.unlink(missing_ok=True)
@@ -483,13 +481,18 @@ def append_month(directory: str | os.PathLike, record: bytes, *, months_done: in
     return tail.offset
 
 
+def appended_size(directory: str | os.PathLike) -> int | None:
+    """The size in bytes of the journal :func:`append_month` continues in ``directory``
+    (None where the last commit of this process there listed none)."""
+    durable.settle(directory)
+    tail = _tails.get(Path(directory))
+    return None if tail is None else tail.offset
+
+
 #: The visible names this process pointed at committed files and the sha256 they then
 #: held, so that a commit keeping a file does not read and hash it again (the directory's
 #: lock keeps other writers out; :func:`clear` forgets a directory's names).
 _published: dict[Path, str] = {}
-#: The directories whose last publish by this process removed every staged and temporary
-#: file, and that no commit has staged files in since.
-_tidy: set[Path] = set()
 
 
 def _publish(directory: Path, manifest: Mapping[str, Any], data: Mapping[str, bytes],
@@ -500,15 +503,6 @@ def _publish(directory: Path, manifest: Mapping[str, Any], data: Mapping[str, by
     files). ``written`` names the files the commit has just staged."""
     try:
         durable.fsync_dir(directory)
-        if not written and directory in _tidy and all(
-                entry.get("append") or _published.get(directory / name) == entry["sha256"]
-                for name, entry in manifest["files"].items()):
-            # a month appended by this process, every other file where its last publish
-            # put it: nothing staged, nothing left over (the publish before removed them)
-            _remove_leftovers(directory, [n for n in APPENDABLE if n not in manifest["files"]],
-                              staged=False)
-            return
-        _tidy.discard(directory)
         for name, entry in manifest["files"].items():
             target = directory / name
             # a file the commit has just staged is pointed at anew (its visible name holds an
@@ -534,7 +528,6 @@ def _publish(directory: Path, manifest: Mapping[str, Any], data: Mapping[str, by
             _published[target] = entry["sha256"]
         durable.fsync_dir(directory)
         _remove_leftovers(directory, [n for n in APPENDABLE if n not in manifest["files"]])
-        _tidy.add(directory)
     except OSError:
         return
 
@@ -546,16 +539,10 @@ def _file_sha256(path: Path) -> str | None:
         return None
 
 
-def _remove_leftovers(directory: Path, unlisted: Iterable[str] = (), staged: bool = True
-                      ) -> None:
+def _remove_leftovers(directory: Path, unlisted: Iterable[str] = ()) -> None:
     """Remove the staged files and the temporary files of interrupted writers (called once
     every visible name holds the committed content), and the files ``unlisted`` (appended
-    files the manifest no longer lists). ``staged=False``: the manifest's temporary file
-    and ``unlisted`` only (a commit that staged nothing after one that removed the rest)."""
-    if not staged:
-        for name in (MANIFEST + ".tmp", *unlisted):
-            durable.unlink(directory / name)
-        return
+    files the manifest no longer lists)."""
     staging = directory / STAGING
     if staging.is_dir():
         for path in sorted(staging.iterdir()):
@@ -577,7 +564,6 @@ def clear(directory: str | os.PathLike, others: Iterable[str] = ()) -> None:
     directory = Path(directory)
     for name in RUN_FILES:
         _published.pop(directory / name, None)
-    _tidy.discard(directory)
     _tails.pop(directory, None)
     durable.unlink(directory / MANIFEST)
     durable.fsync_dir(directory)
