@@ -39,6 +39,7 @@ from threadpoolctl import threadpool_limits
 
 from .._util.budget import check_memory, learning_estimate
 from .._util.malloc import keep_freed_memory
+from .._util.progress import progress_bar
 from .._util.threads import BLAS_THREADS
 from ..config import LearningConfig, MPCConfig, SystemConfig, check_grid_bound
 from ..sim.record import MonthRecord
@@ -152,10 +153,8 @@ def _run_months(learner, months, out, resume, progress, desc, force, adopt) -> H
     months = open_run(learner, months, out, resume, force, adopt)
     out = Path(out) if out is not None else None
     history = learner.history
-    from tqdm.auto import tqdm  # ~0.08 s of import, paid by a run, not by building a learner
-
-    bar = tqdm(total=months, initial=min(history.months, months), desc=desc, unit="month",
-               disable=not progress)
+    bar = progress_bar(total=months, initial=min(history.months, months), desc=desc,
+                       unit="month", disable=not progress)
     try:
         with bar, threadpool_limits(limits=BLAS_THREADS), learner.evaluations_alongside(months):
             while learner.history.months < months:

@@ -66,9 +66,9 @@ from typing import Any
 
 import numpy as np
 from threadpoolctl import threadpool_limits
-from tqdm.auto import tqdm
 
 from .._util.malloc import keep_freed_memory
+from .._util.progress import progress_bar
 from ..learning.checkpoint import open_run
 from ..learning.experiment import Experiment
 from ..learning.history import History
@@ -221,7 +221,7 @@ def run_lockstep(
                 fail(i, err)
 
     total = sum(max(t - r.history.months, 0) for t, r in zip(targets, learners, strict=True))
-    with tqdm(total=total, desc="lockstep", unit="month", disable=not progress) as bar, \
+    with progress_bar(total=total, desc="lockstep", unit="month", disable=not progress) as bar, \
             threadpool_limits(limits=BLAS_THREADS):
         while True:
             active = [i for i, r in enumerate(learners)

@@ -87,7 +87,9 @@ SOLVER_LAYER = {
                            "theta", "_util.lazy"},
     "mpc.backends.kernel_core": {"_util", "_util.jit", "_util.vec4"},
     "mpc.backends.kernel_sizes": set(),  # imports kernel_core (or its copy) by name
-    "mpc.backends.kernel": {"mpc.backends.kernel_core", "mpc.backends.kernel_sizes", "config", "mpc.formulation",
+    "mpc.backends.check_memo": {"mpc.backends.kernel_sizes"},
+    "mpc.backends.kernel": {"mpc.backends.check_memo", "mpc.backends.kernel_core",
+                            "mpc.backends.kernel_sizes", "config", "mpc.formulation",
                             "mpc.solution", "theta", "_util.lazy", "_util.threads",
                             "_util.validate"},  # ModelInputError
     "mpc.backends.registry": {"mpc.backends.batch", "config", "mpc.backends.ipopt",

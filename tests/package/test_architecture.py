@@ -41,8 +41,9 @@ LAYERS: list[set[str]] = [
 #: Inside a subpackage, its modules lowest first: a module imports only from a lower entry of
 #: its own subpackage (never from its own entry: modules side by side are independent).
 SUBLAYERS: dict[str, list[set[str]]] = {
-    "_util": [{"budget", "gym_registration", "jit", "jsonio", "lazy", "malloc", "resources",
-               "references", "stats", "threads", "validate", "vec4", "version", "workers"}],
+    "_util": [{"budget", "gym_registration", "jit", "jsonio", "lazy", "malloc", "progress",
+               "resources", "references", "stats", "threads", "validate", "vec4", "version",
+               "workers"}],
     "system": [{"price_files", "battery"}, {"prices"}, {"forecast"}],
     "system.price_files": [{"areas", "series"},
                            {"currency", "detect", "energidataservice", "entsoe", "entsoe_legacy",
@@ -50,7 +51,8 @@ SUBLAYERS: dict[str, list[set[str]]] = {
                            {"load"}],
     "mpc": [{"formulation", "q_stage_kernel"}, {"solution"}, {"sensitivity"}, {"backends"},
             {"q_kernel"}, {"value"}],
-    "mpc.backends": [{"batch_linalg", "kernel_core", "kernel_sizes"}, {"batch_kkt"}, {"batch_adjoint"},
+    "mpc.backends": [{"batch_linalg", "kernel_core", "kernel_sizes"}, {"batch_kkt", "check_memo"},
+                     {"batch_adjoint"},
                      {"batch", "ipopt", "kernel"}, {"registry"}],
     "sim": [{"record", "exploration_kernel"}, {"exploration", "month_kernel"}, {"compiled_month"},
             {"closed_loop"}, {"candidates", "env"}],

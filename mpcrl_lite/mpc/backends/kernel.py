@@ -93,6 +93,7 @@ from ..solution import (
     check_parameters,
     failure_summary,
 )
+from . import check_memo
 
 ca = lazy_module("casadi")  # CasADi (~0.1-0.2 s of import) loads when first used
 
@@ -171,10 +172,12 @@ class KernelSolver(StartSettings, BackendBase):
     Parameters
     ----------
     mpc
-        The formulation. At construction one problem at a pseudo-random parameter is solved
-        and its KKT residual evaluated with :attr:`MPC.qp_function <mpcrl_lite.mpc.formulation.MPC.
-        qp_function>`, so a formulation that no longer matches the kernels raises
-        :class:`RuntimeError` here, never mid-run.
+        The formulation. Before the first solve one problem at a pseudo-random parameter is
+        solved and its KKT residual evaluated with :attr:`MPC.qp_function
+        <mpcrl_lite.mpc.formulation.MPC.qp_function>`, so a formulation that no longer matches
+        the kernels raises :class:`RuntimeError` there, never mid-run (a check that passed is
+        remembered on this machine while nothing it depends on changes:
+        :mod:`~mpcrl_lite.mpc.backends.check_memo`).
     config
         ``tau``, ``tol``, ``max_iter``, ``warm_start``, ``kkt_cond_max`` as for
         :class:`~mpcrl_lite.mpc.backends.batch.BatchSolver`.
@@ -217,6 +220,10 @@ class KernelSolver(StartSettings, BackendBase):
     #: ``kernel_core.solve_lanes``, ``kernel_core.sensitivity_lanes``); False takes one
     #: problem after the other, as a reference for benchmarks and tests.
     lanes: bool = True
+    #: skip the formulation check (:meth:`_check_formulation`) where the same check passed
+    #: on this machine before, with the same kernels, formulation, versions, configs and
+    #: options (:mod:`~mpcrl_lite.mpc.backends.check_memo`); False checks every solver.
+    remember_check: bool = True
 
     def __init__(self, mpc: MPC, config: MPCConfig | None = None, method: str = "auto") -> None:
         if method not in ("auto", "stage", "agent"):
@@ -272,13 +279,25 @@ class KernelSolver(StartSettings, BackendBase):
 
     def _ready(self) -> None:
         """Load the kernels (from numba's cache, or compile them) and check them against the
-        CasADi formulation (:meth:`_check_formulation`), once per solver."""
+        CasADi formulation (:meth:`_check_formulation`), once per solver; a check that passed
+        on this machine with everything it depends on the same is remembered
+        (:mod:`~mpcrl_lite.mpc.backends.check_memo`, :attr:`remember_check`)."""
         if not self._checked:
             self._kernels = KS.kernels(self.n, self.N, self.specialise)
-            self._kernels.ensure_compiled(("solve_rows",))  # the others where first called
             self._checked = True
             try:
-                self._check_formulation()
+                parameter, opts = self._check_inputs()
+                # remembered for the package's own solver and formulation only
+                remember = self.remember_check and type(self) is KernelSolver \
+                    and check_memo.applies(self.mpc)
+                memo = check_memo.key(self, self._kernels, opts, parameter) if remember \
+                    else None
+                if memo is None or not check_memo.passed(memo):
+                    # the other entries are loaded where first called
+                    self._kernels.ensure_compiled(("solve_rows",))
+                    errors = self._check_formulation(parameter, opts)
+                    if memo is not None:
+                        check_memo.record(memo, errors)
             except BaseException:
                 self._checked = False
                 raise
@@ -301,17 +320,25 @@ class KernelSolver(StartSettings, BackendBase):
         opts[K.O_POLISH] = 1.0 if cfg.polish else 0.0
         return opts
 
-    def _check_formulation(self) -> None:
-        """Solve one problem at a pseudo-random parameter and check the barrier KKT
-        conditions of :attr:`MPC.qp_function <mpcrl_lite.mpc.formulation.MPC.qp_function>` there
-        (sparse products, no dense matrices): the kernels' hand-written QP data and
-        orderings must be the CasADi formulation's."""
-        m = self.mpc
-        p = check_parameters(m, np.random.default_rng(12345))
+    def _check_inputs(self) -> tuple[np.ndarray, np.ndarray]:
+        """The parameter (np,) and the option vector of :meth:`_check_formulation`."""
+        p = check_parameters(self.mpc, np.random.default_rng(12345))
         # with its own iteration limit and stopping rule: the check must not depend on
         # config.max_iter, config.tol or config.polish
         opts = self._opts(max_iter=500)
         opts[K.O_TOL], opts[K.O_POLISH] = min(opts[K.O_TOL], 1e-10), 1.0
+        return p, opts
+
+    def _check_formulation(self, p: np.ndarray | None = None,
+                           opts: np.ndarray | None = None) -> dict[str, float]:
+        """Solve one problem at a pseudo-random parameter and check the barrier KKT
+        conditions of :attr:`MPC.qp_function <mpcrl_lite.mpc.formulation.MPC.qp_function>` there
+        (sparse products, no dense matrices): the kernels' hand-written QP data and
+        orderings must be the CasADi formulation's. ``p`` and ``opts`` default to
+        :meth:`_check_inputs`; returns the residuals found (each within the tolerance)."""
+        m = self.mpc
+        if p is None or opts is None:
+            p, opts = self._check_inputs()
         sol = self._solve_parameters(p[None], None, opts)[0]
         H, q, c, A, e, C, d = m.qp_function(sol.p)
         x, lam, mu = ca.DM(sol.x), ca.DM(sol.lam), ca.DM(sol.mu)
@@ -341,6 +368,7 @@ class KernelSolver(StartSettings, BackendBase):
                 f"({sol.status}; {bad}); the formulation in mpcrl_lite.mpc.formulation changed and "
                 "mpcrl_lite.mpc.backends.kernel_core must be updated to match it"
             )
+        return errors
 
     def _defaults_pass(self) -> bool:
         """Whether the check passes for the default system (same n and N) and config, i.e.
