@@ -96,6 +96,39 @@ def test_a_copy_is_written_whole_with_the_given_time_and_never_rewritten(tmp_pat
     assert [p.name for p in tmp_path.iterdir()] == [path.name]  # no temporary file left
 
 
+def test_a_generated_module_keeps_its_bytecode_where_python_would_not_write_it(tmp_path,
+                                                                              monkeypatch):
+    """Imported with bytecode writing off (PYTHONDONTWRITEBYTECODE), a generated module's
+    bytecode is written beside it once and used by the next import; a folder where it cannot
+    be written only means compiling on import."""
+    import importlib.util
+    import py_compile
+    import sys
+
+    monkeypatch.setattr(sys, "dont_write_bytecode", True)
+    path = tmp_path / "generated_probe_0123.py"
+    kernel_sizes._write(path, "VALUE = 41 + 1\n", 1_000_000_000.0)
+    cached = Path(importlib.util.cache_from_source(str(path)))
+    module = kernel_sizes.import_generated(path, "mpcrl_lite_probe_generated", "mpcrl_lite")
+    try:
+        assert module.VALUE == 42 and cached.is_file()
+        # bytecode of another text of the same size and time in its place: an import that
+        # reads the bytecode sees that text's value, one that compiles the source 42
+        other = tmp_path / "other" / path.name
+        other.parent.mkdir()
+        kernel_sizes._write(other, "VALUE = 40 + 7\n", 1_000_000_000.0)
+        py_compile.compile(str(other), cfile=str(cached), doraise=True)
+        stamp = cached.stat().st_mtime_ns
+        again = kernel_sizes.import_generated(path, "mpcrl_lite_probe_generated", "mpcrl_lite")
+        assert again.VALUE == 47
+        assert cached.stat().st_mtime_ns == stamp  # not written again
+    finally:
+        sys.modules.pop("mpcrl_lite_probe_generated", None)
+    blocked = tmp_path / "a file"
+    blocked.write_text("")
+    kernel_sizes._write_bytecode(path, str(blocked / "__pycache__" / "x.pyc"))  # no error
+
+
 def test_bad_sizes():
     with pytest.raises(ValueError, match="n=0, N=12"):
         kernel_sizes.source(0, 12)
