@@ -5,8 +5,9 @@ Every command checks its work with it before allocating anything (``simulate``, 
 ``baselines``, ``evaluate``, ``tune`` through :mod:`mpcrl_lite.cli.inputs`; ``sweep`` and
 ``study`` for all their runs, :mod:`mpcrl_lite.studies.sweep.api`), and refuses
 
-* memory above what the machine has available (``psutil.virtual_memory().available`` when
-  psutil is installed, else ``os.sysconf`` of the available physical pages), and
+* memory above what the machine has available (Linux's ``MemAvailable``; elsewhere
+  ``psutil.virtual_memory().available`` when psutil is installed, else ``os.sysconf`` of the
+  available physical pages), and
 * an estimated run time above :data:`TIME_LIMIT_S` seconds (4 hours; the environment
   variable ``MPCRL_LITE_TIME_LIMIT_S`` sets another limit, e.g. for a long cluster run).
 
@@ -21,11 +22,6 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-
-try:  # optional: a better figure of the available memory
-    import psutil
-except ImportError:  # pragma: no cover (psutil is present in the project's environments)
-    psutil = None
 
 __all__ = ["TIME_LIMIT_ENV", "TIME_LIMIT_S", "Budget", "available_memory", "check_budget",
            "check_estimate", "check_memory", "estimate", "learning_estimate"]
@@ -45,8 +41,30 @@ _SECONDS_PER_AGENT_DAY = 1e-3
 _SETUP_SECONDS_PER_AGENT2 = 1e-5
 
 
+def _mem_available_linux() -> int | None:
+    """``MemAvailable`` of ``/proc/meminfo`` in bytes (Linux's estimate of the memory a new
+    allocation can have without swapping, the figure ``psutil`` reports there), or None."""
+    try:
+        with open("/proc/meminfo", "rb") as f:
+            for line in f:
+                if line.startswith(b"MemAvailable:"):
+                    return int(line.split()[1]) * 1024  # kB
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
 def available_memory() -> int | None:
-    """Bytes of memory available to a new allocation now, or None where it is not known."""
+    """Bytes of memory available to a new allocation now, or None where it is not known:
+    Linux's ``MemAvailable`` read directly (0.05 ms, where importing psutil takes 7 ms of a
+    command's start), else psutil where it is installed, else ``os.sysconf``."""
+    found = _mem_available_linux()
+    if found is not None:
+        return found
+    try:
+        import psutil
+    except ImportError:  # pragma: no cover (psutil is present in the project's environments)
+        psutil = None
     if psutil is not None:
         return int(psutil.virtual_memory().available)
     try:

@@ -267,6 +267,22 @@ def test_a_month_larger_than_the_memory_is_refused_before_anything_is_built(monk
     assert budget.check_memory("x", budget.Budget(1e30, 0.0)).memory == 1e30
 
 
+def test_the_available_memory_is_linuxs_figure_read_without_psutil():
+    import subprocess
+    import sys
+
+    import psutil
+
+    from mpcrl_lite._util import budget
+
+    ours, theirs = budget.available_memory(), psutil.virtual_memory().available
+    assert ours is not None and abs(ours - theirs) <= 0.05 * theirs  # moments apart
+    code = ("import sys; from mpcrl_lite._util import budget; budget.available_memory(); "
+            "print('psutil' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
+
+
 # -- critic features --------------------------------------------------------------------------
 def test_value_baseline_features():
     from mpcrl_lite.learning.lstd import value_baseline_features, value_features
