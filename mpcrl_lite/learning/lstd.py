@@ -557,9 +557,15 @@ def _solve(
             keep[start : start + size] = block > zero_tol * block.max()
         start += size
     scale = np.sqrt(mean_square[keep])
-    zs = z[:, keep] / scale
-    zs_next = z_next[:, keep] / scale * (gamma * not_done)[:, None]
-    matrix = zs.T @ (zs - zs_next) / n_samples + ridge * np.eye(zs.shape[1])
+    # the same operations in the same order as z[:, keep] / scale and
+    # z_next[:, keep] / scale * (gamma * not_done)[:, None], without their temporaries
+    zs = z[:, keep]
+    zs /= scale
+    zs_next = z_next[:, keep]
+    zs_next /= scale
+    zs_next *= (gamma * not_done)[:, None]
+    difference = np.subtract(zs, zs_next, out=zs_next)  # zs - zs_next
+    matrix = zs.T @ difference / n_samples + ridge * np.eye(zs.shape[1])
     rhs = zs.T @ cost / n_samples
     if matrix.size:
         solution, _, rank, singular = np.linalg.lstsq(matrix, rhs, rcond=None)
