@@ -87,7 +87,7 @@ SOLVER_LAYER = {
                            "theta", "_util.lazy"},
     "mpc.backends.kernel_core": {"_util", "_util.jit", "_util.vec4"},
     "mpc.backends.kernel_sizes": set(),  # imports kernel_core (or its copy) by name
-    "mpc.backends.check_memo": {"mpc.backends.kernel_sizes"},
+    "mpc.backends.check_memo": {"mpc.backends.kernel_sizes", "mpc.formulation"},
     "mpc.backends.kernel": {"mpc.backends.check_memo", "mpc.backends.kernel_core",
                             "mpc.backends.kernel_sizes", "config", "mpc.formulation",
                             "mpc.solution", "theta", "_util.lazy", "_util.threads",
