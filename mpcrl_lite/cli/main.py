@@ -86,9 +86,17 @@ def end_process(status: int | None) -> int:
     import threading
 
     code = 0 if status is None else int(status)
-    for thread in threading.enumerate():
-        if thread is not threading.current_thread() and not thread.daemon:
-            thread.join()
+    # what the interpreter does first at its exit: threading's exit callbacks (the thread
+    # pools' idle workers, e.g. the kernels' helpers of run_blocks, are told to end), then
+    # every thread that is not a daemon joined. Joining without the callbacks waited for ever
+    # on an idle pool's worker (learn --decentralized never ended).
+    shutdown = getattr(threading, "_shutdown", None)
+    if shutdown is not None and threading.current_thread() is threading.main_thread():
+        shutdown()
+    else:  # pragma: no cover (CPython has it; the command runs on the main thread)
+        for thread in threading.enumerate():
+            if thread is not threading.current_thread() and not thread.daemon:
+                thread.join()
     atexit._run_exitfuncs()
     for stream in (sys.stdout, sys.stderr):
         try:

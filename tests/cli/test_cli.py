@@ -203,3 +203,27 @@ def test_the_command_ends_its_process_with_everything_written(tmp_path):
     assert History.load(out).months == 2
     assert json.loads((out / "summary.json").read_text())["months"] == 2
     assert not (out / ".run").exists()  # the last commit published and tidied
+
+
+def test_the_process_ends_with_idle_thread_pools_alive():
+    """A command that used the kernels' helper threads (``run_blocks``: the decentralized
+    learner's coordination rounds, a forked worker's solves) leaves an idle thread pool; the
+    process still ends at once, with its exit handlers run (``learn --decentralized`` waited
+    for ever on the pool's worker)."""
+    code = """
+import atexit, sys, threading
+from mpcrl_lite._util.threads import run_blocks
+from mpcrl_lite.cli.main import end_process
+done = []
+run_blocks(lambda lo, hi: done.append((lo, hi)), (), 8, 2, 2)
+assert sorted(done) == [(0, 2), (2, 4), (4, 6), (6, 8)], done
+assert any(t.name.startswith("mpcrl_lite-kernel") for t in threading.enumerate())
+finished = threading.Thread(target=lambda: done.append("joined"))  # a thread that is no daemon
+finished.start()
+atexit.register(lambda: print("exit handlers ran", len(done)))
+end_process(3)
+"""
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=60, check=False)
+    assert proc.returncode == 3, proc.stderr
+    assert proc.stdout.strip() == "exit handlers ran 5"
