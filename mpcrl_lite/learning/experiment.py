@@ -185,8 +185,8 @@ class Experiment(Learner):
         )
         if self.learning.critic_months > 1:
             info["critic_months"] = len(months)
-        if use.any():
-            self.updater.observe(record.grad_pi[use])  # the metric of the natural gradient
+        if use.any():  # the metric of the natural gradient (every sample: no masked copy)
+            self.updater.observe(record.grad_pi if use.all() else record.grad_pi[use])
         return grad, skipped, info
 
     # -- evaluation -----------------------------------------------------------------------
