@@ -117,10 +117,19 @@ def q_month(months: int = 3, warmup: int = 1) -> dict:
     sensitivities, then one fixed-first-action MPC per day-hour for Q and its gradient, the
     TD update) beside a month of the default DPG learner, in this interpreter, the two
     alternating; no evaluation months. Wall and CPU seconds per month (medians) and the ratio
-    Q / DPG (issue target: at most 2)."""
+    Q / DPG (issue target: at most 2).
+
+    The allocator keeps freed memory for reuse as in every run (``keep_freed_memory``, which
+    ``run_months`` and the commands set): without it glibc's own thresholds, which move with
+    what the process freed before, decided whether a Q month's megabyte arrays came back as
+    fresh pages, and the ratio moved with the process's history (1.86-2.08 against 1.72-1.78
+    with the runs' setting, 2026-12-07)."""
+    from mpcrl_lite._util.malloc import keep_freed_memory
     from mpcrl_lite.config import LearningConfig
     from mpcrl_lite.learning.experiment import Experiment
     from mpcrl_lite.learning.q_experiment import QLearningExperiment
+
+    keep_freed_memory()  # as in every run (run_months, the commands)
 
     runs = {"q": QLearningExperiment(learning=LearningConfig(learner="q", eval_every=0)),
             "dpg": Experiment(learning=LearningConfig(eval_every=0))}
