@@ -75,15 +75,14 @@ def lstd_policy_gradient(
     phi, phi_next = features[:-1], features[1:]
     psi = compatible_features(grad_pi, a, policy)
     done = np.broadcast_to((np.arange(H) == H - 1)[:, None], use.shape)
-    if use.all():  # every sample, in the order use would take them: no copies
-        fit = lstd_q(phi, psi, cost, phi_next, gamma, done=done, ridge=learning.ridge)
-        grad = policy_gradient(grad_pi, fit.w)
-    else:
-        fit = lstd_q(
-            phi[use], psi[use], cost[use], phi_next[use], gamma,
-            done=done[use], ridge=learning.ridge,
-        )
-        grad = policy_gradient(grad_pi[use], fit.w)
+    every = use.all()  # then the arrays themselves, in the order use would take them
+
+    def usable(array: np.ndarray) -> np.ndarray:
+        return array if every else array[use]
+
+    fit = lstd_q(usable(phi), usable(psi), usable(cost), usable(phi_next), gamma,
+                 done=usable(done), ridge=learning.ridge)
+    grad = policy_gradient(usable(grad_pi), fit.w)
     info = {
         "lstd_condition": float(fit.condition),
         "lstd_rank_deficient": bool(fit.rank_deficient),

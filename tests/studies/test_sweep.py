@@ -350,8 +350,8 @@ SWEEP_LAYER = {
     "studies.sweep.table": {"learning.history", "studies.sweep.grid", "studies.sweep.store"},
     "studies.sweep.run": {"learning.experiment", "learning.q_experiment", "studies.lockstep",
                           "publish.report", "studies.sweep.grid", "studies.sweep.store", "studies.sweep.table"},
-    "studies.sweep.schedule": {"studies.sweep.grid", "studies.sweep.run", "studies.sweep.store",
-                               "studies.sweep.table"},
+    "studies.sweep.schedule": {"_util.progress", "studies.sweep.grid", "studies.sweep.run",
+                               "studies.sweep.store", "studies.sweep.table"},
     # outdir: the lock of out; budget: the size of the work
     "studies.sweep.api": {"_util.budget", "learning.outdir", "publish.report",
                           "studies.sweep.grid", "studies.sweep.run",

@@ -28,8 +28,7 @@ is code the key cannot see, and is checked every time.
 ``KernelSolver.remember_check = False`` (or ``MPCRL_LITE_RECHECK=1`` in the environment)
 checks every solver, as before. ``python -m mpcrl_lite.cli.warm`` (``make setup``) runs a
 month of the paper's system, which checks its solver, so that the first run finds the check
-remembered. A folder that cannot
-be written only means the check runs every time.
+remembered. A folder that cannot be written only means the check runs every time.
 """
 
 from __future__ import annotations

@@ -329,16 +329,13 @@ class KernelSolver(StartSettings, BackendBase):
         opts[K.O_TOL], opts[K.O_POLISH] = min(opts[K.O_TOL], 1e-10), 1.0
         return p, opts
 
-    def _check_formulation(self, p: np.ndarray | None = None,
-                           opts: np.ndarray | None = None) -> dict[str, float]:
-        """Solve one problem at a pseudo-random parameter and check the barrier KKT
-        conditions of :attr:`MPC.qp_function <mpcrl_lite.mpc.formulation.MPC.qp_function>` there
-        (sparse products, no dense matrices): the kernels' hand-written QP data and
-        orderings must be the CasADi formulation's. ``p`` and ``opts`` default to
-        :meth:`_check_inputs`; returns the residuals found (each within the tolerance)."""
+    def _check_formulation(self, p: np.ndarray, opts: np.ndarray) -> dict[str, float]:
+        """Solve one problem at the pseudo-random parameter ``p`` with the options ``opts``
+        (:meth:`_check_inputs`) and check the barrier KKT conditions of
+        :attr:`MPC.qp_function <mpcrl_lite.mpc.formulation.MPC.qp_function>` there (sparse
+        products, no dense matrices): the kernels' hand-written QP data and orderings must be
+        the CasADi formulation's. Returns the residuals found (each within the tolerance)."""
         m = self.mpc
-        if p is None or opts is None:
-            p, opts = self._check_inputs()
         sol = self._solve_parameters(p[None], None, opts)[0]
         H, q, c, A, e, C, d = m.qp_function(sol.p)
         x, lam, mu = ca.DM(sol.x), ca.DM(sol.lam), ca.DM(sol.mu)

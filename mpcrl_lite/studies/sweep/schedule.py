@@ -30,8 +30,7 @@ from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 
-from tqdm.auto import tqdm
-
+from ..._util.progress import progress_bar
 from .grid import GridError, SweepRun, one_line
 from .run import run_chunk
 from .store import run_dir, write_json
@@ -176,7 +175,7 @@ def run_serial(
     lockstep: int | None = None,
 ) -> None:
     """Run the tasks in this process, ``lockstep`` runs at a time (default all)."""
-    with tqdm(total=len(todo), desc="sweep (serial)", unit="run", disable=not progress) as bar:
+    with progress_bar(total=len(todo), desc="sweep (serial)", unit="run", disable=not progress) as bar:
         for chunk in chunks(todo, lockstep, 1):
             for run, row in zip(chunk, run_chunk(chunk, *args), strict=True):
                 finished(run, row)
@@ -220,7 +219,7 @@ def run_dask(
             for chunk in chunks(todo, lockstep, slots)
         }
         failed = 0
-        with tqdm(total=len(todo), desc="sweep", unit="run", disable=not progress) as bar:
+        with progress_bar(total=len(todo), desc="sweep", unit="run", disable=not progress) as bar:
             for future in _completed(client, futures, scheduler):
                 chunk = futures[future]
                 try:
