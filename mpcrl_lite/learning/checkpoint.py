@@ -202,9 +202,11 @@ class Checkpointing:
         :data:`JOURNAL_LIMIT` bytes, the whole History and checkpoint are written and the
         journal dropped.
 
-        With ``background=True`` the files are built here and written by a thread
-        (:func:`~mpcrl_lite.learning.rundir.commit_soon`) while the caller goes on; the next
-        checkpoint (or :meth:`wait_for_checkpoint`) waits for it first and raises its error.
+        With ``background=True`` the files (or the journal's line) are built here and
+        written by the process's writer thread (:func:`~mpcrl_lite.learning.rundir.commit_soon`,
+        :func:`~mpcrl_lite.learning.rundir.append_month_soon`) while the caller goes on; the
+        next checkpoint (or :meth:`wait_for_checkpoint`) waits for it first and raises its
+        error.
         """
         self.wait_for_checkpoint()
         directory = Path(directory)
@@ -220,7 +222,12 @@ class Checkpointing:
         if appended is not None and appended < JOURNAL_LIMIT:
             line, payload = history.journal_parts(previous.lengths,
                                                   {"checkpoint": self.month_state()})
-            rundir.append_month(directory, line, months_done=history.months, payload=payload)
+            if background:  # hashed and written while the next month computes
+                self._pending_append = rundir.append_month_soon(
+                    directory, line, months_done=history.months, payload=payload)
+            else:
+                rundir.append_month(directory, line, months_done=history.months,
+                                    payload=payload)
             self._last_commit = previous._replace(lengths=history.series_lengths())
             return
         files_before = previous.manifest["files"] if goes_on else {}
@@ -250,6 +257,10 @@ class Checkpointing:
     def wait_for_checkpoint(self) -> None:
         """Wait for a checkpoint written in the background (:meth:`save_checkpoint`) and
         raise its error if it failed (the directory then holds the commit before it)."""
+        append = getattr(self, "_pending_append", None)
+        if append is not None:
+            self._pending_append = None
+            append.result()
         pending = getattr(self, "_pending_commit", None)
         if pending is None:
             return

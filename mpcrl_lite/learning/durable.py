@@ -6,9 +6,10 @@ r"""Durable writes: a kill or a full disk at any moment leaves a file's old cont
 * The low-level steps (:func:`write_file`, :func:`append_file`, :func:`replace`,
   :func:`unlink`, :func:`fsync_dir`) are the only writes of a run directory
   (:mod:`mpcrl_lite.learning.rundir` builds its commits from them); each one is counted.
-* :func:`in_background` runs a commit in a thread while the next month computes;
-  :func:`settle` waits for the one under way in a directory (every reader and writer calls
-  it first, so a commit is never seen half-done).
+* :func:`in_background` runs a commit (or a month appended to a journal) on the process's
+  writer thread while the next month computes; :func:`settle` waits for the one under way
+  in a directory (every reader and writer calls it first, so a commit is never seen
+  half-done).
 
 Test hooks
 ----------
@@ -24,7 +25,7 @@ from __future__ import annotations
 import os
 import signal
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -45,6 +46,9 @@ class RunWriteError(OSError):
 
 # -- low-level writes (every one counted for the test hooks) ----------------------------------
 _writes = 0
+
+#: the buffers one ``os.pwritev`` call takes (that call: Linux, the BSDs, macOS 11+)
+_IOV_MAX = 1024
 
 
 def _kill_self() -> None:
@@ -79,22 +83,40 @@ def write_file(path: Path, data: bytes) -> None:
     wrote()
 
 
-def append_file(path: Path, offset: int, data: bytes, sync: bool = True) -> None:
+def append_file(path: Path, offset: int, data: bytes | Sequence[Any], sync: bool = True,
+                trim: bool = True) -> None:
     """Write ``data`` to ``path`` at ``offset`` (the file created if needed and cut to
     ``offset`` first, so that a tail left by an interrupted writer goes) and fsync it
     (``sync=False``: left to the operating system's write-back; the bytes survive the
-    process being killed, not a power cut before they are written)."""
+    process being killed, not a power cut before they are written).
+
+    ``data`` is bytes or a sequence of buffers written one after the other (with one
+    ``pwritev`` where the system has it, without joining them first). ``trim=False`` skips
+    the cut, for a caller that knows the file ends at ``offset`` (its own last write there
+    succeeded)."""
+    parts = [memoryview(data).cast("B")] if isinstance(data, (bytes, bytearray, memoryview)) \
+        else [memoryview(part).cast("B") for part in data]
     mid = _hook(KILL_MID_WRITE_ENV) == _writes + 1
+    if mid:
+        whole = b"".join(parts)
+        parts = [memoryview(whole)[: len(whole) // 2]]
     fd = os.open(path, os.O_WRONLY | os.O_CREAT, 0o666)
     try:
-        os.ftruncate(fd, offset)
-        view = memoryview(data)
-        if mid:
-            view = view[: len(data) // 2]
-        while view:
-            done = os.pwrite(fd, view, offset)
+        if trim or mid:
+            os.ftruncate(fd, offset)
+        parts = [part for part in parts if part.nbytes]
+        pwritev = getattr(os, "pwritev", None)
+        while parts:
+            if pwritev is not None:
+                done = pwritev(fd, parts[:_IOV_MAX], offset)
+            else:  # pragma: no cover (systems without pwritev)
+                done = os.pwrite(fd, parts[0], offset)
             offset += done
-            view = view[done:]
+            while parts and done >= parts[0].nbytes:  # drop what was written
+                done -= parts[0].nbytes
+                parts.pop(0)
+            if done:
+                parts[0] = parts[0][done:]
         if sync or mid:
             os.fsync(fd)
         if mid:
@@ -195,63 +217,94 @@ def reason(err: OSError) -> str:
 
 
 # -- work in the background ----------------------------------------------------------------
+class _Writer:
+    """The process's one thread for writes in the background: it runs the work handed to
+    it in turn, and ends with the interpreter once it has done what it was given
+    (``concurrent.futures``' exit hook). Started at the first such write; a forked child,
+    which has none of its parent's threads, starts its own."""
+
+    def __init__(self) -> None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.pid = os.getpid()
+        self.executor = ThreadPoolExecutor(1, thread_name_prefix="mpcrl_lite writer")
+
+
+_writer: _Writer | None = None
+_writer_lock = threading.Lock()
+#: set on the writer's thread while it runs a piece of work (:func:`settle` must not wait
+#: there for the work it is doing)
+_on_writer = threading.local()
+
+
+def _submit(work: Callable[[], Any]) -> Any:
+    """``work`` on the writer's thread, after the work handed to it before; its Future."""
+    global _writer
+    with _writer_lock:
+        if _writer is None or _writer.pid != os.getpid():
+            _writer = _Writer()
+        executor = _writer.executor
+
+    def run() -> Any:
+        _on_writer.active = True
+        try:
+            return work()
+        finally:
+            _on_writer.active = False
+
+    return executor.submit(run)
+
+
 class PendingCommit:
-    """A commit of a directory under way in a thread (:func:`in_background`; the run
-    directory's :func:`~mpcrl_lite.learning.rundir.commit_soon`)."""
+    """A write of a directory under way on the process's writer thread
+    (:func:`in_background`; the run directory's
+    :func:`~mpcrl_lite.learning.rundir.commit_soon` and
+    :func:`~mpcrl_lite.learning.rundir.append_month_soon`)."""
 
-    def __init__(self, directory: Path, run: Any) -> None:
+    def __init__(self, directory: Path, run: Callable[[], Any]) -> None:
         self.directory = directory
-        self._manifest: dict[str, Any] | None = None
-        self._error: BaseException | None = None
-
-        def work() -> None:
-            try:
-                self._manifest = run()
-            except BaseException as err:  # noqa: BLE001 (raised by result())
-                self._error = err
-
-        self._thread = threading.Thread(target=work, name=f"mpcrl_lite commit {directory.name}")
-        self._thread.start()
+        self._future = _submit(run)
 
     def done(self) -> bool:
-        """Whether the commit has finished (committed or failed)."""
-        return not self._thread.is_alive()
+        """Whether the write has finished (done or failed)."""
+        return self._future.done()
 
     def wait(self) -> None:
-        """Wait until the commit has finished."""
-        self._thread.join()
+        """Wait until the write has finished."""
+        from concurrent.futures import wait
 
-    def result(self) -> dict[str, Any]:
-        """The manifest written, once the commit has finished; its error if it failed."""
-        self.wait()
-        if self._error is not None:
-            raise self._error
-        assert self._manifest is not None
-        return self._manifest
+        wait([self._future])
+
+    def result(self) -> Any:
+        """What the write returned (a commit's manifest, an append's journal size), once
+        it has finished; its error if it failed."""
+        return self._future.result()
 
 
-#: The commit under way in each directory (a key only while its thread runs or until waited).
+#: The write under way in each directory (a key only while it runs or until waited).
 _pending: dict[Path, PendingCommit] = {}
 _pending_lock = threading.Lock()
 
 
 def settle(directory: str | os.PathLike) -> None:
-    """Wait for a commit under way in ``directory`` (its error stays with its owner)."""
+    """Wait for a write under way in ``directory`` (its error stays with its owner)."""
+    if not _pending:
+        return
     key = Path(os.path.abspath(directory))
     with _pending_lock:
         pending = _pending.get(key)
-    if pending is not None and pending._thread is not threading.current_thread():
+    if pending is not None and not getattr(_on_writer, "active", False):
         pending.wait()
         with _pending_lock:
             if _pending.get(key) is pending:
                 del _pending[key]
 
 
-def in_background(directory: str | os.PathLike, work: Callable[[], dict[str, Any]]
-                  ) -> PendingCommit:
-    """Run ``work`` (a commit of ``directory``) in a thread of its own, after any commit
-    already under way there: returns at once with its :class:`PendingCommit`. Every writer
-    and reader of the directory (:func:`settle`) waits for it first."""
+def in_background(directory: str | os.PathLike, work: Callable[[], Any]) -> PendingCommit:
+    """Run ``work`` (a commit of ``directory``, or a month appended to its journal) on the
+    process's writer thread, after any write already under way there: returns at once with
+    its :class:`PendingCommit`. Every writer and reader of the directory (:func:`settle`)
+    waits for it first."""
     directory = Path(directory)
     settle(directory)
     key = Path(os.path.abspath(directory))

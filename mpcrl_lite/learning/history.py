@@ -547,9 +547,10 @@ def _month_arrays(month: Record, inline: bool) -> tuple[bytes, list[memoryview]]
             where = b'"offset":%d' % offset
             payload.append(memoryview(value).cast("B"))
             offset += value.nbytes
-        parts.append(b'"%s":{"dtype":"%s","shape":%s,%s}' % (
-            name.encode(), value.dtype.str.encode(), json.dumps(list(value.shape)).encode(),
-            where))
+        # the shape as json.dumps writes a list of ints ("[720, 3]"), without its call
+        shape = ", ".join(map(str, value.shape))
+        parts.append(b'"%s":{"dtype":"%s","shape":[%s],%s}' % (
+            name.encode(), value.dtype.str.encode(), shape.encode(), where))
     return b"{" + b",".join(parts) + b"}", payload
 
 

@@ -408,13 +408,15 @@ def test_appended_months_are_fsynced_at_most_every_few_seconds(tmp_path, monkeyp
 def test_a_full_disk_during_an_append_keeps_the_months_before(tmp_path, monkeypatch):
     journal_commit(tmp_path)
     rundir.append_month(tmp_path, b'{"m": 2}', months_done=2)
-    real = os.pwrite
+    write = "pwritev" if hasattr(os, "pwritev") else "pwrite"  # what an append calls
+    pwrite = os.pwrite
 
     def full(fd, data, offset):
-        real(fd, bytes(data)[:5], offset)  # part of the line reached the disk
+        first = data[0] if write == "pwritev" else data  # its buffers, or its bytes
+        pwrite(fd, bytes(first)[:5], offset)  # part of the line reached the disk
         raise OSError(errno.ENOSPC, "No space left on device")
 
-    monkeypatch.setattr(os, "pwrite", full)
+    monkeypatch.setattr(os, write, full)
     with pytest.raises(RunWriteError, match="month 3 .* months before it are kept"):
         rundir.append_month(tmp_path, b'{"m": 3}', months_done=3)
     monkeypatch.undo()
@@ -422,3 +424,86 @@ def test_a_full_disk_during_an_append_keeps_the_months_before(tmp_path, monkeypa
     assert run.months_done == 2 and run.files[rundir.JOURNAL] == b'{"m": 2}\n'
     rundir.append_month(tmp_path, b'{"m": 3}', months_done=3)  # the torn bytes are cut
     assert rundir.read(tmp_path, [rundir.JOURNAL]).months_done == 3
+
+
+def test_a_month_appended_in_the_background_reads_as_one_appended_at_once(tmp_path):
+    """append_month_soon: the same journal bytes as append_month, its payload written from
+    several buffers without joining them; a reader (and appended_size) waits for it."""
+    payload = [np.arange(5.0), np.array([True, False]), memoryview(b"tail")]
+    joined = b"".join(bytes(memoryview(p).cast("B")) for p in payload)
+    at_once, soon = tmp_path / "at_once", tmp_path / "soon"
+    for directory in (at_once, soon):
+        directory.mkdir()
+        journal_commit(directory)
+    for m in (2, 3):
+        rundir.append_month(at_once, b'{"m": %d}' % m, months_done=m, payload=payload)
+        pending = rundir.append_month_soon(soon, b'{"m": %d}' % m, months_done=m,
+                                           payload=payload)
+        assert rundir.appended_size(soon) == rundir.appended_size(at_once)
+        assert pending.done() and pending.result() == rundir.appended_size(soon)
+    # the same lines but for the token (a random one per journal) and the sha256s
+    assert (soon / rundir.JOURNAL).stat().st_size == (at_once / rundir.JOURNAL).stat().st_size
+    assert rundir.read(at_once, [rundir.JOURNAL]).payload == joined
+    run = rundir.read(soon, [rundir.JOURNAL])
+    assert run.months_done == 3 and run.payload == joined
+
+
+def test_a_month_appended_in_the_background_is_checked_before_it_returns(tmp_path):
+    journal_commit(tmp_path)
+    with pytest.raises(ValueError, match="months_done=3: expected 2"):
+        rundir.append_month_soon(tmp_path, b'{"m": 3}', months_done=3)
+    with pytest.raises(ValueError, match="no commit of this process lists a journal"):
+        rundir.append_month_soon(tmp_path / "elsewhere", b"{}", months_done=2)
+
+
+def test_a_failed_append_in_the_background_raises_from_its_result(tmp_path, monkeypatch):
+    journal_commit(tmp_path)
+    write = "pwritev" if hasattr(os, "pwritev") else "pwrite"
+
+    def full(*args):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, write, full)
+    pending = rundir.append_month_soon(tmp_path, b'{"m": 2}', months_done=2)
+    with pytest.raises(RunWriteError, match="month 2 .* months before it are kept"):
+        pending.result()
+    monkeypatch.undo()
+    assert rundir.read(tmp_path, [rundir.JOURNAL]).months_done == 1
+    rundir.append_month(tmp_path, b'{"m": 2}', months_done=2)
+    assert rundir.read(tmp_path, [rundir.JOURNAL]).months_done == 2
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork is POSIX")
+def test_a_forked_child_writes_in_the_background_on_a_writer_of_its_own(tmp_path):
+    """The parent's writer thread does not exist in a forked child: the child starts its
+    own (else its first background write would wait for ever)."""
+    (tmp_path / "parent").mkdir()
+    journal_commit(tmp_path / "parent")
+    rundir.append_month_soon(tmp_path / "parent", b'{"m": 2}', months_done=2).result()
+    child_dir = tmp_path / "child"
+    child_dir.mkdir()
+    pid = os.fork()
+    if pid == 0:  # the child: exit status 0 only if its background append completes
+        code = 1
+        try:
+            journal_commit(child_dir)
+            pending = rundir.append_month_soon(child_dir, b'{"m": 2}', months_done=2)
+            pending.wait()
+            code = 0 if pending.result() > 0 else 1
+        finally:
+            os._exit(code)
+    _, status = os.waitpid(pid, 0)
+    assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0
+    assert rundir.read(child_dir, [rundir.JOURNAL]).months_done == 2
+
+
+def test_append_file_writes_buffers_in_order_and_trims_only_when_asked(tmp_path):
+    path = tmp_path / "f"
+    durable.append_file(path, 0, [b"ab", memoryview(np.array([1.5])), b"", b"cd"])
+    assert path.read_bytes() == b"ab" + np.array([1.5]).tobytes() + b"cd"
+    size = path.stat().st_size
+    durable.append_file(path, 2, b"XY")  # cut at 2 first
+    assert path.read_bytes() == b"abXY"
+    durable.append_file(path, 4, b"ZZ", trim=False)
+    durable.append_file(path, 2, b"--", trim=False)  # overwrites, keeps what follows
+    assert path.read_bytes() == b"ab--ZZ" and size > 6
