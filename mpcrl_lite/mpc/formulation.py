@@ -200,7 +200,11 @@ class MPC:
             raise ValueError(
                 f"price windows have shapes {buy.shape}, {sell.shape}; expected (..., N={self.N})"
             )
-        batch = np.broadcast_shapes(soc0.shape[:-1], buy.shape[:-1], sell.shape[:-1])
+        lead = soc0.shape[:-1]
+        if buy.shape[:-1] == lead and sell.shape[:-1] == lead:
+            batch = lead  # the usual call (one hour of a month): nothing to broadcast
+        else:
+            batch = np.broadcast_shapes(lead, buy.shape[:-1], sell.shape[:-1])
         if tvec.shape[-1:] != (self.n_theta,) or (tvec.ndim > 1 and tvec.shape[:-1] != batch):
             raise ValueError(f"theta has shape {tvec.shape}; expected ({self.n_theta},) or one "
                              f"per problem, {batch + (self.n_theta,)}")

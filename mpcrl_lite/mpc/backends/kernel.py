@@ -498,18 +498,25 @@ class KernelSolver(StartSettings, BackendBase):
         dsoc = np.empty((days, self.n, self.n))
         cond, back = np.empty(days), np.empty(days)
         code = np.empty(days, np.int64)
+        structured = self.structured_adjoint
 
         def rows(a: np.ndarray, width: int) -> np.ndarray:
             return np.ascontiguousarray(np.asarray(a, dtype=float).reshape(days, width))
 
         args = (P, rows(solution.x, m.nx), rows(solution.lam, m.neq), rows(solution.mu, m.nin),
                 success, self._opts(), self._ubar, self._stagew, self.n, self.N, self._method,
-                self.structured_adjoint, grad, dsoc, cond, back, code)
+                structured, grad, dsoc, cond, back, code)
         self._run("sensitivity_rows" if self.lanes else "sensitivity_each", args, days)
         # the rows' verdicts at once (a decentralized hour has days x batteries of them);
         # only the rows that are not ok get a reason
+        cond_max = self.config.kkt_cond_max
+        if days and (code == K.SENS_OK).all() and back.max() <= _BACKWARD_ERROR_MAX \
+                and cond.max() <= cond_max:
+            # every row formed and well conditioned (the usual call; NaN goes the long way)
+            return Sensitivity(grad, np.ones(days, np.bool_), cond, ("",) * days,
+                               None if structured else dsoc)
         formed = code == K.SENS_OK
-        ill = formed & ((back > _BACKWARD_ERROR_MAX) | (cond > self.config.kkt_cond_max))
+        ill = formed & ((back > _BACKWARD_ERROR_MAX) | (cond > cond_max))
         grad[ill] = 0.0
         dsoc[ill] = 0.0
         ok = formed & ~ill
@@ -524,5 +531,4 @@ class KernelSolver(StartSettings, BackendBase):
                 reasons[d] = "singular KKT matrix"
             else:
                 reasons[d] = f"ill-conditioned KKT matrix (cond ~ {cond[d]:.2e})"
-        return Sensitivity(grad, ok, cond, tuple(reasons),
-                           None if self.structured_adjoint else dsoc)
+        return Sensitivity(grad, ok, cond, tuple(reasons), None if structured else dsoc)
