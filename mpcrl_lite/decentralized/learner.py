@@ -320,6 +320,7 @@ class DecentralizedExperiment(Learner):
             exploration_std=self.learning.exploration_std, sensitivities=True,
             exploration_bounds=self.learning.exploration_bounds,
         )
+        self.write_deferred()  # the last month's journal line, beside this update
         grads, skipped, infos = self.learning_step(record, extra)
         n = self.system.n
         full_grad = np.zeros(len(PARTS) * n)

@@ -204,9 +204,10 @@ class Checkpointing:
 
         With ``background=True`` the files (or the journal's line) are built here and
         written by the process's writer thread (:func:`~mpcrl_lite.learning.rundir.commit_soon`,
-        :func:`~mpcrl_lite.learning.rundir.append_month_soon`) while the caller goes on; the
-        next checkpoint (or :meth:`wait_for_checkpoint`) waits for it first and raises its
-        error.
+        :func:`~mpcrl_lite.learning.rundir.append_month_soon`) while the caller goes on; a
+        journal line is handed to it by :meth:`write_deferred`, which the learners call when
+        the next month's update begins. The next checkpoint (or :meth:`wait_for_checkpoint`)
+        waits for the write first and raises its error.
         """
         self.wait_for_checkpoint()
         directory = Path(directory)
@@ -223,8 +224,7 @@ class Checkpointing:
             line, payload = history.journal_parts(previous.lengths,
                                                   {"checkpoint": self.month_state()})
             if background:  # hashed and written while the next month computes
-                self._pending_append = rundir.append_month_soon(
-                    directory, line, months_done=history.months, payload=payload)
+                self._deferred_append = (directory, line, history.months, payload)
             else:
                 rundir.append_month(directory, line, months_done=history.months,
                                     payload=payload)
@@ -254,9 +254,25 @@ class Checkpointing:
             manifest = rundir.commit(directory, files, **common)
             self._last_commit = _Commit(directory, history, manifest, lengths)
 
+    def write_deferred(self) -> None:
+        """Hand the month's journal line kept by :meth:`save_checkpoint` (``background=True``)
+        to the process's writer thread, if there is one: the learner calls it once the next
+        month's closed loop has run (its compiled days keep both cores busy) and its update
+        begins (one core's work), so that the line's sha256 and write take the idle core.
+        :meth:`wait_for_checkpoint` and the next checkpoint call it too."""
+        deferred = getattr(self, "_deferred_append", None)
+        if deferred is None:
+            return
+        self._deferred_append = None
+        directory, line, months_done, payload = deferred
+        self._pending_append = rundir.append_month_soon(directory, line,
+                                                        months_done=months_done,
+                                                        payload=payload)
+
     def wait_for_checkpoint(self) -> None:
         """Wait for a checkpoint written in the background (:meth:`save_checkpoint`) and
         raise its error if it failed (the directory then holds the commit before it)."""
+        self.write_deferred()
         append = getattr(self, "_pending_append", None)
         if append is not None:
             self._pending_append = None

@@ -375,6 +375,7 @@ class Experiment(Learner):
         the month."""
         t0 = time.perf_counter() - sim_time
         month = self.history.months
+        self.write_deferred()  # the last month's journal line, beside this update
         grad, skipped, info = self.learning_step(record)
         self.theta = self.updater.step(theta_used, grad)
         info.update(self.updater.last_info)

@@ -417,3 +417,32 @@ def test_a_journal_line_writes_shapes_as_json_does(shape):
     for entry in json.loads(arrays).values():
         assert entry["shape"] == list(shape)
     assert (b'"shape":%s,' % json.dumps(list(shape)).encode()) in arrays
+
+
+@pytest.mark.parametrize("learner", [Experiment, DecentralizedExperiment])
+def test_a_months_line_is_written_beside_the_next_months_update(learner, tmp_path,
+                                                                monkeypatch):
+    """Without callbacks a month's journal line goes to the writer thread once the next
+    month has been simulated (its update then leaves a core idle), and the run's directory
+    ends as the History of the run, the same as a run committed month by month."""
+    handed = []
+    real = rundir.append_month_soon
+
+    def spy(directory, record, *, months_done, payload=()):
+        handed.append((months_done, run.history.months))
+        return real(directory, record, months_done=months_done, payload=payload)
+
+    monkeypatch.setattr(rundir, "append_month_soon", spy)
+    learning = LearningConfig(days_per_month=1, months=4, seed=3, eval_every=2)
+    run = learner(SMALL, MPCConfig(), learning)
+    run.run(out=tmp_path / "beside", progress=False)
+    # months 2 and 3 appended (1 and 4 are whole commits), each while the next month's
+    # update ran: that month simulated, not yet recorded
+    assert handed == [(2, 2), (3, 3)]
+    monkeypatch.undo()
+    at_once = learner(SMALL, MPCConfig(), learning, callbacks=[lambda *args: None])
+    at_once.run(out=tmp_path / "at_once", progress=False)
+    for directory in ("beside", "at_once"):
+        got = History.load(tmp_path / directory)
+        assert got.J == run.history.J and got.theta == run.history.theta
+    assert_same_history(History.load(tmp_path / "beside"), run.history)
