@@ -446,6 +446,23 @@ def _read_line(whole: bytes, start: int) -> tuple[dict[str, Any], bytes, bytes, 
     return head, body[split + len(_LINE_RECORD):-2], payload, digest.hexdigest(), end + 1 + size
 
 
+def _tail_for(directory: Path, record: bytes, months_done: Any) -> _Tail:
+    """The journal :func:`append_month` continues in ``directory`` for a line ``record`` of
+    month ``months_done``; ValueError without one, for a month that does not follow its last,
+    or for a record of more than one line."""
+    tail = _tails.get(directory)
+    if tail is None:
+        raise ValueError(f"{directory}: no commit of this process lists a journal to append "
+                         "to (commit with journal=True first)")
+    if isinstance(months_done, bool) or not isinstance(months_done, int) \
+            or months_done != tail.months_done + 1:
+        raise ValueError(f"months_done={months_done!r}: expected {tail.months_done + 1}, the "
+                         "month after the last one committed")
+    if b"\n" in record:
+        raise ValueError("record: expected one line of JSON (it holds a newline)")
+    return tail
+
+
 def append_month(directory: str | os.PathLike, record: bytes, *, months_done: int,
                  payload: Sequence[Any] = ()) -> int:
     """Commit month ``months_done`` by appending one line (``record``, one line of JSON, and
@@ -460,16 +477,7 @@ def append_month(directory: str | os.PathLike, record: bytes, *, months_done: in
     """
     durable.settle(directory)
     directory = Path(directory)
-    tail = _tails.get(directory)
-    if tail is None:
-        raise ValueError(f"{directory}: no commit of this process lists a journal to append "
-                         "to (commit with journal=True first)")
-    if isinstance(months_done, bool) or not isinstance(months_done, int) \
-            or months_done != tail.months_done + 1:
-        raise ValueError(f"months_done={months_done!r}: expected {tail.months_done + 1}, the "
-                         "month after the last one committed")
-    if b"\n" in record:
-        raise ValueError("record: expected one line of JSON (it holds a newline)")
+    tail = _tail_for(directory, record, months_done)
     line, digest = _month_line(record, payload, tail.token, tail.last, months_done)
     sync = time.monotonic() - tail.synced >= SYNC_EVERY_S
     try:
@@ -499,14 +507,7 @@ def append_month_soon(directory: str | os.PathLike, record: bytes, *, months_don
     (see "Commits in the background" in the module docstring). ``record`` and the buffers
     of ``payload`` must not change until it has finished."""
     durable.settle(directory)
-    tail = _tails.get(Path(directory))
-    if tail is None:
-        raise ValueError(f"{directory}: no commit of this process lists a journal to append "
-                         "to (commit with journal=True first)")
-    if isinstance(months_done, bool) or not isinstance(months_done, int) \
-            or months_done != tail.months_done + 1:
-        raise ValueError(f"months_done={months_done!r}: expected {tail.months_done + 1}, the "
-                         "month after the last one committed")
+    _tail_for(Path(directory), record, months_done)
     payload = list(payload)
     return durable.in_background(directory, lambda: append_month(
         directory, record, months_done=months_done, payload=payload))
