@@ -64,8 +64,8 @@ def available_memory() -> int | None:
     try:
         import psutil
     except ImportError:  # pragma: no cover (psutil is present in the project's environments)
-        psutil = None
-    if psutil is not None:
+        pass
+    else:
         return int(psutil.virtual_memory().available)
     try:
         return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")

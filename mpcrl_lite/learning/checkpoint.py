@@ -223,7 +223,7 @@ class Checkpointing:
         if appended is not None and appended < JOURNAL_LIMIT:
             line, payload = history.journal_parts(previous.lengths,
                                                   {"checkpoint": self.month_state()})
-            if background:  # hashed and written while the next month computes
+            if background:  # kept for write_deferred: beside the next month's update
                 self._deferred_append = (directory, line, history.months, payload)
             else:
                 rundir.append_month(directory, line, months_done=history.months,
