@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 
 from ..config import SystemConfig
-from ..system.battery import StepResult, sample_noise, step, step_unchecked
+from ..system.battery import StepResult, battery_values, sample_noise, step, step_unchecked
 from ..theta import Theta
 from .exploration import (
     GaussianExploration,
@@ -661,7 +661,9 @@ def _compiled_month(
     if not (np.isfinite(rows).all() and np.isfinite(wbuy).all() and np.isfinite(wsell).all()):
         return None
     e = None
-    if noise is None:  # drawn in the Python loop's order: the exploration, then the noise
+    if noise is None and isinstance(rng, np.random.Generator):
+        e, noise = _month_draws(rng, (H, D, n), system, exploration_std if explore else None)
+    elif noise is None:  # drawn in the Python loop's order: the exploration, then the noise
         e = np.empty((H, D, n)) if explore else None
         noise = np.empty((H, D, n))
         for k in range(H):
@@ -675,11 +677,27 @@ def _compiled_month(
     arrays, grad_pi, statuses, kept = compiled_month.run(
         parts, system, solver.mpc, soc, rows, wbuy, wsell, buy, sell, e, noise,
         bool(sensitivities), bounds == "symmetric", keep=bool(hooks))
-    for k in range(H):  # the warnings of the hours with failed solves, as solve_batch logs them
-        solver.report_failures(statuses[k])
+    if not arrays["solver_ok"].all():
+        for k in range(H):  # the warnings of the hours with failed solves, as solve_batch logs
+            solver.report_failures(statuses[k])
     if hooks:
         _replay(hooks, arrays, grad_pi, statuses, kept, solver, buy, sell)
     return MonthRecord.from_record(Record(system=system, **arrays), grad_pi)
+
+
+def _month_draws(rng: np.random.Generator, shape: tuple[int, int, int], system: SystemConfig,
+                 exploration_std: float | None) -> tuple[np.ndarray | None, np.ndarray]:
+    """A month's exploration (None without) and noise, shape ``(H, D, n)``, as the Python
+    loop draws them from ``rng`` hour by hour (the exploration's ``D x n`` standard normals
+    times its std, then the noise's, :func:`~mpcrl_lite.system.battery.sample_noise`), in one
+    call of the generator: the same numbers to the last bit, since numpy's generator draws a
+    block of standard normals one after the other and its ``normal`` is ``mean + std * z``
+    of them (``tests/sim/test_compiled_month.py`` compares the two)."""
+    H, D, n = shape
+    z = rng.standard_normal((H, 1 if exploration_std is None else 2, D, n))
+    mean, std = battery_values(system, "noise_mean"), battery_values(system, "noise_std")
+    noise = mean + std * z[:, -1]
+    return (None if exploration_std is None else float(exploration_std) * z[:, 0]), noise
 
 
 def _replay(hooks: Sequence[HourHook], arrays: dict[str, np.ndarray], grad: np.ndarray | None,

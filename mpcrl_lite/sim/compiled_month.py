@@ -16,9 +16,10 @@ the reference: the compiled month gives its record to the last bit, and so the s
 run (``tests/sim/test_compiled_month.py``). ``MPCRL_LITE_COMPILED_LOOP=0`` (or
 :data:`ENABLED` set to False) sends every month through the Python loop.
 
-The draws come first: the caller draws the month's exploration and noise hour by hour in the
-order the Python loop draws them (the exploration, then the noise, every hour), which is
-possible because neither depends on the state.
+The draws come first, which is possible because neither depends on the state: the caller
+draws the month's exploration and noise in one call of the generator, the numbers the Python
+loop draws hour by hour (the exploration, then the noise, every hour) to the last bit
+(:func:`~mpcrl_lite.sim.closed_loop._month_draws`; lockstep runs' generators hour by hour).
 
 Each kernel module gets its own copy of the template :mod:`mpcrl_lite.sim.month_kernel`
 (:func:`module`), written to the cache folder of the generated kernels
@@ -194,8 +195,10 @@ def run(parts: dict[str, Any], system: Any, mpc: Any, soc0: np.ndarray, theta: n
     )
     threads = int(parts["threads"])
     entry = month.month_parallel if threads > 1 else month.month_rows
-    # a month that has to compile says so once (numba's cache is filled by make setup)
-    with (nullcontext() if entry.signatures else event.install_listener(
+    # a month that has to compile says so once (numba's cache is filled by make setup);
+    # ``overloads`` is numba's dict of what is loaded (its ``signatures``, a list made at
+    # every read, took 20 us a month)
+    with (nullcontext() if entry.overloads else event.install_listener(
             "numba:compile", jit.CompileNotice("the compiled closed loop (a minute or two)",
                                                jit.cache_dir(entry)))):
         if threads > 1:

@@ -272,3 +272,28 @@ def test_every_kind_of_month_calls_one_compiled_version(monkeypatch, solver):
               Prices.month(mixed, 16), mixed, np.random.default_rng(0))
     month = compiled_month.module(kernel_sizes.kernels(SYSTEM.n, SYSTEM.N))
     assert len(month.month_parallel.signatures) == 1
+
+
+@pytest.mark.parametrize("system", [SYSTEM, SystemConfig(noise_mean=(0.1, 0.0, -0.05),
+                                                         noise_var=(1.0, 0.5, 0.25))])
+@pytest.mark.parametrize("std", [None, 0.3])
+def test_a_months_draws_at_once_are_the_hours_draws(system, std):
+    """The compiled month draws its exploration and noise in one call of the generator: the
+    numbers of the Python loop's hour-by-hour draws to the last bit, and the generator left
+    where the loop leaves it."""
+    from mpcrl_lite.sim.closed_loop import _draw_noise, _month_draws
+
+    H, D, n = 24, 7, system.n
+    hourly, at_once = np.random.default_rng(11), np.random.default_rng(11)
+    e, noise = ([] if std else None), []
+    for _ in range(H):
+        if std:
+            e.append(std * hourly.standard_normal((D, n)))
+        noise.append(_draw_noise(hourly, (D, n), system))
+    e_all, noise_all = _month_draws(at_once, (H, D, n), system, std)
+    np.testing.assert_array_equal(noise_all, np.array(noise))
+    if std:
+        np.testing.assert_array_equal(e_all, np.array(e))
+    else:
+        assert e_all is None
+    assert hourly.standard_normal() == at_once.standard_normal()
