@@ -169,6 +169,20 @@ class RunBlocks:
                                for rng, system in zip(self.rngs, self.systems, strict=True)])
 
 
+    def month_draws(self, shape: tuple[int, int, int], exploration_std: float | None,
+                    ) -> tuple[np.ndarray | None, np.ndarray]:
+        """Each run's month of draws (:func:`_month_draws`) for its block of the ``D``
+        days of ``shape`` ``(H, D, n)``, stacked along the days."""
+        H, D, n = shape
+        days = self._block((D,))[0]
+        draws = [_month_draws(rng, (H, days, n), system, exploration_std)
+                 for rng, system in zip(self.rngs, self.systems, strict=True)]
+        noise = np.concatenate([d[1] for d in draws], axis=1)
+        if exploration_std is None:
+            return None, noise
+        return np.concatenate([d[0] for d in draws], axis=1), noise
+
+
 def _draw_noise(rng: Any, shape: tuple[int, int], system: SystemConfig) -> np.ndarray:
     return rng.noise(shape) if isinstance(rng, RunBlocks) else sample_noise(rng, shape, system)
 
@@ -661,15 +675,8 @@ def _compiled_month(
     if not (np.isfinite(rows).all() and np.isfinite(wbuy).all() and np.isfinite(wsell).all()):
         return None
     e = None
-    if noise is None and isinstance(rng, np.random.Generator):
+    if noise is None:  # the Python loop's draws: the exploration, then the noise, every hour
         e, noise = _month_draws(rng, (H, D, n), system, exploration_std if explore else None)
-    elif noise is None:  # drawn in the Python loop's order: the exploration, then the noise
-        e = np.empty((H, D, n)) if explore else None
-        noise = np.empty((H, D, n))
-        for k in range(H):
-            if e is not None:
-                e[k] = float(exploration_std) * rng.standard_normal((D, n))
-            noise[k] = _draw_noise(rng, (D, n), system)
     else:
         noise = _finite("noise", noise).copy()
         if noise.shape != (H, D, n):
@@ -685,14 +692,18 @@ def _compiled_month(
     return MonthRecord.from_record(Record(system=system, **arrays), grad_pi)
 
 
-def _month_draws(rng: np.random.Generator, shape: tuple[int, int, int], system: SystemConfig,
-                 exploration_std: float | None) -> tuple[np.ndarray | None, np.ndarray]:
+def _month_draws(rng: np.random.Generator | RunBlocks, shape: tuple[int, int, int],
+                 system: SystemConfig, exploration_std: float | None,
+                 ) -> tuple[np.ndarray | None, np.ndarray]:
     """A month's exploration (None without) and noise, shape ``(H, D, n)``, as the Python
     loop draws them from ``rng`` hour by hour (the exploration's ``D x n`` standard normals
     times its std, then the noise's, :func:`~mpcrl_lite.system.battery.sample_noise`), in one
     call of the generator: the same numbers to the last bit, since numpy's generator draws a
     block of standard normals one after the other and its ``normal`` is ``mean + std * z``
-    of them (``tests/sim/test_compiled_month.py`` compares the two)."""
+    of them (``tests/sim/test_compiled_month.py`` compares the two). Runs in lockstep
+    (:class:`RunBlocks`): each run's month from its own generator and system."""
+    if isinstance(rng, RunBlocks):
+        return rng.month_draws(shape, exploration_std)
     H, D, n = shape
     z = rng.standard_normal((H, 1 if exploration_std is None else 2, D, n))
     mean, std = battery_values(system, "noise_mean"), battery_values(system, "noise_std")

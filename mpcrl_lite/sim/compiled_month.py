@@ -19,7 +19,8 @@ run (``tests/sim/test_compiled_month.py``). ``MPCRL_LITE_COMPILED_LOOP=0`` (or
 The draws come first, which is possible because neither depends on the state: the caller
 draws the month's exploration and noise in one call of the generator, the numbers the Python
 loop draws hour by hour (the exploration, then the noise, every hour) to the last bit
-(:func:`~mpcrl_lite.sim.closed_loop._month_draws`; lockstep runs' generators hour by hour).
+(:func:`~mpcrl_lite.sim.closed_loop._month_draws`; runs in lockstep each from its own
+generator).
 
 Each kernel module gets its own copy of the template :mod:`mpcrl_lite.sim.month_kernel`
 (:func:`module`), written to the cache folder of the generated kernels

@@ -297,3 +297,32 @@ def test_a_months_draws_at_once_are_the_hours_draws(system, std):
     else:
         assert e_all is None
     assert hourly.standard_normal() == at_once.standard_normal()
+
+
+@pytest.mark.parametrize("std", [None, 0.3])
+def test_a_months_draws_at_once_for_runs_in_lockstep(std):
+    """Runs in lockstep with systems of their own: each block of days gets its run's draws,
+    the numbers of the Python loop's hour-by-hour draws through :class:`RunBlocks`."""
+    from mpcrl_lite.sim.closed_loop import _draw_noise, _month_draws
+
+    systems = [SYSTEM, SystemConfig(noise_mean=0.2, noise_var=0.25)]
+    H, D, n = 24, 6, SYSTEM.n
+
+    def blocks():
+        return RunBlocks([np.random.default_rng(s) for s in (5, 6)], systems)
+
+    hourly, at_once = blocks(), blocks()
+    e, noise = ([] if std else None), []
+    for _ in range(H):
+        if std:
+            e.append(std * hourly.standard_normal((D, n)))
+        noise.append(_draw_noise(hourly, (D, n), SYSTEM))
+    e_all, noise_all = _month_draws(at_once, (H, D, n), SYSTEM, std)
+    np.testing.assert_array_equal(noise_all, np.array(noise))
+    assert not np.array_equal(noise_all[:, :3], noise_all[:, 3:])
+    if std:
+        np.testing.assert_array_equal(e_all, np.array(e))
+    else:
+        assert e_all is None
+    for a, b in zip(hourly.rngs, at_once.rngs, strict=True):
+        assert a.standard_normal() == b.standard_normal()
