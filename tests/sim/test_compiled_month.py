@@ -274,6 +274,27 @@ def test_every_kind_of_month_calls_one_compiled_version(monkeypatch, solver):
     assert len(month.month_parallel.signatures) == 1
 
 
+def _same_draws(hourly, at_once, shape, system, std) -> np.ndarray:
+    """Assert that :func:`_month_draws` from ``at_once`` gives the Python loop's hour-by-hour
+    draws from ``hourly`` (the exploration, then the noise, every hour) to the last bit;
+    returns the noise."""
+    from mpcrl_lite.sim.closed_loop import _draw_noise, _month_draws
+
+    H, D, n = shape
+    e, noise = ([] if std else None), []
+    for _ in range(H):
+        if std:
+            e.append(std * hourly.standard_normal((D, n)))
+        noise.append(_draw_noise(hourly, (D, n), system))
+    e_all, noise_all = _month_draws(at_once, shape, system, std)
+    np.testing.assert_array_equal(noise_all, np.array(noise))
+    if std:
+        np.testing.assert_array_equal(e_all, np.array(e))
+    else:
+        assert e_all is None
+    return noise_all
+
+
 @pytest.mark.parametrize("system", [SYSTEM, SystemConfig(noise_mean=(0.1, 0.0, -0.05),
                                                          noise_var=(1.0, 0.5, 0.25))])
 @pytest.mark.parametrize("std", [None, 0.3])
@@ -281,21 +302,8 @@ def test_a_months_draws_at_once_are_the_hours_draws(system, std):
     """The compiled month draws its exploration and noise in one call of the generator: the
     numbers of the Python loop's hour-by-hour draws to the last bit, and the generator left
     where the loop leaves it."""
-    from mpcrl_lite.sim.closed_loop import _draw_noise, _month_draws
-
-    H, D, n = 24, 7, system.n
     hourly, at_once = np.random.default_rng(11), np.random.default_rng(11)
-    e, noise = ([] if std else None), []
-    for _ in range(H):
-        if std:
-            e.append(std * hourly.standard_normal((D, n)))
-        noise.append(_draw_noise(hourly, (D, n), system))
-    e_all, noise_all = _month_draws(at_once, (H, D, n), system, std)
-    np.testing.assert_array_equal(noise_all, np.array(noise))
-    if std:
-        np.testing.assert_array_equal(e_all, np.array(e))
-    else:
-        assert e_all is None
+    _same_draws(hourly, at_once, (24, 7, system.n), system, std)
     assert hourly.standard_normal() == at_once.standard_normal()
 
 
@@ -303,26 +311,13 @@ def test_a_months_draws_at_once_are_the_hours_draws(system, std):
 def test_a_months_draws_at_once_for_runs_in_lockstep(std):
     """Runs in lockstep with systems of their own: each block of days gets its run's draws,
     the numbers of the Python loop's hour-by-hour draws through :class:`RunBlocks`."""
-    from mpcrl_lite.sim.closed_loop import _draw_noise, _month_draws
-
     systems = [SYSTEM, SystemConfig(noise_mean=0.2, noise_var=0.25)]
-    H, D, n = 24, 6, SYSTEM.n
 
     def blocks():
         return RunBlocks([np.random.default_rng(s) for s in (5, 6)], systems)
 
     hourly, at_once = blocks(), blocks()
-    e, noise = ([] if std else None), []
-    for _ in range(H):
-        if std:
-            e.append(std * hourly.standard_normal((D, n)))
-        noise.append(_draw_noise(hourly, (D, n), SYSTEM))
-    e_all, noise_all = _month_draws(at_once, (H, D, n), SYSTEM, std)
-    np.testing.assert_array_equal(noise_all, np.array(noise))
-    assert not np.array_equal(noise_all[:, :3], noise_all[:, 3:])
-    if std:
-        np.testing.assert_array_equal(e_all, np.array(e))
-    else:
-        assert e_all is None
+    noise = _same_draws(hourly, at_once, (24, 6, SYSTEM.n), SYSTEM, std)
+    assert not np.array_equal(noise[:, :3], noise[:, 3:])
     for a, b in zip(hourly.rngs, at_once.rngs, strict=True):
         assert a.standard_normal() == b.standard_normal()
